@@ -1,0 +1,74 @@
+"""The event-triggered network: one rule for held broadcasts, timers and relative views.
+
+These are pure functions (arrays in, arrays out). They work unchanged on NumPy arrays and
+on PyTorch tensors, so the environment uses them to advance the network and the policy
+uses them to rebuild every agent's networked observation from a stored observation and a
+vector of options. The agent axis is the second-to-last axis of ``held``/``current``
+and the last axis of ``comm``; any leading axes (environments, time) broadcast.
+
+Notation follows the method reference (Kesper, Trimpe and Baumann, L4DC 2023, Sec. 2):
+``o_i[k]`` option (1 = broadcast), ``m_i[k]`` message, ``x~_i[k]`` held broadcast,
+``tau_i[k]`` age of information.
+"""
+
+from __future__ import annotations
+
+from typing import TypeVar
+
+import numpy as np
+
+ArrayT = TypeVar("ArrayT")
+
+
+def hold(held: ArrayT, current: ArrayT, comm: ArrayT) -> ArrayT:
+    """Zero-order hold of broadcasts.
+
+    ``x~_i[k] = m_i[k] if o_i[k] = 1 else x~_i[k-1]`` (held broadcast state, Sec. 2).
+
+    The blend ``held * (1 - o) + current * o`` is exact for ``o`` in {0, 1} and finite
+    values, and needs no backend-specific ``where``.
+
+    :param held: held broadcasts before this step, shape (..., N, d)
+    :param current: what every agent would broadcast now, shape (..., N, d)
+    :param comm: options of this step in {0, 1}, shape (..., N)
+    :return: held broadcasts after this step's broadcasts, shape (..., N, d)
+    """
+    o = comm[..., None]
+    return held * (1 - o) + current * o
+
+
+def advance_timer(age: ArrayT, comm: ArrayT) -> ArrayT:
+    """Age of information.
+
+    ``tau_i[k] = 0 if o_i[k] = 1 else tau_i[k-1] + 1`` (timer, Sec. 2).
+
+    :param age: timers before this step, shape (..., N, 1)
+    :param comm: options of this step in {0, 1}, shape (..., N)
+    :return: timers after this step's broadcasts, shape (..., N, 1)
+    """
+    return (age + 1) * (1 - comm[..., None])
+
+
+def others_index(n_agents: int) -> np.ndarray:
+    """Index of the other agents, row ``i`` lists ``j != i`` in increasing order.
+
+    :param n_agents: number of agents N (at least 2)
+    :return: integer array of shape (N, N - 1)
+    """
+    idx = np.arange(n_agents)
+    return np.stack([np.delete(idx, i) for i in range(n_agents)])
+
+
+def relative_views(held: ArrayT, own: ArrayT, others: ArrayT) -> ArrayT:
+    """What every agent sees of the others: their held broadcasts relative to its own message.
+
+    Receivers compute ``x~_j - m_i`` themselves, with their own *current* message
+    (networked observation ``x^_i``, Sec. 2), so a stale broadcast stays stale in
+    absolute terms while the receiver's own motion is always up to date.
+
+    :param held: held broadcasts of all agents, shape (..., N, d)
+    :param own: current messages of all agents, shape (..., N, d)
+    :param others: index from :func:`others_index`, shape (N, N - 1)
+    :return: shape (..., N, N - 1, d); entry ``[i, k]`` is agent ``others[i, k]`` seen by ``i``
+    """
+    return held[..., others, :] - own[..., :, None, :]

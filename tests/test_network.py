@@ -1,0 +1,99 @@
+"""The broadcast/hold/timer rule against a direct reading of its definition."""
+
+import numpy as np
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
+
+from sb3_detc.network import advance_timer, hold, others_index, relative_views
+
+
+def reference_network(messages: np.ndarray, options: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Held broadcasts and ages after the last step, read off the whole history.
+
+    ``messages`` (T + 1, N, d): message at reset (counts as received) and at steps 0..T-1.
+    ``options`` (T, N).
+    """
+    n_steps, n_agents = options.shape
+    held = np.empty(messages.shape[1:])
+    age = np.empty((n_agents, 1))
+    for i in range(n_agents):
+        sent = np.flatnonzero(options[:, i])
+        if sent.size:
+            last = sent[-1]
+            held[i], age[i] = messages[last + 1, i], n_steps - 1 - last
+        else:
+            held[i], age[i] = messages[0, i], n_steps
+    return held, age
+
+
+@st.composite
+def histories(draw):
+    n_agents = draw(st.integers(2, 6))
+    n_steps = draw(st.integers(1, 30))
+    dim = draw(st.integers(1, 4))
+    finite = st.floats(-1e6, 1e6, allow_nan=False, width=64)
+    messages = draw(arrays(np.float64, (n_steps + 1, n_agents, dim), elements=finite))
+    options = draw(arrays(np.int64, (n_steps, n_agents), elements=st.integers(0, 1)))
+    return messages, options
+
+
+@settings(max_examples=200, deadline=None)
+@given(histories())
+def test_held_is_message_at_last_broadcast_and_age_counts_steps(history):
+    messages, options = history
+    held, age = messages[0].copy(), np.zeros((messages.shape[1], 1))
+    for k, comm in enumerate(options):
+        held = hold(held, messages[k + 1], comm)
+        age = advance_timer(age, comm)
+    expected_held, expected_age = reference_network(messages, options)
+    np.testing.assert_array_equal(held, expected_held)  # exact, not approximately
+    np.testing.assert_array_equal(age, expected_age)
+
+
+@settings(max_examples=50, deadline=None)
+@given(histories())
+def test_numpy_and_torch_give_identical_results(history):
+    messages, options = history
+    held_np, age_np = messages[0], np.zeros((messages.shape[1], 1))
+    held_t, age_t = torch.as_tensor(messages[0]), torch.zeros(messages.shape[1], 1, dtype=torch.float64)
+    for k, comm in enumerate(options):
+        held_np, age_np = hold(held_np, messages[k + 1], comm), advance_timer(age_np, comm)
+        comm_t = torch.as_tensor(comm, dtype=torch.float64)
+        held_t = hold(held_t, torch.as_tensor(messages[k + 1]), comm_t)
+        age_t = advance_timer(age_t, comm_t)
+    np.testing.assert_array_equal(held_t.numpy(), held_np)
+    np.testing.assert_array_equal(age_t.numpy(), age_np)
+
+
+def test_rule_broadcasts_over_leading_axes():
+    rng = np.random.default_rng(0)
+    held, current = rng.normal(size=(5, 7, 3, 2)), rng.normal(size=(5, 7, 3, 2))
+    comm = rng.integers(0, 2, size=(5, 7, 3))
+    out = hold(held, current, comm)
+    for idx in np.ndindex(5, 7, 3):
+        np.testing.assert_array_equal(out[idx], current[idx] if comm[idx] else held[idx])
+    age = rng.integers(0, 9, size=(5, 7, 3, 1)).astype(float)
+    np.testing.assert_array_equal(advance_timer(age, comm)[..., 0], np.where(comm == 1, 0, age[..., 0] + 1))
+
+
+def test_others_index_lists_every_other_agent_once():
+    for n in (2, 3, 7):
+        idx = others_index(n)
+        assert idx.shape == (n, n - 1)
+        for i in range(n):
+            assert sorted(idx[i]) == [j for j in range(n) if j != i]
+
+
+def test_relative_views_subtract_the_receivers_own_message():
+    rng = np.random.default_rng(1)
+    held, own = rng.normal(size=(4, 3)), rng.normal(size=(4, 3))
+    others = others_index(4)
+    views = relative_views(held, own, others)
+    assert views.shape == (4, 3, 3)
+    for i in range(4):
+        for k, j in enumerate(others[i]):
+            np.testing.assert_array_equal(views[i, k], held[j] - own[i])
+    views_t = relative_views(torch.as_tensor(held), torch.as_tensor(own), torch.as_tensor(others))
+    np.testing.assert_array_equal(views_t.numpy(), views)
