@@ -134,12 +134,14 @@ class CommunicatingSystem(ParallelEnv):
         missing = set(self.agents) - set(actions)
         if self.agents and missing:
             raise ValueError(f"actions are missing for agents {sorted(missing)}.")
-        control = np.stack([np.asarray(actions[a], dtype=np.float64) for a in self.possible_agents]) if self.agents else None
+        control = (
+            np.stack([np.asarray(actions[a], dtype=np.float64) for a in self.possible_agents]) if self.agents else None
+        )
         obs, rewards, terminated, truncated, info = self.step_arrays(control)
         names = self.possible_agents
         return (
             self._per_agent(obs.local),
-            {a: float(r) for a, r in zip(names, rewards)},
+            {a: float(r) for a, r in zip(names, rewards, strict=True)},
             dict.fromkeys(names, terminated),
             dict.fromkeys(names, truncated),
             {a: dict(info) for a in names},

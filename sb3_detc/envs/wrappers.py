@@ -169,10 +169,12 @@ class EventTriggeredNetwork(BaseParallelWrapper):
             raise ValueError(f"comm options must be 0 (silent) or 1 (broadcast), got {comm.tolist()}.")
         comm = comm.astype(np.int64)
         before = self.system.last_obs
-        self.held = hold(self.held, before.message, comm)
-        self.age = advance_timer(self.age, comm)
-        self.trigger_held = hold(self.trigger_held, self._trigger_of(before), comm)
+        held = hold(self.held, before.message, comm)
+        trigger_held = hold(self.trigger_held, self._trigger_of(before), comm)
+        # The system checks the controls; the network changes only once the step succeeded.
         obs, control_rewards, terminated, truncated, info = self.system.step_arrays(control)
+        self.held, self.trigger_held = held, trigger_held
+        self.age = advance_timer(self.age, comm)
         self.broadcasts += comm
         rewards = control_rewards - self.comm_cost * comm
         if terminated or truncated:
@@ -224,7 +226,7 @@ class EventTriggeredNetwork(BaseParallelWrapper):
         }
         return (
             self.agent_views(obs),
-            {a: float(r) for a, r in zip(names, rewards)},
+            {a: float(r) for a, r in zip(names, rewards, strict=True)},
             dict.fromkeys(names, terminated),
             dict.fromkeys(names, truncated),
             agent_infos,

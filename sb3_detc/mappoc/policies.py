@@ -1,0 +1,580 @@
+"""Hybrid policies for MAPPOC: per agent a policy over options, a control policy and an option-value critic.
+
+For every agent ``i`` (Sec. 3 of the method reference):
+
+* ``mu_i(o_i | trigger_i, trigger_held_i)``: categorical over {silent, broadcast}
+  (policy over options, re-sampled every step: option termination ``beta = 1``);
+* ``pi_i(u_i | x^_i)``: Gaussian control policy with a state-independent log standard
+  deviation, evaluated on the networked observation ``x^_i`` *after* this step's
+  broadcasts (same-step delivery);
+* ``Q_i(s, o)``: option-value critic with one output per option, centralised during
+  training only (it also sees the true messages of all agents).
+
+All networks of all agents are evaluated by agent-batched layers (one batched matmul per
+layer, weights shaped (groups, in, out)); no Python loop over agents on the hot path.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from typing import Any, NamedTuple
+
+import numpy as np
+import torch as th
+from gymnasium import spaces
+from stable_baselines3.common.policies import BasePolicy
+from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
+from torch import nn
+from torch.nn import functional as F
+
+from sb3_detc.envs.wrappers import JOINT_KEYS
+from sb3_detc.network import advance_timer, hold, others_index, relative_views
+
+#: Order of the networks inside the batched chains: the first two do not depend on this
+#: step's options and run before the options are sampled, ``pi`` runs after.
+NETS = ("mu", "q", "pi")
+
+
+class BatchedMLP(nn.Module):
+    """Independent MLPs of one hidden architecture, evaluated together with one ``baddbmm`` per layer.
+
+    Group ``g`` reads the first ``in_features[g]`` input columns and writes the first
+    ``out_features[g]`` output columns; the rest is zero padding whose weights stay zero
+    (their gradients are zero).
+
+    :param in_features: input width of every group
+    :param out_features: output width of every group
+    :param hidden: hidden layer sizes (common to all groups)
+    :param activation_fn: activation class applied after every hidden layer
+    :param output_gains: orthogonal-init gain of every group's output layer
+    :param hidden_gain: orthogonal-init gain of the hidden layers
+    """
+
+    def __init__(
+        self,
+        in_features: Sequence[int],
+        out_features: Sequence[int],
+        hidden: Sequence[int],
+        activation_fn: type[nn.Module],
+        output_gains: Sequence[float],
+        hidden_gain: float = math.sqrt(2),
+    ) -> None:
+        super().__init__()
+        self.in_features = list(in_features)
+        self.out_features = list(out_features)
+        self.activation = activation_fn()
+        self.activation_fn = activation_fn
+        sizes = [max(self.in_features), *hidden, max(self.out_features)]
+        n_groups, n_layers = len(self.in_features), len(sizes) - 1
+        self.weights = nn.ParameterList()
+        self.biases = nn.ParameterList()
+        for layer in range(n_layers):
+            weight = th.zeros(n_groups, sizes[layer], sizes[layer + 1])
+            for g in range(n_groups):
+                rows = self.in_features[g] if layer == 0 else sizes[layer]
+                cols = self.out_features[g] if layer == n_layers - 1 else sizes[layer + 1]
+                gain = output_gains[g] if layer == n_layers - 1 else hidden_gain
+                block = th.empty(cols, rows)
+                nn.init.orthogonal_(block, gain=gain)
+                weight[g, :rows, :cols] = block.T
+            self.weights.append(nn.Parameter(weight))
+            self.biases.append(nn.Parameter(th.zeros(n_groups, 1, sizes[layer + 1])))
+
+    def forward(self, x: th.Tensor, start: int = 0, stop: int | None = None) -> th.Tensor:
+        """Evaluate groups ``start:stop``.
+
+        :param x: inputs, shape (groups, batch, max input width)
+        :param start: first group
+        :param stop: one past the last group (None: all)
+        :return: outputs, shape (groups, batch, max output width)
+        """
+        last = len(self.weights) - 1
+        for layer, (weight, bias) in enumerate(zip(self.weights, self.biases, strict=True)):
+            x = th.baddbmm(bias[start:stop], x, weight[start:stop])
+            if layer < last:
+                x = self.activation(x)
+        return x
+
+    def extract(self, group: int) -> nn.Sequential:
+        """A standalone copy of one group's MLP made of ordinary ``nn.Linear`` layers.
+
+        :param group: index of the group
+        :return: the group's network, input width ``in_features[group]``
+        """
+        layers: list[nn.Module] = []
+        last = len(self.weights) - 1
+        for layer, (weight, bias) in enumerate(zip(self.weights, self.biases, strict=True)):
+            rows = self.in_features[group] if layer == 0 else weight.shape[1]
+            cols = self.out_features[group] if layer == last else weight.shape[2]
+            linear = nn.Linear(rows, cols)
+            with th.no_grad():
+                linear.weight.copy_(weight[group, :rows, :cols].T)
+                linear.bias.copy_(bias[group, 0, :cols])
+            layers.append(linear)
+            if layer < last:
+                layers.append(self.activation_fn())
+        return nn.Sequential(*layers)
+
+
+class HybridAction(NamedTuple):
+    """One joint hybrid action of all agents with what training needs about it."""
+
+    comm: th.Tensor  # (B, N) options, int64
+    control: th.Tensor  # (B, N, m) controls (with any extra exploration noise, unclipped)
+    log_prob_comm: th.Tensor  # (B, N) log mu_i(o_i)
+    log_prob_control: th.Tensor  # (B, N) log pi_i(u_i)
+    option_values: th.Tensor  # (B, N, 2) Q_i(s, o) for both options
+
+
+class HybridEvaluation(NamedTuple):
+    """Log-probabilities, option entropy and option values of stored hybrid actions."""
+
+    log_prob_comm: th.Tensor  # (B, N)
+    entropy_comm: th.Tensor  # (B, N)
+    log_prob_control: th.Tensor  # (B, N)
+    option_values: th.Tensor  # (B, N, 2)
+
+
+def gaussian_log_prob(x: th.Tensor, mean: th.Tensor, log_std: th.Tensor) -> th.Tensor:
+    """Log-density of a diagonal Gaussian, summed over the last axis."""
+    z = (x - mean) * th.exp(-log_std)
+    return (-0.5 * z.pow(2) - log_std - 0.5 * math.log(2 * math.pi)).sum(-1)
+
+
+class MlpHybridPolicy(BasePolicy):
+    """Per-agent policy over options, Gaussian control policy and centralised option-value critic.
+
+    :param observation_space: joint observation space of an event-triggered env (Dict with
+        keys ``local``, ``message``, ``held``, ``age``, ``trigger``, ``trigger_held``)
+    :param action_space: joint action space (Dict with ``comm`` MultiDiscrete and ``control`` Box)
+    :param lr_schedule: learning rate schedule
+    :param net_arch: hidden layer sizes, either one list for all networks or a dict with keys
+        ``mu``, ``pi`` and ``q`` (default: three layers of 96 units, as in the paper)
+    :param activation_fn: activation function of the hidden layers
+    :param log_std_init: initial log standard deviation of the control policies (paper: -0.7)
+    :param learn_log_std: whether the log standard deviation is trained (the paper keeps it constant)
+    :param share_parameters: one network set for all agents with a one-hot agent id input
+        (default: every agent has its own networks, as in the paper)
+    :param age_scale: factor applied to ages of information (in steps) before they enter a network
+    :param ortho_init: orthogonal initialisation (otherwise PyTorch's default init)
+    :param use_sde: not supported, must be False (present for SB3 compatibility)
+    :param optimizer_class: optimizer class
+    :param optimizer_kwargs: optimizer keyword arguments, excluding the learning rate
+        (default ``eps=1e-5`` as in the paper's code)
+    """
+
+    def __init__(
+        self,
+        observation_space: spaces.Dict,
+        action_space: spaces.Dict,
+        lr_schedule: Schedule,
+        net_arch: list[int] | dict[str, list[int]] | None = None,
+        activation_fn: type[nn.Module] = nn.Tanh,
+        log_std_init: float = -0.7,
+        learn_log_std: bool = False,
+        share_parameters: bool = False,
+        age_scale: float = 0.1,
+        ortho_init: bool = True,
+        use_sde: bool = False,
+        optimizer_class: type[th.optim.Optimizer] = th.optim.Adam,
+        optimizer_kwargs: dict[str, Any] | None = None,
+    ) -> None:
+        if use_sde:
+            raise ValueError("MlpHybridPolicy does not support gSDE (use_sde=True).")
+        n_agents, n_control = check_joint_spaces(observation_space, action_space)
+        if optimizer_kwargs is None:
+            optimizer_kwargs = {"eps": 1e-5}
+        super().__init__(
+            observation_space,
+            action_space,
+            optimizer_class=optimizer_class,
+            optimizer_kwargs=optimizer_kwargs,
+            squash_output=False,
+        )
+        self.n_agents = n_agents
+        self.n_control = n_control
+        self.net_arch = net_arch
+        self.activation_fn = activation_fn
+        self.log_std_init = log_std_init
+        self.learn_log_std = learn_log_std
+        self.share_parameters = share_parameters
+        self.age_scale = age_scale
+        self.ortho_init = ortho_init
+
+        n_local = observation_space["local"].shape[1]
+        n_msg = observation_space["message"].shape[1]
+        n_trig = observation_space["trigger"].shape[1]
+        n = n_agents
+        self.register_buffer("others", th.as_tensor(others_index(n)), persistent=False)
+        self.register_buffer("everyone", th.arange(n).repeat(n, 1), persistent=False)
+        self.register_buffer("agent_id", th.eye(n), persistent=False)
+        self.register_buffer("control_low", th.as_tensor(action_space["control"].low), persistent=False)
+        self.register_buffer("control_high", th.as_tensor(action_space["control"].high), persistent=False)
+        n_id = n if share_parameters else 0
+        self.in_features = {
+            "mu": 2 * n_trig + n_id,
+            "q": n_local + n * (n_msg + 1) + (n - 1) * n_msg + n_id,
+            "pi": n_local + (n - 1) * (n_msg + 1) + n_id,
+        }
+        self.out_features = {"mu": 2, "q": 2, "pi": n_control}
+        self._build(lr_schedule)
+
+    # ------------------------------------------------------------------ building
+    def _arch(self, net: str) -> tuple[int, ...]:
+        arch = self.net_arch if self.net_arch is not None else [96, 96, 96]
+        if isinstance(arch, dict):
+            if set(arch) != set(NETS):
+                raise ValueError(f"net_arch as a dict needs exactly the keys {sorted(NETS)}, got {sorted(arch)}.")
+            arch = arch[net]
+        if not all(isinstance(h, int) and h > 0 for h in arch):
+            raise ValueError(f"net_arch must list positive layer sizes, got {arch!r}.")
+        return tuple(arch)
+
+    def _build(self, lr_schedule: Schedule) -> None:
+        groups = 1 if self.share_parameters else self.n_agents
+        gains = {"mu": 0.01, "q": 1.0, "pi": 0.01}
+        # Networks with the same hidden architecture share one batched chain.
+        by_arch: dict[tuple[int, ...], list[str]] = {}
+        for net in NETS:
+            by_arch.setdefault(self._arch(net), []).append(net)
+        self.chains = nn.ModuleList()
+        self._where: dict[str, tuple[int, int, int]] = {}  # net -> (chain, first group, stop)
+        for hidden, nets in by_arch.items():
+            ins, outs, out_gains = [], [], []
+            for net in nets:
+                self._where[net] = (len(self.chains), len(ins), len(ins) + groups)
+                ins += [self.in_features[net]] * groups
+                outs += [self.out_features[net]] * groups
+                out_gains += [gains[net] if self.ortho_init else 1.0] * groups
+            chain = BatchedMLP(ins, outs, hidden, self.activation_fn, out_gains)
+            if not self.ortho_init:
+                for weight in chain.weights:
+                    nn.init.normal_(weight, std=1.0 / math.sqrt(weight.shape[1]))
+            self.chains.append(chain)
+        log_std = th.full((groups, self.n_control), float(self.log_std_init))
+        self.log_std = nn.Parameter(log_std, requires_grad=self.learn_log_std)
+        params = [p for p in self.parameters() if p.requires_grad]
+        self.optimizer = self.optimizer_class(params, lr=lr_schedule(1), **self.optimizer_kwargs)
+
+    def _get_constructor_parameters(self) -> dict[str, Any]:
+        data = super()._get_constructor_parameters()
+        data.update(
+            net_arch=self.net_arch,
+            activation_fn=self.activation_fn,
+            log_std_init=self.log_std_init,
+            learn_log_std=self.learn_log_std,
+            share_parameters=self.share_parameters,
+            age_scale=self.age_scale,
+            ortho_init=self.ortho_init,
+            optimizer_class=self.optimizer_class,
+            optimizer_kwargs=self.optimizer_kwargs,
+        )
+        return data
+
+    # ------------------------------------------------------------------ features
+    def network_after(self, obs: PyTorchObs, comm: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
+        """Held broadcasts and timers after this step's options (the rule of :mod:`sb3_detc.network`).
+
+        :param obs: joint observation, tensors shaped (B, N, ...)
+        :param comm: options (B, N)
+        :return: held broadcasts (B, N, n_msg) and timers (B, N, 1)
+        """
+        comm = comm.to(obs["held"].dtype)
+        return hold(obs["held"], obs["message"], comm), advance_timer(obs["age"], comm)
+
+    def option_features(self, obs: PyTorchObs) -> th.Tensor:
+        """Inputs of ``mu_i``: trigger features now and at the own last broadcast, (B, N, 2 n_trig)."""
+        return th.cat([obs["trigger"], obs["trigger_held"]], dim=-1)
+
+    def control_features(self, obs: PyTorchObs, comm: th.Tensor) -> th.Tensor:
+        """Inputs of ``pi_i``: networked observation ``x^_i`` after this step's broadcasts.
+
+        Own local state, the others' held broadcasts relative to the own current message
+        and their ages (Sec. 2, networked observation).
+
+        :param obs: joint observation (B, N, ...)
+        :param comm: options (B, N)
+        :return: (B, N, n_local + (N - 1) (n_msg + 1))
+        """
+        held, age = self.network_after(obs, comm)
+        views = relative_views(held, obs["message"], self.others).flatten(2)
+        ages = age[:, self.others, 0] * self.age_scale
+        return th.cat([obs["local"], views, ages], dim=-1)
+
+    def critic_features(self, obs: PyTorchObs) -> th.Tensor:
+        """Inputs of ``Q_i``: the network state before this step's options, plus the true messages.
+
+        Own local state, every agent's held broadcast (the own one included: what the
+        others believe about agent ``i``) relative to the own message, every age, and the
+        others' true current messages relative to the own one (centralised training).
+
+        :param obs: joint observation (B, N, ...)
+        :return: (B, N, n_local + N (n_msg + 1) + (N - 1) n_msg)
+        """
+        held = relative_views(obs["held"], obs["message"], self.everyone).flatten(2)
+        ages = obs["age"][:, self.everyone, 0] * self.age_scale
+        true = relative_views(obs["message"], obs["message"], self.others).flatten(2)
+        return th.cat([obs["local"], held, ages, true], dim=-1)
+
+    def _run(self, inputs: dict[str, th.Tensor]) -> dict[str, th.Tensor]:
+        """Evaluate the named networks of all agents; inputs and outputs shaped (B, N, features)."""
+        batch = next(iter(inputs.values())).shape[0]
+        outputs: dict[str, th.Tensor] = {}
+        for c, chain in enumerate(self.chains):
+            nets = [net for net in NETS if net in inputs and self._where[net][0] == c]
+            if not nets:
+                continue
+            width = max(chain.in_features)
+            grouped = [self._to_groups(inputs[net]) for net in nets]
+            stacked = th.cat([F.pad(x, (0, width - x.shape[-1])) for x in grouped])
+            start, stop = self._where[nets[0]][1], self._where[nets[-1]][2]
+            out = chain(stacked, start, stop)
+            groups = self._where[nets[0]][2] - self._where[nets[0]][1]
+            for k, net in enumerate(nets):
+                block = out[k * groups : (k + 1) * groups, :, : self.out_features[net]]
+                outputs[net] = self._from_groups(block, batch)
+        return outputs
+
+    def _to_groups(self, x: th.Tensor) -> th.Tensor:
+        if self.share_parameters:
+            ids = self.agent_id.expand(x.shape[0], -1, -1)
+            return th.cat([x, ids], dim=-1).reshape(1, -1, x.shape[-1] + self.n_agents)
+        return x.transpose(0, 1)
+
+    def _from_groups(self, y: th.Tensor, batch: int) -> th.Tensor:
+        if self.share_parameters:
+            return y.reshape(batch, self.n_agents, -1)
+        return y.transpose(0, 1)
+
+    # ------------------------------------------------------------------ acting
+    def forward(
+        self,
+        obs: PyTorchObs,
+        deterministic: bool = False,
+        comm: th.Tensor | None = None,
+        action_noise_std: float = 0.0,
+    ) -> HybridAction:
+        """Sample all options, deliver the broadcasts, then sample all controls (same-step delivery).
+
+        :param obs: joint observation (B, N, ...)
+        :param deterministic: mode of ``mu`` and mean of ``pi`` instead of samples
+        :param comm: options to use instead of sampling them from ``mu`` (e.g. a baseline's)
+        :param action_noise_std: standard deviation of extra Gaussian exploration noise added
+            to the sampled controls (curriculum); log-probabilities refer to the noisy controls
+        :return: the hybrid action with its log-probabilities and the option values
+        """
+        out = self._run({"mu": self.option_features(obs), "q": self.critic_features(obs)})
+        logits = out["mu"]
+        if comm is None:
+            if deterministic:
+                comm = logits.argmax(-1)
+            else:
+                comm = th.distributions.Categorical(logits=logits).sample()
+        comm = comm.long()
+        mean = self._run({"pi": self.control_features(obs, comm)})["pi"]
+        log_std = self.log_std.expand(self.n_agents, -1)
+        control = mean
+        if not deterministic:
+            control = mean + th.randn_like(mean) * log_std.exp()
+        if action_noise_std > 0:
+            control = control + th.randn_like(mean) * action_noise_std
+        log_prob_comm = F.log_softmax(logits, dim=-1).gather(-1, comm[..., None])[..., 0]
+        return HybridAction(comm, control, log_prob_comm, gaussian_log_prob(control, mean, log_std), out["q"])
+
+    def evaluate_actions(self, obs: PyTorchObs, comm: th.Tensor, control: th.Tensor) -> HybridEvaluation:
+        """Evaluate stored hybrid actions with the current networks (one pass through all chains).
+
+        :param obs: joint observations (B, N, ...) from before the options
+        :param comm: stored options (B, N)
+        :param control: stored controls (B, N, m)
+        """
+        out = self._run(
+            {
+                "mu": self.option_features(obs),
+                "q": self.critic_features(obs),
+                "pi": self.control_features(obs, comm),
+            }
+        )
+        log_p = F.log_softmax(out["mu"], dim=-1)
+        log_prob_comm = log_p.gather(-1, comm.long()[..., None])[..., 0]
+        entropy = -(log_p.exp() * log_p).sum(-1)
+        log_std = self.log_std.expand(self.n_agents, -1)
+        return HybridEvaluation(log_prob_comm, entropy, gaussian_log_prob(control, out["pi"], log_std), out["q"])
+
+    def state_values(self, obs: PyTorchObs) -> th.Tensor:
+        """Option-value critic averaged under the policy over options, ``V_i(s) = sum_o mu_i(o) Q_i(s, o)``.
+
+        :param obs: joint observation (B, N, ...)
+        :return: values (B, N)
+        """
+        out = self._run({"mu": self.option_features(obs), "q": self.critic_features(obs)})
+        return (F.softmax(out["mu"], dim=-1) * out["q"]).sum(-1)
+
+    def _predict(self, observation: PyTorchObs, deterministic: bool = False) -> th.Tensor:
+        """Options and controls side by side, (B, N, 1 + m); :meth:`predict` returns them as a Dict."""
+        action = self.forward(observation, deterministic=deterministic)
+        return th.cat([action.comm[..., None].to(action.control.dtype), action.control], dim=-1)
+
+    def predict(
+        self,
+        observation: dict[str, np.ndarray],
+        state: tuple[np.ndarray, ...] | None = None,
+        episode_start: np.ndarray | None = None,
+        deterministic: bool = False,
+    ) -> tuple[dict[str, np.ndarray] | list[dict[str, np.ndarray]], tuple[np.ndarray, ...] | None]:
+        """Joint hybrid action(s) for joint observation(s).
+
+        :param observation: one joint observation or a batch of them (from a VecEnv)
+        :param state: unused (no recurrent state), returned as is
+        :param episode_start: unused
+        :param deterministic: mode of ``mu`` and mean of ``pi``
+        :return: ``{"comm": (N,), "control": (N, m)}`` for one observation, or a list of
+            such dicts, one per environment, for a batch (what a VecEnv's ``step`` takes);
+            controls are clipped to the action bounds
+        """
+        self.set_training_mode(False)
+        obs_tensor, vectorized = self.obs_to_tensor(observation)
+        with th.no_grad():
+            joint = self._predict(obs_tensor, deterministic=deterministic)
+        comm = joint[..., 0].long().cpu().numpy()
+        control = th.clamp(joint[..., 1:], self.control_low, self.control_high).cpu().numpy()
+        actions = [{"comm": c, "control": u} for c, u in zip(comm, control, strict=True)]
+        return (actions if vectorized else actions[0]), state
+
+    def agent_controller(self, agent: int) -> AgentController:
+        """Agent ``agent``'s policy over options and control policy as a small standalone controller.
+
+        :param agent: index of the agent
+        :return: a controller that needs only what the agent itself receives
+        """
+        if not 0 <= agent < self.n_agents:
+            raise ValueError(f"agent must be in [0, {self.n_agents}), got {agent}.")
+        group = 0 if self.share_parameters else agent
+        nets = {}
+        for net in ("mu", "pi"):
+            chain_idx, start, _ = self._where[net]
+            nets[net] = self.chains[chain_idx].extract(start + group)
+        return AgentController(
+            option_net=nets["mu"],
+            control_net=nets["pi"],
+            log_std=self.log_std[group].detach().clone(),
+            agent=agent,
+            n_agents=self.n_agents,
+            age_scale=self.age_scale,
+            agent_id=self.agent_id[agent].clone() if self.share_parameters else None,
+            control_low=self.control_low[agent].clone(),
+            control_high=self.control_high[agent].clone(),
+        )
+
+
+class AgentController(nn.Module):
+    """One agent's executable policies, fed only with what this agent receives.
+
+    Decentralised execution in two phases per step: :meth:`decide` whether to broadcast
+    (from the own trigger features), then, after the step's broadcasts were exchanged,
+    :meth:`act` on the own local state and the others' held broadcasts relative to the own
+    message, with their ages. The controller keeps no state.
+
+    :param option_net: the agent's ``mu`` network (trigger features -> 2 logits)
+    :param control_net: the agent's ``pi`` mean network
+    :param log_std: log standard deviation of the control policy (m,)
+    :param agent: index of the agent
+    :param n_agents: number of agents N
+    :param age_scale: factor applied to ages before they enter the network
+    :param agent_id: one-hot id input for shared-parameter policies, else None
+    :param control_low: lower control bounds (m,)
+    :param control_high: upper control bounds (m,)
+    """
+
+    def __init__(
+        self,
+        option_net: nn.Module,
+        control_net: nn.Module,
+        log_std: th.Tensor,
+        agent: int,
+        n_agents: int,
+        age_scale: float,
+        agent_id: th.Tensor | None,
+        control_low: th.Tensor,
+        control_high: th.Tensor,
+    ) -> None:
+        super().__init__()
+        self.option_net = option_net
+        self.control_net = control_net
+        self.agent = agent
+        self.n_agents = n_agents
+        self.age_scale = age_scale
+        self.register_buffer("log_std", log_std)
+        self.register_buffer("agent_id", agent_id if agent_id is not None else th.zeros(0))
+        self.register_buffer("control_low", control_low)
+        self.register_buffer("control_high", control_high)
+
+    def _with_id(self, x: th.Tensor) -> th.Tensor:
+        return th.cat([x, self.agent_id.to(x.dtype)])
+
+    @th.no_grad()
+    def decide(self, trigger: np.ndarray, trigger_held: np.ndarray, deterministic: bool = True) -> bool:
+        """Whether to broadcast now.
+
+        :param trigger: own trigger features now (n_trig,)
+        :param trigger_held: own trigger features at the own last broadcast (n_trig,)
+        :param deterministic: the most likely option instead of a sample
+        """
+        x = th.as_tensor(np.concatenate([trigger, trigger_held]), dtype=th.float32)
+        logits = self.option_net(self._with_id(x))
+        if deterministic:
+            return bool(logits.argmax() == 1)
+        return bool(th.distributions.Categorical(logits=logits).sample() == 1)
+
+    @th.no_grad()
+    def act(
+        self, local: np.ndarray, neighbours: np.ndarray, neighbour_age: np.ndarray, deterministic: bool = True
+    ) -> np.ndarray:
+        """Control from the own state and the others' held broadcasts after this step's exchange.
+
+        :param local: own local state (n_local,)
+        :param neighbours: the others' held broadcasts minus the own current message (N - 1, n_msg)
+        :param neighbour_age: the others' ages of information in steps (N - 1,)
+        :param deterministic: the mean control instead of a sample
+        :return: control (m,), clipped to the bounds
+        """
+        x = np.concatenate([local, np.ravel(neighbours), np.asarray(neighbour_age) * self.age_scale])
+        mean = self.control_net(self._with_id(th.as_tensor(x, dtype=th.float32)))
+        control = mean if deterministic else mean + th.randn_like(mean) * self.log_std.exp()
+        return th.clamp(control, self.control_low, self.control_high).numpy()
+
+
+def check_joint_spaces(observation_space: spaces.Space, action_space: spaces.Space) -> tuple[int, int]:
+    """Check that the spaces are those of a joint event-triggered env.
+
+    :param observation_space: observation space to check
+    :param action_space: action space to check
+    :return: number of agents N and control dimension m
+    :raises ValueError: naming what does not fit
+    """
+    hint = "use an env from sb3_detc (e.g. 'sb3_detc/LinearETC-v0') or wrap a system in JointEnv"
+    if not isinstance(observation_space, spaces.Dict) or set(observation_space.spaces) != set(JOINT_KEYS):
+        keys = sorted(observation_space.spaces) if isinstance(observation_space, spaces.Dict) else observation_space
+        raise ValueError(f"expected a Dict observation space with keys {sorted(JOINT_KEYS)}, got {keys}; {hint}.")
+    if (
+        not isinstance(action_space, spaces.Dict)
+        or set(action_space.spaces) != {"comm", "control"}
+        or not isinstance(action_space["comm"], spaces.MultiDiscrete)
+        or not isinstance(action_space["control"], spaces.Box)
+    ):
+        raise ValueError(
+            f"expected a Dict action space with 'comm' (MultiDiscrete) and 'control' (Box), got {action_space}; {hint}."
+        )
+    n_agents = len(action_space["comm"].nvec)
+    if not np.all(action_space["comm"].nvec == 2):
+        raise ValueError(f"'comm' must be MultiDiscrete([2] * N), got nvec {action_space['comm'].nvec}.")
+    control = action_space["control"]
+    if control.shape[0] != n_agents or len(control.shape) != 2:
+        raise ValueError(f"'control' must have shape (N={n_agents}, m), got {control.shape}.")
+    for key, space in observation_space.spaces.items():
+        if not isinstance(space, spaces.Box) or len(space.shape) != 2 or space.shape[0] != n_agents:
+            raise ValueError(f"observation '{key}' must be a Box of shape (N={n_agents}, features), got {space}.")
+    if observation_space["age"].shape[1] != 1:
+        raise ValueError(f"observation 'age' must have shape (N, 1), got {observation_space['age'].shape}.")
+    return n_agents, control.shape[1]
