@@ -16,4 +16,6 @@ for _env_id, _entry_point in _ENV_IDS.items():
     if _env_id not in gymnasium.registry:
         gymnasium.register(id=_env_id, entry_point=_entry_point)
 
-__all__ = ["__version__"]
+from sb3_detc.mappoc import MAPPOC, MlpHybridPolicy  # noqa: E402  (after the env ids are registered)
+
+__all__ = ["MAPPOC", "MlpHybridPolicy", "__version__"]

@@ -1,0 +1,174 @@
+"""Rollout buffer for hybrid (option, control) actions of several agents, with per-agent GAE."""
+
+from __future__ import annotations
+
+from collections.abc import Generator
+from typing import NamedTuple
+
+import numpy as np
+import torch as th
+from gymnasium import spaces
+from stable_baselines3.common.utils import get_device
+
+
+class HybridRolloutSamples(NamedTuple):
+    """A minibatch of hybrid transitions; B samples, N agents."""
+
+    observations: dict[str, th.Tensor]  # (B, N, ...) joint observations before the options
+    comm: th.Tensor  # (B, N) options taken
+    control: th.Tensor  # (B, N, m) controls taken (unclipped, with exploration noise)
+    old_log_prob_comm: th.Tensor  # (B, N)
+    old_log_prob_control: th.Tensor  # (B, N)
+    advantages: th.Tensor  # (B, N) GAE advantages
+    returns: th.Tensor  # (B, N) lambda-returns, targets of Q_i(s, o_taken)
+
+
+class HybridRolloutBuffer:
+    """On-policy storage of joint observations, options, controls and per-agent rewards.
+
+    Advantages follow the option-critic form of the method (Sec. 3): GAE with the value
+    of the *taken* option, ``delta_t = r_t + gamma Q(s_{t+1}, o_{t+1}) - Q(s_t, o_t)``,
+    per agent, cut at episode ends; truncated episodes are bootstrapped by the caller
+    (added to the reward, as SB3 does). The lambda-returns ``A + Q(s, o)`` are the
+    critic's regression targets.
+
+    :param buffer_size: steps per environment and rollout
+    :param observation_space: joint observation space (Dict of (N, ...) boxes)
+    :param action_space: joint action space (Dict with ``comm`` and ``control``)
+    :param device: PyTorch device of the sampled minibatches
+    :param gamma: discount factor
+    :param gae_lambda: GAE factor
+    :param n_envs: number of parallel environments
+    """
+
+    def __init__(
+        self,
+        buffer_size: int,
+        observation_space: spaces.Dict,
+        action_space: spaces.Dict,
+        device: th.device | str = "auto",
+        gamma: float = 0.99,
+        gae_lambda: float = 0.95,
+        n_envs: int = 1,
+    ) -> None:
+        self.buffer_size = buffer_size
+        self.observation_space = observation_space
+        self.action_space = action_space
+        self.device = get_device(device)
+        self.gamma = gamma
+        self.gae_lambda = gae_lambda
+        self.n_envs = n_envs
+        self.n_agents = len(action_space["comm"].nvec)
+        self.control_shape = action_space["control"].shape
+        self.reset()
+
+    def reset(self) -> None:
+        """Empty the buffer (storage is reused)."""
+        shape = (self.buffer_size, self.n_envs)
+        n = self.n_agents
+        self.observations = {
+            key: np.zeros(shape + space.shape, dtype=np.float32) for key, space in self.observation_space.spaces.items()
+        }
+        self.comm = np.zeros((*shape, n), dtype=np.int64)
+        self.control = np.zeros(shape + self.control_shape, dtype=np.float32)
+        self.rewards = np.zeros((*shape, n), dtype=np.float32)
+        self.episode_starts = np.zeros(shape, dtype=np.float32)
+        self.values = np.zeros((*shape, n), dtype=np.float32)
+        self.log_prob_comm = np.zeros((*shape, n), dtype=np.float32)
+        self.log_prob_control = np.zeros((*shape, n), dtype=np.float32)
+        self.advantages = np.zeros((*shape, n), dtype=np.float32)
+        self.returns = np.zeros((*shape, n), dtype=np.float32)
+        self.pos = 0
+        self.full = False
+
+    def size(self) -> int:
+        """Number of steps per environment stored."""
+        return self.buffer_size if self.full else self.pos
+
+    def add(
+        self,
+        obs: dict[str, np.ndarray],
+        comm: np.ndarray,
+        control: np.ndarray,
+        rewards: np.ndarray,
+        episode_start: np.ndarray,
+        values: np.ndarray,
+        log_prob_comm: np.ndarray,
+        log_prob_control: np.ndarray,
+    ) -> None:
+        """Store one step of all environments.
+
+        :param obs: joint observations before the options, (n_envs, N, ...) per key
+        :param comm: options (n_envs, N)
+        :param control: controls (n_envs, N, m)
+        :param rewards: per-agent rewards (n_envs, N), already scaled and bootstrapped at timeouts
+        :param episode_start: whether ``obs`` starts an episode (n_envs,)
+        :param values: ``Q_i(s, o_taken)`` (n_envs, N)
+        :param log_prob_comm: ``log mu_i(o_i)`` (n_envs, N)
+        :param log_prob_control: ``log pi_i(u_i)`` (n_envs, N)
+        """
+        if self.full:
+            raise RuntimeError("HybridRolloutBuffer is full; call reset() before adding.")
+        for key, value in obs.items():
+            self.observations[key][self.pos] = value
+        self.comm[self.pos] = comm
+        self.control[self.pos] = control
+        self.rewards[self.pos] = rewards
+        self.episode_starts[self.pos] = episode_start
+        self.values[self.pos] = values
+        self.log_prob_comm[self.pos] = log_prob_comm
+        self.log_prob_control[self.pos] = log_prob_control
+        self.pos += 1
+        self.full = self.pos == self.buffer_size
+
+    def compute_returns_and_advantage(self, last_values: np.ndarray, dones: np.ndarray) -> None:
+        """Per-agent GAE(lambda) over the stored rollout (Sec. 3).
+
+        :param last_values: value of the observation after the last step, (n_envs, N)
+        :param dones: whether the last step ended an episode, (n_envs,)
+        """
+        last_gae = np.zeros((self.n_envs, self.n_agents), dtype=np.float32)
+        for t in reversed(range(self.buffer_size)):
+            if t == self.buffer_size - 1:
+                next_non_terminal = 1.0 - np.asarray(dones, dtype=np.float32)
+                next_values = last_values
+            else:
+                next_non_terminal = 1.0 - self.episode_starts[t + 1]
+                next_values = self.values[t + 1]
+            alive = next_non_terminal[:, None]
+            delta = self.rewards[t] + self.gamma * next_values * alive - self.values[t]
+            last_gae = delta + self.gamma * self.gae_lambda * alive * last_gae
+            self.advantages[t] = last_gae
+        self.returns = self.advantages + self.values
+
+    def get(self, batch_size: int | None = None) -> Generator[HybridRolloutSamples, None, None]:
+        """Shuffled minibatches over all stored steps and environments.
+
+        :param batch_size: samples per minibatch (None: everything at once)
+        """
+        if not self.full:
+            raise RuntimeError("HybridRolloutBuffer.get needs a full buffer.")
+        total = self.buffer_size * self.n_envs
+
+        def flat(array: np.ndarray) -> th.Tensor:
+            return th.as_tensor(array.reshape(total, *array.shape[2:]), device=self.device)
+
+        observations = {key: flat(value) for key, value in self.observations.items()}
+        tensors = [
+            flat(a)
+            for a in (
+                self.comm,
+                self.control,
+                self.log_prob_comm,
+                self.log_prob_control,
+                self.advantages,
+                self.returns,
+            )
+        ]
+        batch_size = total if batch_size is None else batch_size
+        order = th.randperm(total, device=self.device)
+        for start in range(0, total, batch_size):
+            idx = order[start : start + batch_size]
+            yield HybridRolloutSamples(
+                {key: value[idx] for key, value in observations.items()}, *(t[idx] for t in tensors)
+            )

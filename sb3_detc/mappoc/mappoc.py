@@ -1,0 +1,483 @@
+"""MAPPOC: multi-agent PPO option-critic for learned event-triggered communication and control."""
+
+from __future__ import annotations
+
+import pathlib
+from collections.abc import Callable
+from typing import Any, ClassVar, TypeVar
+
+import numpy as np
+import torch as th
+from gymnasium import spaces
+from stable_baselines3.common.buffers import RolloutBuffer
+from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.on_policy_algorithm import OnPolicyAlgorithm
+from stable_baselines3.common.policies import BasePolicy
+from stable_baselines3.common.save_util import load_from_zip_file
+from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
+from stable_baselines3.common.utils import FloatSchedule, explained_variance, obs_as_tensor
+from stable_baselines3.common.vec_env import VecEnv
+
+from sb3_detc.envs.wrappers import EventTriggeredNetwork, JointEnv
+from sb3_detc.mappoc.buffers import HybridRolloutBuffer
+from sb3_detc.mappoc.policies import MlpHybridPolicy, check_joint_spaces
+
+SelfMAPPOC = TypeVar("SelfMAPPOC", bound="MAPPOC")
+
+#: Signature of an option override: joint observations (n_envs, N, ...) -> options (n_envs, N).
+OptionOverride = Callable[[dict[str, np.ndarray]], np.ndarray]
+
+
+def _as_joint_env(env: GymEnv | str | EventTriggeredNetwork | None) -> GymEnv | str | None:
+    """Adapt a PettingZoo event-triggered env to the joint Gymnasium view."""
+    return JointEnv(env) if isinstance(env, EventTriggeredNetwork) else env
+
+
+class MAPPOC(OnPolicyAlgorithm):
+    """Multi-agent PPO option-critic (Kesper, Trimpe and Baumann, L4DC 2023), with the paper's defaults.
+
+    Every agent learns a policy over options (broadcast or stay silent, every step), a
+    Gaussian control policy on its networked observation, and a centralised option-value
+    critic used only in training. Both policy levels are trained with PPO's clipped
+    surrogate: the control policy on GAE advantages of the taken option, the policy over
+    options on the greedy advantage ``Q(o) - max_o' Q(o')`` (Sec. 3 of the method reference).
+
+    :param policy: the policy model (``"MlpHybridPolicy"`` or a subclass of :class:`MlpHybridPolicy`)
+    :param env: the joint env (Gymnasium env, VecEnv or registered id such as
+        ``"sb3_detc/MultiwalkerETC-v0"``) or a PettingZoo :class:`EventTriggeredNetwork`,
+        which is adapted to the joint view
+    :param learning_rate: learning rate, constant or a schedule of the remaining progress (paper: 3e-5)
+    :param n_steps: steps per environment per rollout (paper: 2048 in total per iteration)
+    :param batch_size: minibatch size (paper: 32)
+    :param n_epochs: epochs per rollout (paper: 10)
+    :param gamma: discount factor
+    :param gae_lambda: GAE factor
+    :param clip_range: clipping parameter of the control policy ``pi`` (constant or schedule)
+    :param clip_range_option: clipping parameter of the policy over options ``mu`` (constant or schedule)
+    :param option_ent_coef: coefficient ``zeta`` of the mean entropy of ``mu`` (constant or
+        schedule; the paper's code sums over minibatches of 32, so its final 0.02 is 0.64 here)
+    :param vf_coef: coefficient of the critic's squared error
+    :param max_grad_norm: maximum gradient norm, or None for no clipping (paper: none)
+    :param action_noise_std: standard deviation of extra Gaussian noise on the controls
+        (the curriculum changes it during training); log-probabilities refer to the noisy controls
+    :param option_advantage_offset: constant added to the greedy option advantage (the
+        paper's code used a 0.1 "deliberation" offset; the paper and the default use 0)
+    :param reward_scale: factor applied to rewards for learning only (paper: 0.1)
+    :param normalize_advantage: standardise the control advantages per agent and minibatch
+    :param target_kl: stop the epochs of an update early when the control policy's
+        approximate KL divergence exceeds ``1.5 * target_kl`` (None: never)
+    :param share_parameters: one network set for all agents with an agent-id input
+        (added to ``policy_kwargs``; default off, as in the paper)
+    :param train_option_policy: whether ``mu`` is trained (baselines with fixed
+        communication switch it off)
+    :param stats_window_size: window size of the rollout logging (episodes)
+    :param tensorboard_log: log location for TensorBoard (None: no logging)
+    :param policy_kwargs: additional arguments of the policy on creation
+    :param verbose: verbosity level: 0 no output, 1 info messages, 2 debug messages
+    :param seed: seed of the pseudo random generators
+    :param device: device (cpu, cuda, ...) on which the code runs
+    :param _init_setup_model: whether to build the network at the creation of the instance
+    """
+
+    policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {"MlpHybridPolicy": MlpHybridPolicy}
+    policy: MlpHybridPolicy
+    rollout_buffer: HybridRolloutBuffer  # type: ignore[assignment]
+
+    def __init__(
+        self,
+        policy: str | type[MlpHybridPolicy],
+        env: GymEnv | str | EventTriggeredNetwork,
+        learning_rate: float | Schedule = 3e-5,
+        n_steps: int = 2048,
+        batch_size: int = 32,
+        n_epochs: int = 10,
+        gamma: float = 0.99,
+        gae_lambda: float = 0.95,
+        clip_range: float | Schedule = 0.2,
+        clip_range_option: float | Schedule = 0.2,
+        option_ent_coef: float | Schedule = 0.64,
+        vf_coef: float = 1.0,
+        max_grad_norm: float | None = None,
+        action_noise_std: float = 0.0,
+        option_advantage_offset: float = 0.0,
+        reward_scale: float = 0.1,
+        normalize_advantage: bool = True,
+        target_kl: float | None = None,
+        share_parameters: bool = False,
+        train_option_policy: bool = True,
+        stats_window_size: int = 100,
+        tensorboard_log: str | None = None,
+        policy_kwargs: dict[str, Any] | None = None,
+        verbose: int = 0,
+        seed: int | None = None,
+        device: th.device | str = "auto",
+        _init_setup_model: bool = True,
+    ) -> None:
+        _check_hyperparameters(
+            n_steps=n_steps,
+            batch_size=batch_size,
+            n_epochs=n_epochs,
+            gamma=gamma,
+            gae_lambda=gae_lambda,
+            vf_coef=vf_coef,
+            max_grad_norm=max_grad_norm,
+            action_noise_std=action_noise_std,
+            reward_scale=reward_scale,
+            target_kl=target_kl,
+            normalize_advantage=normalize_advantage,
+        )
+        policy_kwargs = dict(policy_kwargs or {})
+        policy_kwargs.setdefault("share_parameters", share_parameters)
+        super().__init__(
+            policy,
+            _as_joint_env(env),
+            learning_rate=learning_rate,
+            n_steps=n_steps,
+            gamma=gamma,
+            gae_lambda=gae_lambda,
+            ent_coef=0.0,
+            vf_coef=vf_coef,
+            max_grad_norm=max_grad_norm,  # type: ignore[arg-type]
+            use_sde=False,
+            sde_sample_freq=-1,
+            stats_window_size=stats_window_size,
+            tensorboard_log=tensorboard_log,
+            policy_kwargs=policy_kwargs,
+            verbose=verbose,
+            device=device,
+            seed=seed,
+            _init_setup_model=False,
+            supported_action_spaces=None,
+        )
+        self.n_agents, self.n_control = check_joint_spaces(self.observation_space, self.action_space)
+        self.batch_size = batch_size
+        self.n_epochs = n_epochs
+        self.clip_range = clip_range
+        self.clip_range_option = clip_range_option
+        self.option_ent_coef = option_ent_coef
+        self.action_noise_std = action_noise_std
+        self.option_advantage_offset = option_advantage_offset
+        self.reward_scale = reward_scale
+        self.normalize_advantage = normalize_advantage
+        self.target_kl = target_kl
+        self.train_option_policy = train_option_policy
+        self.option_override: OptionOverride | None = None
+        if _init_setup_model:
+            self._setup_model()
+
+    def _setup_model(self) -> None:
+        self._setup_lr_schedule()
+        self.set_random_seed(self.seed)
+        self.policy = self.policy_class(  # type: ignore[assignment]
+            self.observation_space, self.action_space, self.lr_schedule, **self.policy_kwargs
+        )
+        self.policy = self.policy.to(self.device)
+        self.rollout_buffer = HybridRolloutBuffer(
+            self.n_steps,
+            self.observation_space,  # type: ignore[arg-type]
+            self.action_space,  # type: ignore[arg-type]
+            device=self.device,
+            gamma=self.gamma,
+            gae_lambda=self.gae_lambda,
+            n_envs=self.n_envs,
+        )
+        control_space = self.action_space["control"]  # type: ignore[index]
+        self._control_low, self._control_high = control_space.low, control_space.high
+
+    def _excluded_save_params(self) -> list[str]:
+        return [*super()._excluded_save_params(), "option_override"]
+
+    # ------------------------------------------------------------------ rollouts
+    def collect_rollouts(
+        self,
+        env: VecEnv,
+        callback: BaseCallback,
+        rollout_buffer: RolloutBuffer,
+        n_rollout_steps: int,
+    ) -> bool:
+        """Collect ``n_rollout_steps`` steps per environment with the current policies.
+
+        Per step: all options are sampled from ``mu`` (or taken from
+        :attr:`option_override`), the broadcasts are delivered, then all controls are
+        sampled from ``pi`` on the updated views (same-step delivery), with
+        :attr:`action_noise_std` extra noise; the env receives the controls clipped to
+        their bounds. Per-agent rewards come from ``info["agent_rewards"]``.
+
+        :param env: the training environment
+        :param callback: callback called at each step (and at the beginning and end of the rollout)
+        :param rollout_buffer: the buffer to fill (a :class:`HybridRolloutBuffer`)
+        :param n_rollout_steps: number of steps to collect per environment
+        :return: True if the rollout was completed, False if a callback stopped it
+        """
+        assert self._last_obs is not None, "No previous observation was provided"
+        buffer: HybridRolloutBuffer = rollout_buffer  # type: ignore[assignment]
+        self.policy.set_training_mode(False)
+        n_steps = 0
+        buffer.reset()
+        callback.on_rollout_start()
+        new_obs, dones = self._last_obs, self._last_episode_starts
+        while n_steps < n_rollout_steps:
+            obs = self._last_obs
+            with th.no_grad():
+                override = None
+                if self.option_override is not None:
+                    override = th.as_tensor(self.option_override(obs), device=self.device)  # type: ignore[arg-type]
+                action = self.policy(
+                    obs_as_tensor(obs, self.device),  # type: ignore[arg-type]
+                    comm=override,
+                    action_noise_std=self.action_noise_std,
+                )
+            comm = action.comm.cpu().numpy()
+            control = action.control.cpu().numpy()
+            clipped = np.clip(control, self._control_low, self._control_high)
+            new_obs, _, dones, infos = env.step([{"comm": c, "control": u} for c, u in zip(comm, clipped, strict=True)])
+            rewards = self.reward_scale * _agent_rewards(infos)
+            _check_finite(new_obs, rewards)
+            self.num_timesteps += env.num_envs
+
+            callback.update_locals(locals())
+            if not callback.on_step():
+                return False
+            self._update_info_buffer(infos, dones)
+            n_steps += 1
+
+            # Bootstrap truncated episodes with V(s_T) = sum_o mu(o) Q(s_T, o), as SB3 does for PPO.
+            for idx, done in enumerate(dones):
+                if done and infos[idx].get("TimeLimit.truncated", False) and "terminal_observation" in infos[idx]:
+                    terminal_obs = self.policy.obs_to_tensor(infos[idx]["terminal_observation"])[0]
+                    with th.no_grad():
+                        rewards[idx] += self.gamma * self.policy.state_values(terminal_obs)[0].cpu().numpy()
+
+            q = action.option_values.gather(-1, action.comm[..., None])[..., 0]
+            buffer.add(
+                obs,  # type: ignore[arg-type]
+                comm,
+                control,
+                rewards,
+                self._last_episode_starts,  # type: ignore[arg-type]
+                q.cpu().numpy(),
+                action.log_prob_comm.cpu().numpy(),
+                action.log_prob_control.cpu().numpy(),
+            )
+            self._last_obs = new_obs  # type: ignore[assignment]
+            self._last_episode_starts = dones
+
+        with th.no_grad():
+            last_values = self.policy.state_values(obs_as_tensor(new_obs, self.device))  # type: ignore[arg-type]
+        buffer.compute_returns_and_advantage(last_values=last_values.cpu().numpy(), dones=dones)
+        callback.update_locals(locals())
+        callback.on_rollout_end()
+        return True
+
+    # ------------------------------------------------------------------ updates
+    def train(self) -> None:
+        """Update every agent's ``pi``, ``mu`` and ``Q`` with PPO on the collected rollout (Sec. 3)."""
+        self.policy.set_training_mode(True)
+        self._update_learning_rate(self.policy.optimizer)
+        progress = self._current_progress_remaining
+        # Constants or schedules; callbacks (e.g. the curriculum) may replace them between updates.
+        clip_pi = FloatSchedule(self.clip_range)(progress)
+        clip_mu = FloatSchedule(self.clip_range_option)(progress)
+        zeta = FloatSchedule(self.option_ent_coef)(progress)
+        train_mu = self.train_option_policy and self.option_override is None
+
+        stats: dict[str, list[float]] = {
+            k: [] for k in ("pi_loss", "mu_loss", "q_loss", "entropy_mu", "clip_pi", "clip_mu", "kl_pi", "kl_mu")
+        }
+        continue_training = True
+        for epoch in range(self.n_epochs):
+            for data in self.rollout_buffer.get(self.batch_size):
+                evaluation = self.policy.evaluate_actions(data.observations, data.comm, data.control)
+
+                # Control policy: PPO clipped surrogate on GAE advantages of the taken option.
+                advantages = data.advantages
+                if self.normalize_advantage and len(advantages) > 1:
+                    advantages = (advantages - advantages.mean(0)) / (advantages.std(0) + 1e-8)
+                log_ratio_pi = evaluation.log_prob_control - data.old_log_prob_control
+                ratio_pi = th.exp(log_ratio_pi)
+                surrogate_pi = th.min(advantages * ratio_pi, advantages * th.clamp(ratio_pi, 1 - clip_pi, 1 + clip_pi))
+                pi_loss = -surrogate_pi.mean(0).sum()
+
+                # Critic: squared error of Q(s, o_taken) against the lambda-return.
+                q = evaluation.option_values
+                q_taken = q.gather(-1, data.comm[..., None])[..., 0]
+                q_loss = (data.returns - q_taken).pow(2).mean(0).sum()
+                loss = pi_loss + self.vf_coef * q_loss
+
+                # Options: PPO clipped surrogate on the greedy advantage Q(o) - max_o' Q(o'), no gradient into Q.
+                q_fixed = q.detach()
+                advantages_mu = q_fixed.gather(-1, data.comm[..., None])[..., 0] - q_fixed.max(-1).values
+                advantages_mu = advantages_mu + self.option_advantage_offset
+                log_ratio_mu = evaluation.log_prob_comm - data.old_log_prob_comm
+                ratio_mu = th.exp(log_ratio_mu)
+                surrogate_mu = th.min(
+                    advantages_mu * ratio_mu, advantages_mu * th.clamp(ratio_mu, 1 - clip_mu, 1 + clip_mu)
+                )
+                mu_loss = -surrogate_mu.mean(0).sum()
+                entropy_mu = evaluation.entropy_comm.mean(0).sum()
+                if train_mu:
+                    loss = loss + mu_loss - zeta * entropy_mu
+
+                with th.no_grad():
+                    kl_pi = ((ratio_pi - 1) - log_ratio_pi).mean().item()
+                    kl_mu = ((ratio_mu - 1) - log_ratio_mu).mean().item()
+                    stats["clip_pi"].append(((ratio_pi - 1).abs() > clip_pi).float().mean().item())
+                    stats["clip_mu"].append(((ratio_mu - 1).abs() > clip_mu).float().mean().item())
+                stats["kl_pi"].append(kl_pi)
+                stats["kl_mu"].append(kl_mu)
+                for name, value in (("pi_loss", pi_loss), ("mu_loss", mu_loss), ("q_loss", q_loss)):
+                    stats[name].append(value.item())
+                stats["entropy_mu"].append(entropy_mu.item() / self.n_agents)
+
+                if self.target_kl is not None and kl_pi > 1.5 * self.target_kl:
+                    continue_training = False
+                    if self.verbose >= 1:
+                        print(f"Early stopping at epoch {epoch} due to reaching max kl: {kl_pi:.2f}")
+                    break
+
+                self.policy.optimizer.zero_grad(set_to_none=True)
+                loss.backward()
+                if self.max_grad_norm is not None:
+                    th.nn.utils.clip_grad_norm_(self.policy.parameters(), self.max_grad_norm)
+                self.policy.optimizer.step()
+            self._n_updates += 1
+            if not continue_training:
+                break
+
+        buffer = self.rollout_buffer
+        for name, values in stats.items():
+            self.logger.record(f"train/{name}", float(np.mean(values)) if values else float("nan"))
+        self.logger.record(
+            "train/explained_variance_q", explained_variance(buffer.values.ravel(), buffer.returns.ravel())
+        )
+        self.logger.record("train/std", float(th.exp(self.policy.log_std).mean()))
+        self.logger.record("train/clip_range", clip_pi)
+        self.logger.record("train/clip_range_option", clip_mu)
+        self.logger.record("train/option_ent_coef", zeta)
+        self.logger.record("train/action_noise_std", self.action_noise_std)
+        self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
+        self.logger.record("rollout/broadcast_rate", float(buffer.comm.mean()))
+
+    def learn(
+        self: SelfMAPPOC,
+        total_timesteps: int,
+        callback: MaybeCallback = None,
+        log_interval: int = 1,
+        tb_log_name: str = "MAPPOC",
+        reset_num_timesteps: bool = True,
+        progress_bar: bool = False,
+    ) -> SelfMAPPOC:
+        """Train for ``total_timesteps`` environment steps (summed over environments).
+
+        :param total_timesteps: number of environment steps to train for
+        :param callback: callback(s) called at every step
+        :param log_interval: iterations between two logs
+        :param tb_log_name: name of the run for TensorBoard logging
+        :param reset_num_timesteps: whether to reset the current timestep number (used in logging)
+        :param progress_bar: display a progress bar using tqdm and rich
+        :return: the trained model
+        """
+        return super().learn(
+            total_timesteps=int(total_timesteps),
+            callback=callback,
+            log_interval=log_interval,
+            tb_log_name=tb_log_name,
+            reset_num_timesteps=reset_num_timesteps,
+            progress_bar=progress_bar,
+        )
+
+    def set_env(self, env: GymEnv | EventTriggeredNetwork, force_reset: bool = True) -> None:
+        """Use a new environment (a PettingZoo event-triggered env is adapted to the joint view).
+
+        :param env: the new environment, with the same spaces
+        :param force_reset: force a reset of the environment before the next ``learn``
+        """
+        env = _as_joint_env(env)
+        _check_same_agents(env, self.n_agents)  # type: ignore[arg-type]
+        super().set_env(env, force_reset=force_reset)  # type: ignore[arg-type]
+
+    @classmethod
+    def load(  # type: ignore[override]
+        cls: type[SelfMAPPOC],
+        path: str | pathlib.Path,
+        env: GymEnv | EventTriggeredNetwork | None = None,
+        device: th.device | str = "auto",
+        custom_objects: dict[str, Any] | None = None,
+        print_system_info: bool = False,
+        force_reset: bool = True,
+        **kwargs: Any,
+    ) -> SelfMAPPOC:
+        """Load a saved model, optionally with an environment (checked for the same number of agents).
+
+        :param path: path to the saved file
+        :param env: environment to attach (must have the spaces the model was trained with)
+        :param device: device on which the code runs
+        :param custom_objects: objects to replace on load, see :meth:`BaseAlgorithm.load`
+        :param print_system_info: print the system info of the saved model and the current one
+        :param force_reset: force a reset of the environment before the next ``learn``
+        :param kwargs: attributes to change on the loaded model
+        :raises FileNotFoundError: if there is no file at ``path``
+        :raises ValueError: if the environment has another number of agents than the model
+        """
+        env = _as_joint_env(env)
+        if env is not None:
+            data, _, _ = load_from_zip_file(path, device="cpu", custom_objects=custom_objects, load_data=True)
+            if data is not None and "action_space" in data:
+                _check_same_agents(env, len(data["action_space"]["comm"].nvec))  # type: ignore[arg-type]
+        return super().load(  # type: ignore[return-value]
+            path,
+            env=env,  # type: ignore[arg-type]
+            device=device,
+            custom_objects=custom_objects,
+            print_system_info=print_system_info,
+            force_reset=force_reset,
+            **kwargs,
+        )
+
+
+def _agent_rewards(infos: list[dict[str, Any]]) -> np.ndarray:
+    try:
+        return np.stack([info["agent_rewards"] for info in infos]).astype(np.float32)
+    except KeyError as err:
+        raise ValueError(
+            "MAPPOC needs per-agent rewards in info['agent_rewards']: use a joint sb3_detc env (JointEnv)."
+        ) from err
+
+
+def _check_finite(obs: dict[str, np.ndarray], rewards: np.ndarray) -> None:
+    if not np.all(np.isfinite(rewards)):
+        raise ValueError(f"the environment returned non-finite rewards: {rewards.tolist()}.")
+    for key, value in obs.items():
+        if not np.all(np.isfinite(value)):
+            raise ValueError(f"the environment returned a non-finite observation in '{key}'.")
+
+
+def _check_same_agents(env: GymEnv, n_agents: int) -> None:
+    action_space = env.action_space
+    if isinstance(action_space, spaces.Dict) and "comm" in action_space.spaces:
+        n_env = len(action_space["comm"].nvec)
+        if n_env != n_agents:
+            raise ValueError(f"the model controls {n_agents} agents but the environment has {n_env}.")
+
+
+#: Hyperparameter checks: name -> (rule, what the rule needs).
+_HYPERPARAMETER_RULES: dict[str, tuple[Callable[[Any], bool], str]] = {
+    "n_steps": (lambda v: isinstance(v, int) and v > 0, "a positive integer"),
+    "batch_size": (lambda v: isinstance(v, int) and v > 0, "a positive integer"),
+    "n_epochs": (lambda v: isinstance(v, int) and v > 0, "a positive integer"),
+    "gamma": (lambda v: 0 < v <= 1, "in (0, 1]"),
+    "gae_lambda": (lambda v: 0 <= v <= 1, "in [0, 1]"),
+    "vf_coef": (lambda v: v >= 0, ">= 0"),
+    "max_grad_norm": (lambda v: v is None or v > 0, "None or > 0"),
+    "action_noise_std": (lambda v: v >= 0, ">= 0"),
+    "reward_scale": (lambda v: v > 0, "> 0"),
+    "target_kl": (lambda v: v is None or v > 0, "None or > 0"),
+}
+
+
+def _check_hyperparameters(**values: Any) -> None:
+    for name, (rule, needs) in _HYPERPARAMETER_RULES.items():
+        if not rule(values[name]):
+            raise ValueError(f"{name} must be {needs}, got {values[name]!r}.")
+    if values["normalize_advantage"] and values["batch_size"] == 1:
+        raise ValueError("batch_size must be > 1 when normalize_advantage=True (a single advantage has no spread).")
