@@ -295,8 +295,7 @@ class MAPPOC(OnPolicyAlgorithm):
                     advantages = (advantages - advantages.mean(0)) / (advantages.std(0) + 1e-8)
                 log_ratio_pi = evaluation.log_prob_control - data.old_log_prob_control
                 ratio_pi = th.exp(log_ratio_pi)
-                surrogate_pi = th.min(advantages * ratio_pi, advantages * th.clamp(ratio_pi, 1 - clip_pi, 1 + clip_pi))
-                pi_loss = -surrogate_pi.mean(0).sum()
+                pi_loss = clipped_surrogate_loss(advantages, ratio_pi, clip_pi)
 
                 # Critic: squared error of Q(s, o_taken) against the lambda-return.
                 q = evaluation.option_values
@@ -305,15 +304,10 @@ class MAPPOC(OnPolicyAlgorithm):
                 loss = pi_loss + self.vf_coef * q_loss
 
                 # Options: PPO clipped surrogate on the greedy advantage Q(o) - max_o' Q(o'), no gradient into Q.
-                q_fixed = q.detach()
-                advantages_mu = q_fixed.gather(-1, data.comm[..., None])[..., 0] - q_fixed.max(-1).values
-                advantages_mu = advantages_mu + self.option_advantage_offset
+                advantages_mu = greedy_option_advantage(q, data.comm, self.option_advantage_offset)
                 log_ratio_mu = evaluation.log_prob_comm - data.old_log_prob_comm
                 ratio_mu = th.exp(log_ratio_mu)
-                surrogate_mu = th.min(
-                    advantages_mu * ratio_mu, advantages_mu * th.clamp(ratio_mu, 1 - clip_mu, 1 + clip_mu)
-                )
-                mu_loss = -surrogate_mu.mean(0).sum()
+                mu_loss = clipped_surrogate_loss(advantages_mu, ratio_mu, clip_mu)
                 entropy_mu = evaluation.entropy_comm.mean(0).sum()
                 if train_mu:
                     loss = loss + mu_loss - zeta * entropy_mu
@@ -433,6 +427,34 @@ class MAPPOC(OnPolicyAlgorithm):
             force_reset=force_reset,
             **kwargs,
         )
+
+
+def greedy_option_advantage(option_values: th.Tensor, comm: th.Tensor, offset: float = 0.0) -> th.Tensor:
+    """Greedy advantage of the taken options, ``A_mu = Q(o) - max_o' Q(o') + offset`` (Sec. 3).
+
+    Evaluated with the current critic and detached: no gradient flows into ``Q``.
+
+    :param option_values: ``Q_i(s, o)`` for both options, (B, N, 2)
+    :param comm: taken options (B, N)
+    :param offset: constant added to the advantage (the paper's code: 0.1, the paper: 0)
+    :return: advantages (B, N), at most ``offset``
+    """
+    q = option_values.detach()
+    return q.gather(-1, comm.long()[..., None])[..., 0] - q.max(-1).values + offset
+
+
+def clipped_surrogate_loss(advantages: th.Tensor, ratio: th.Tensor, clip: float) -> th.Tensor:
+    """PPO's clipped surrogate loss, averaged over the batch and summed over agents.
+
+    Summing over agents keeps every agent's gradient what it would be if it trained alone.
+
+    :param advantages: advantages (B, N)
+    :param ratio: probability ratios new / old (B, N)
+    :param clip: clipping parameter epsilon
+    :return: scalar loss
+    """
+    surrogate = th.min(advantages * ratio, advantages * th.clamp(ratio, 1 - clip, 1 + clip))
+    return -surrogate.mean(0).sum()
 
 
 def _agent_rewards(infos: list[dict[str, Any]]) -> np.ndarray:
