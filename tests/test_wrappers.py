@@ -180,6 +180,13 @@ def test_multiwalker_parallel_api_and_env_checker():
     assert env.action_space["control"].shape == (3, 4)
     assert env.network.comm_cost == 0.25
     assert "package_x" in info
+    penv = multiwalker_etc_v0.parallel_env()
+    penv.reset(seed=0)
+    _, rewards, _, _, infos = penv.step({a: {"comm": 1, "control": np.zeros(4)} for a in penv.agents})
+    for agent in penv.possible_agents:
+        assert infos[agent]["package_x"] == penv.system.physics.package.position.x
+        assert infos[agent]["comm"] == 1 and infos[agent]["broadcasts"] == 1
+        assert rewards[agent] == pytest.approx(infos[agent]["control_reward"] - 0.25)
 
 
 def test_multiwalker_rejects_too_few_walkers():

@@ -61,9 +61,8 @@ class LinearSystem(CommunicatingSystem):
     scalar acceleration in ``control_space = Box(-u_max, u_max, (1,))``; controls outside
     these bounds are **clipped** by the system before they are applied (and the clipped
     control is what the cost sees). With the defaults, the LQR controller's control has a
-    standard deviation of at most about 2.8 at the first step (the largest, from the random
-    initial state) and about 0.5 in steady state, so ``u_max = 10`` (3.6 standard deviations
-    at the first step, 20 in steady state) is reached very rarely.
+    standard deviation of about 1.7 at the first step (the largest, from the random initial
+    state) and about 0.2 in steady state, so ``u_max = 10`` is practically never reached.
 
     **Cost** (team stage cost, computed on the state ``x[k]`` *before* the transition and on
     the applied control ``u[k]``, i.e. the reward returned by step ``k`` is ``-c(x[k], u[k])``)::
@@ -105,16 +104,16 @@ class LinearSystem(CommunicatingSystem):
     def __init__(
         self,
         n_agents: int = 3,
-        dt: float = 0.1,
-        q_reg: float = 1.0,
+        dt: float = 0.2,
+        q_reg: float = 0.1,
         q_vel: float = 0.1,
-        q_form: float = 1.0,
+        q_form: float = 10.0,
         r: float = 0.1,
         noise_pos: float = 0.01,
-        noise_vel: float = 0.1,
-        init_std: float = 0.5,
+        noise_vel: float = 0.05,
+        init_std: float = 0.2,
         u_max: float = 10.0,
-        max_cycles: int = 200,
+        max_cycles: int = 100,
     ) -> None:
         super().__init__()
         if isinstance(n_agents, bool) or not isinstance(n_agents, (int, np.integer)) or n_agents < 2:

@@ -221,8 +221,15 @@ class EventTriggeredNetwork(BaseParallelWrapper):
             raise ValueError(f"each agent's action must be a dict with keys 'comm' and 'control' ({err!r}).") from err
         obs, rewards, terminated, truncated, info = self.step_joint(comm, control)
         names = self.possible_agents
+        shared = {key: value for key, value in info.items() if key not in ("comm", "broadcasts", "control_rewards")}
         agent_infos = {
-            a: {"comm": int(info["comm"][i]), "broadcasts": int(info["broadcasts"][i])} for i, a in enumerate(names)
+            a: {
+                **shared,
+                "comm": int(info["comm"][i]),
+                "broadcasts": int(info["broadcasts"][i]),
+                "control_reward": float(info["control_rewards"][i]),
+            }
+            for i, a in enumerate(names)
         }
         return (
             self.agent_views(obs),

@@ -149,7 +149,8 @@ class MAPPOC(OnPolicyAlgorithm):
             _init_setup_model=False,
             supported_action_spaces=None,
         )
-        self.n_agents, self.n_control = check_joint_spaces(self.observation_space, self.action_space)
+        if self.env is not None:  # without an env (loading), the spaces are checked in _setup_model
+            check_joint_spaces(self.observation_space, self.action_space)
         self.batch_size = batch_size
         self.n_epochs = n_epochs
         self.clip_range = clip_range
@@ -166,6 +167,7 @@ class MAPPOC(OnPolicyAlgorithm):
             self._setup_model()
 
     def _setup_model(self) -> None:
+        self.n_agents, self.n_control = check_joint_spaces(self.observation_space, self.action_space)
         self._setup_lr_schedule()
         self.set_random_seed(self.seed)
         self.policy = self.policy_class(  # type: ignore[assignment]
@@ -344,7 +346,7 @@ class MAPPOC(OnPolicyAlgorithm):
         self.logger.record(
             "train/explained_variance_q", explained_variance(buffer.values.ravel(), buffer.returns.ravel())
         )
-        self.logger.record("train/std", float(th.exp(self.policy.log_std).mean()))
+        self.logger.record("train/std", float(th.exp(self.policy.log_std.detach()).mean()))
         self.logger.record("train/clip_range", clip_pi)
         self.logger.record("train/clip_range_option", clip_mu)
         self.logger.record("train/option_ent_coef", zeta)
