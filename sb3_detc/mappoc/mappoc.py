@@ -246,6 +246,7 @@ class MAPPOC(OnPolicyAlgorithm):
             # Bootstrap truncated episodes with V(s_T) = sum_o mu(o) Q(s_T, o), as SB3 does for PPO.
             for idx, done in enumerate(dones):
                 if done and infos[idx].get("TimeLimit.truncated", False) and "terminal_observation" in infos[idx]:
+                    _check_finite(infos[idx]["terminal_observation"], rewards)
                     terminal_obs = self.policy.obs_to_tensor(infos[idx]["terminal_observation"])[0]
                     with th.no_grad():
                         rewards[idx] += self.gamma * self.policy.state_values(terminal_obs)[0].cpu().numpy()

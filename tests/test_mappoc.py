@@ -1,0 +1,641 @@
+"""MAPPOC: hybrid policies, rollout buffer, rollouts, updates and persistence (sb3_detc.mappoc)."""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch as th
+from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.env_util import make_vec_env
+from stable_baselines3.common.vec_env import DummyVecEnv
+
+import sb3_detc  # noqa: F401  (registers the env ids)
+from sb3_detc.envs import linear_etc_v0
+from sb3_detc.envs.wrappers import JointEnv
+from sb3_detc.mappoc import MAPPOC, HybridRolloutBuffer, MlpHybridPolicy
+from sb3_detc.mappoc.mappoc import clipped_surrogate_loss, greedy_option_advantage
+from sb3_detc.mappoc.policies import NETS, BatchedMLP
+
+ENV_ID = "sb3_detc/LinearETC-v0"
+TINY = {"net_arch": [16, 16]}
+CONFIGS = [(n, share) for n in (2, 3, 5) for share in (False, True)]
+
+
+# --------------------------------------------------------------------------- helpers
+def make_policy(env: JointEnv, seed: int = 0, **kwargs: Any) -> MlpHybridPolicy:
+    th.manual_seed(seed)
+    kwargs = {**TINY, **kwargs}
+    return MlpHybridPolicy(env.observation_space, env.action_space, lambda _: 1e-3, **kwargs)
+
+
+def joint_obs_batch(env: JointEnv, steps: int = 12, seed: int = 0) -> dict[str, th.Tensor]:
+    """Joint observations (steps, N, ...) visited under random options and controls."""
+    n = env.n_agents
+    rng = np.random.default_rng(seed)
+    obs, _ = env.reset(seed=seed)
+    visited = []
+    for _ in range(steps):
+        visited.append(obs)
+        action = {"comm": rng.integers(0, 2, n), "control": rng.uniform(-1, 1, (n, 1)).astype(np.float32)}
+        obs, _, terminated, truncated, _ = env.step(action)
+        if terminated or truncated:
+            obs, _ = env.reset()
+    return {key: th.as_tensor(np.stack([o[key] for o in visited])) for key in visited[0]}
+
+
+def make_model(
+    n_agents: int = 2,
+    n_envs: int = 1,
+    max_cycles: int = 20,
+    seed: int | None = 0,
+    env_kwargs: dict[str, Any] | None = None,
+    policy_kwargs: dict[str, Any] | None = None,
+    **kwargs: Any,
+) -> MAPPOC:
+    env = make_vec_env(
+        ENV_ID, n_envs=n_envs, env_kwargs={"n_agents": n_agents, "max_cycles": max_cycles, **(env_kwargs or {})}
+    )
+    kwargs = {"n_steps": 16, "batch_size": 16, "n_epochs": 2, "learning_rate": 1e-3, **kwargs}
+    return MAPPOC("MlpHybridPolicy", env, seed=seed, policy_kwargs={**TINY, **(policy_kwargs or {})}, **kwargs)
+
+
+def parameters(model_or_policy: Any) -> dict[str, th.Tensor]:
+    policy = getattr(model_or_policy, "policy", model_or_policy)
+    return {name: p.detach().clone() for name, p in policy.state_dict().items()}
+
+
+def net_slices(policy: MlpHybridPolicy, net: str) -> list[th.Tensor]:
+    """All weights and biases of one network (all its groups) from the batched chain."""
+    chain_idx, start, stop = policy._where[net]
+    chain = policy.chains[chain_idx]
+    return [p.detach()[start:stop].clone() for p in (*chain.weights, *chain.biases)]
+
+
+def assert_padding_is_zero(policy: MlpHybridPolicy) -> None:
+    for chain in policy.chains:
+        first, last, last_bias = chain.weights[0], chain.weights[-1], chain.biases[-1]
+        for g, (n_in, n_out) in enumerate(zip(chain.in_features, chain.out_features, strict=True)):
+            assert th.all(first[g, n_in:, :] == 0)
+            assert th.all(last[g, :, n_out:] == 0)
+            assert th.all(last_bias[g, :, n_out:] == 0)
+
+
+# ------------------------------------------------------------------ 1. shapes, sharing
+@pytest.mark.parametrize(("n_agents", "share"), CONFIGS)
+def test_forward_and_evaluate_shapes(n_agents: int, share: bool) -> None:
+    env = linear_etc_v0.joint_env(n_agents=n_agents, max_cycles=50)
+    policy = make_policy(env, share_parameters=share)
+    obs = joint_obs_batch(env, steps=7)
+    b, n = 7, n_agents
+    with th.no_grad():
+        action = policy(obs)
+    assert action.comm.shape == (b, n) and action.comm.dtype == th.int64
+    assert th.all((action.comm == 0) | (action.comm == 1))
+    assert action.control.shape == (b, n, 1)
+    assert action.log_prob_comm.shape == (b, n) and action.log_prob_control.shape == (b, n)
+    assert th.all(action.log_prob_comm <= 0)
+    assert action.option_values.shape == (b, n, 2)
+
+    comm = th.as_tensor(np.random.default_rng(1).integers(0, 2, (b, n)))
+    with th.no_grad():
+        ev = policy.evaluate_actions(obs, comm, action.control)
+    assert ev.log_prob_comm.shape == (b, n) and ev.entropy_comm.shape == (b, n)
+    assert ev.log_prob_control.shape == (b, n) and ev.option_values.shape == (b, n, 2)
+    assert th.all(ev.entropy_comm >= 0) and th.all(ev.entropy_comm <= math.log(2) + 1e-6)
+    assert policy.state_values(obs).shape == (b, n)
+    # Evaluating the sampled options gives back the sampling log-probabilities.
+    with th.no_grad():
+        ev_own = policy.evaluate_actions(obs, action.comm, action.control)
+    th.testing.assert_close(ev_own.log_prob_comm, action.log_prob_comm)
+    th.testing.assert_close(ev_own.log_prob_control, action.log_prob_control)
+    th.testing.assert_close(ev_own.option_values, action.option_values)
+
+
+@pytest.mark.parametrize(("n_agents", "share"), CONFIGS)
+def test_predict_and_tiny_learn(n_agents: int, share: bool) -> None:
+    u_max = 0.1  # far below the policy's standard deviation: sampled controls must be clipped
+    model = make_model(n_agents, n_envs=2, env_kwargs={"u_max": u_max}, share_parameters=share)
+    assert model.policy.share_parameters is share
+    obs = model.env.reset()
+
+    actions, state = model.predict(obs)
+    assert state is None
+    assert isinstance(actions, list) and len(actions) == 2
+    controls = []
+    for action in actions:
+        assert set(action) == {"comm", "control"}
+        assert action["comm"].shape == (n_agents,)
+        assert set(np.unique(action["comm"])) <= {0, 1}
+        assert action["control"].shape == (n_agents, 1)
+        controls.append(action["control"])
+    controls = np.concatenate(controls)
+    assert np.all(np.abs(controls) <= np.float32(u_max))
+    assert np.any(np.abs(controls) == np.float32(u_max))  # clipping happened
+
+    single = {key: value[1] for key, value in obs.items()}
+    action, _ = model.predict(single, deterministic=True)
+    assert isinstance(action, dict)
+    assert action["comm"].shape == (n_agents,) and action["control"].shape == (n_agents, 1)
+    # The single observation gives what the batch gives for the same env.
+    batch_actions, _ = model.predict(obs, deterministic=True)
+    np.testing.assert_array_equal(action["comm"], batch_actions[1]["comm"])
+    np.testing.assert_allclose(action["control"], batch_actions[1]["control"], rtol=1e-5, atol=1e-7)
+
+    before = parameters(model)
+    model.learn(32)
+    assert model.num_timesteps == 32
+    after = parameters(model)
+    assert any(not th.equal(before[k], after[k]) for k in before)
+    assert all(th.all(th.isfinite(v)) for v in after.values())
+    assert_padding_is_zero(model.policy)
+
+
+def test_shared_parameters_do_not_grow_with_agents() -> None:
+    def build(n: int, share: bool) -> MlpHybridPolicy:
+        return make_policy(linear_etc_v0.joint_env(n_agents=n), share_parameters=share)
+
+    def input_widths(policy: MlpHybridPolicy, n: int) -> dict[str, int]:
+        """Feature widths the networks actually receive (plus the one-hot agent id)."""
+        obs = joint_obs_batch(linear_etc_v0.joint_env(n_agents=n), steps=2)
+        comm = th.zeros(2, n, dtype=th.int64)
+        return {
+            "mu": policy.option_features(obs).shape[-1] + n,
+            "q": policy.critic_features(obs).shape[-1] + n,
+            "pi": policy.control_features(obs, comm).shape[-1] + n,
+        }
+
+    shared = {n: build(n, True) for n in (2, 5)}
+    shapes = {n: {k: p.shape for k, p in shared[n].named_parameters()} for n in (2, 5)}
+    assert shapes[2].keys() == shapes[5].keys()
+    # Only the input width of the first layers depends on N; everything else is identical.
+    first_layers = {k for k in shapes[2] if k.endswith("weights.0")}
+    assert first_layers
+    for key in shapes[2]:
+        if key not in first_layers:
+            assert shapes[2][key] == shapes[5][key], key
+    hidden = TINY["net_arch"][0]
+    n_nets = len(NETS)
+    count = {n: sum(p.numel() for p in shared[n].parameters()) for n in (2, 5)}
+    widths = {n: max(input_widths(shared[n], n).values()) for n in (2, 5)}
+    assert count[5] - count[2] == n_nets * hidden * (widths[5] - widths[2])
+
+    # Without sharing every agent has its own networks: N times as many groups.
+    separate = build(5, False)
+    for chain in separate.chains:
+        assert chain.weights[0].shape[0] == n_nets * 5
+    assert separate.log_std.shape[0] == 5 and shared[5].log_std.shape[0] == 1
+    assert sum(p.numel() for p in separate.parameters()) > 4 * count[5]
+
+
+def test_agents_have_independent_networks_without_sharing() -> None:
+    env = linear_etc_v0.joint_env(n_agents=3)
+    policy = make_policy(env, learn_log_std=True)
+    obs = joint_obs_batch(env, steps=6)
+    comm = th.as_tensor(np.random.default_rng(2).integers(0, 2, (6, 3)))
+    control = th.randn(6, 3, 1)
+    ev = policy.evaluate_actions(obs, comm, control)
+    loss = (
+        ev.log_prob_comm[:, 0].sum()
+        + ev.entropy_comm[:, 0].sum()
+        + ev.log_prob_control[:, 0].sum()
+        + ev.option_values[:, 0].sum()
+    )
+    loss.backward()
+    for net in NETS:
+        chain_idx, start, stop = policy._where[net]
+        chain = policy.chains[chain_idx]
+        assert stop - start == 3
+        for p in (*chain.weights, *chain.biases):
+            grad = p.grad[start:stop]
+            assert grad[0].abs().sum() > 0, net
+            assert th.all(grad[1:] == 0), net
+    assert th.all(policy.log_std.grad[0] != 0)
+    assert th.all(policy.log_std.grad[1:] == 0)
+
+
+@pytest.mark.parametrize("share", [False, True])
+@pytest.mark.parametrize("net_arch", [[16, 16], {"mu": [8], "q": [16, 16], "pi": [8]}])
+def test_policy_outputs_match_each_agents_extracted_networks(share: bool, net_arch: Any) -> None:
+    n = 3
+    env = linear_etc_v0.joint_env(n_agents=n)
+    policy = make_policy(env, share_parameters=share, net_arch=net_arch)
+    obs = joint_obs_batch(env, steps=5)
+    comm = th.as_tensor(np.random.default_rng(3).integers(0, 2, (5, n)))
+    features = {
+        "mu": policy.option_features(obs),
+        "q": policy.critic_features(obs),
+        "pi": policy.control_features(obs, comm),
+    }
+    with th.no_grad():
+        action = policy(obs, deterministic=True, comm=comm)
+        outputs = {}
+        for net in NETS:
+            chain_idx, start, _ = policy._where[net]
+            per_agent = []
+            for i in range(n):
+                x = features[net][:, i]
+                if share:
+                    x = th.cat([x, th.eye(n)[i].expand(len(x), -1)], dim=-1)
+                per_agent.append(policy.chains[chain_idx].extract(start + (0 if share else i))(x))
+            outputs[net] = th.stack(per_agent, dim=1)
+    th.testing.assert_close(action.option_values, outputs["q"])
+    th.testing.assert_close(action.control, outputs["pi"])
+    log_mu = th.log_softmax(outputs["mu"], dim=-1).gather(-1, comm[..., None])[..., 0]
+    th.testing.assert_close(action.log_prob_comm, log_mu)
+
+
+# -------------------------------------------------------------- 10. batched chain
+def test_batched_mlp_extract_matches_batched_forward() -> None:
+    th.manual_seed(0)
+    ins, outs = [3, 5, 2, 4], [2, 1, 4, 3]
+    chain = BatchedMLP(ins, outs, hidden=[7, 6], activation_fn=th.nn.Tanh, output_gains=[1.0, 0.5, 2.0, 1.0])
+    with th.no_grad():  # non-zero biases so that they are checked too
+        for bias in chain.biases:
+            bias.normal_()
+    batch = 9
+    xs = [th.randn(batch, w) for w in ins]
+    stacked = th.stack([th.nn.functional.pad(x, (0, max(ins) - x.shape[-1])) for x in xs])
+    with th.no_grad():
+        out = chain(stacked)
+        part = chain(stacked[1:3], 1, 3)
+        for g in range(len(ins)):
+            net = chain.extract(g)
+            assert net[0].in_features == ins[g] and net[-1].out_features == outs[g]
+            expected = net(xs[g])
+            th.testing.assert_close(out[g, :, : outs[g]], expected)
+            if 1 <= g < 3:
+                th.testing.assert_close(part[g - 1, :, : outs[g]], expected)
+    # The extracted copy is independent of the chain.
+    net = chain.extract(0)
+    with th.no_grad():
+        chain.weights[0][0].add_(1.0)
+        th.testing.assert_close(net(xs[0]), out[0, :, : outs[0]])
+
+
+# ------------------------------------------------------------------- 2. the one rule
+@pytest.mark.parametrize("n_agents", [2, 3])
+def test_policy_views_equal_the_environments(n_agents: int) -> None:
+    env = linear_etc_v0.joint_env(n_agents=n_agents, max_cycles=100)
+    policy = make_policy(env)
+    low, high = env.action_space["control"].low, env.action_space["control"].high
+    obs, _ = env.reset(seed=4)
+    options, max_age = [], 0.0
+    for _ in range(25):
+        obs_t = {key: th.as_tensor(value)[None] for key, value in obs.items()}
+        with th.no_grad():
+            action = policy(obs_t)
+            held, age = policy.network_after(obs_t, action.comm)
+            features = policy.control_features(obs_t, action.comm)[0].numpy()
+        comm = action.comm[0].numpy()
+        next_obs, *_ = env.step({"comm": comm, "control": np.clip(action.control[0].numpy(), low, high)})
+        np.testing.assert_array_equal(held[0].numpy(), next_obs["held"])
+        np.testing.assert_array_equal(age[0].numpy(), next_obs["age"])
+
+        # The env's own per-agent views, built from the post-broadcast network and this step's messages.
+        views = env.network.agent_views({**obs, "held": next_obs["held"], "age": next_obs["age"]})
+        assert features.shape[0] == n_agents
+        for i, agent in enumerate(env.network.possible_agents):
+            view = views[agent]
+            expected = np.concatenate(
+                [view["local"], view["neighbours"].ravel(), view["neighbour_age"] * np.float32(policy.age_scale)]
+            )
+            np.testing.assert_array_equal(features[i], expected)
+        options.append(comm)
+        max_age = max(max_age, float(next_obs["age"].max()))
+        obs = next_obs
+    options = np.array(options)
+    assert options.min() == 0 and options.max() == 1  # both options were exercised
+    assert max_age >= 2
+
+
+# ------------------------------------------------------------ 3. greedy advantage
+def test_greedy_option_advantage_hand_computed() -> None:
+    q = th.tensor([[[1.0, 3.0], [2.0, -1.0]], [[0.5, 0.5], [-2.0, 4.0]]], requires_grad=True)
+    comm = th.tensor([[0, 0], [1, 0]])
+    expected = th.tensor([[1.0 - 3.0, 0.0], [0.0, -2.0 - 4.0]])
+    advantage = greedy_option_advantage(q, comm)
+    th.testing.assert_close(advantage, expected)
+    assert advantage.grad_fn is None and not advantage.requires_grad
+    th.testing.assert_close(greedy_option_advantage(q, comm, offset=0.1), expected + 0.1)
+    # The greedy option has advantage zero, the other option a negative one.
+    greedy = q.argmax(-1)
+    assert th.all(greedy_option_advantage(q, greedy) == 0)
+    assert th.all(greedy_option_advantage(q, 1 - greedy)[th.tensor([[True, True], [False, True]])] < 0)
+    # No gradient flows into Q through the advantage.
+    (greedy_option_advantage(q, comm, 0.1).sum() * 3.0 + q.sum()).backward()
+    th.testing.assert_close(q.grad, th.ones_like(q))
+
+
+def test_clipped_surrogate_loss_hand_computed() -> None:
+    advantages = th.tensor([[1.0, -1.0], [2.0, -2.0]])
+    ratio = th.tensor([[1.5, 1.5], [0.5, 0.9]])
+    # Per sample min(A r, A clip(r)): 1.2, -1.5 / 1.0, -1.8; mean over the batch, sum over agents.
+    expected = -((1.2 + 1.0) / 2 + (-1.5 - 1.8) / 2)
+    th.testing.assert_close(clipped_surrogate_loss(advantages, ratio, 0.2), th.tensor(expected))
+
+
+# ------------------------------------------------------------------------ 4. GAE
+def gae_buffer(buffer_size: int, n_envs: int, gamma: float, gae_lambda: float) -> HybridRolloutBuffer:
+    env = linear_etc_v0.joint_env(n_agents=2)
+    return HybridRolloutBuffer(
+        buffer_size, env.observation_space, env.action_space, "cpu", gamma=gamma, gae_lambda=gae_lambda, n_envs=n_envs
+    )
+
+
+def fill(buffer: HybridRolloutBuffer, rewards: np.ndarray, values: np.ndarray, starts: np.ndarray) -> None:
+    n_envs, n = buffer.n_envs, buffer.n_agents
+    obs = {key: np.zeros((n_envs, *space.shape), np.float32) for key, space in buffer.observation_space.spaces.items()}
+    for t in range(buffer.buffer_size):
+        zeros = np.zeros((n_envs, n), np.float32)
+        buffer.add(
+            obs, zeros.astype(np.int64), np.zeros((n_envs, n, 1)), rewards[t], starts[t], values[t], zeros, zeros
+        )
+
+
+def test_gae_worked_example() -> None:
+    """Two steps, two envs, two agents, gamma = lambda = 0.5, numbers worked out by hand."""
+    buffer = gae_buffer(2, n_envs=2, gamma=0.5, gae_lambda=0.5)
+    rewards = np.array([[[1, 0], [1, 0]], [[2, 1], [2, 1]]], np.float32)  # (T, envs, N)
+    values = np.array([[[0.5, 1], [0.5, 1]], [[1, 2], [1, 2]]], np.float32)
+    starts = np.array([[1, 0], [0, 1]], np.float32)  # env 1: a new episode begins at t = 1
+    fill(buffer, rewards, values, starts)
+    buffer.compute_returns_and_advantage(last_values=np.array([[4, 0], [4, 0]], np.float32), dones=np.array([0, 1]))
+    # env 0, agent 0: d1 = 2 + .5*4 - 1 = 3, A1 = 3; d0 = 1 + .5*1 - .5 = 1, A0 = 1 + .25*3 = 1.75
+    # env 0, agent 1: d1 = 1 + 0 - 2 = -1, A1 = -1; d0 = 0 + .5*2 - 1 = 0, A0 = -.25
+    # env 1 (episode ends after t = 0, and the env is done after t = 1):
+    #   agent 0: A1 = 2 - 1 = 1; A0 = 1 - .5 = .5.  agent 1: A1 = 1 - 2 = -1; A0 = 0 - 1 = -1
+    expected = np.array([[[1.75, -0.25], [0.5, -1.0]], [[3.0, -1.0], [1.0, -1.0]]], np.float32)
+    np.testing.assert_allclose(buffer.advantages, expected, rtol=1e-6)
+    np.testing.assert_allclose(buffer.returns, expected + values, rtol=1e-6)
+
+
+def test_gae_against_explicit_discounted_sums() -> None:
+    gamma, lam, size, n_envs, n = 0.9, 0.8, 5, 2, 2
+    buffer = gae_buffer(size, n_envs=n_envs, gamma=gamma, gae_lambda=lam)
+    rewards = np.array(
+        [
+            [[1.0, -0.5], [0.2, 0.3]],
+            [[0.0, 2.0], [-1.0, 0.5]],
+            [[0.7, 0.1], [0.4, -0.2]],
+            [[-0.3, 1.5], [0.9, 0.0]],
+            [[0.5, -1.0], [1.2, 0.8]],
+        ],
+        np.float32,
+    )
+    values = np.array(
+        [
+            [[0.1, 0.4], [-0.2, 1.0]],
+            [[0.3, -0.6], [0.5, 0.2]],
+            [[1.1, 0.0], [-0.4, 0.7]],
+            [[-0.8, 0.9], [0.6, -0.1]],
+            [[0.2, 0.5], [0.3, 0.4]],
+        ],
+        np.float32,
+    )
+    # env 0: episodes [0, 2], [3, 4] and running on; env 1: one episode that ends at the last step.
+    starts = np.array([[1, 1], [0, 0], [0, 0], [1, 0], [0, 0]], np.float32)
+    dones = np.array([False, True])
+    last_values = np.array([[2.0, -3.0], [5.0, 7.0]], np.float32)
+    fill(buffer, rewards, values, starts)
+    buffer.compute_returns_and_advantage(last_values=last_values, dones=dones)
+
+    # Reference: A_t = sum_l (gamma lam)^l delta_{t+l} over the rest of the episode inside the rollout,
+    # delta_t = r_t + gamma V_{t+1} - V_t, with V_{t+1} = 0 when the episode ends after step t.
+    expected = np.zeros((size, n_envs, n))
+    for e in range(n_envs):
+        episode_ends_after = [bool(starts[t + 1, e]) for t in range(size - 1)] + [bool(dones[e])]
+        for i in range(n):
+            delta = []
+            for t in range(size):
+                next_value = last_values[e, i] if t == size - 1 else values[t + 1, e, i]
+                bootstrap = 0.0 if episode_ends_after[t] else gamma * next_value
+                delta.append(rewards[t, e, i] + bootstrap - values[t, e, i])
+            for t in range(size):
+                total, k = 0.0, t
+                while True:
+                    total += (gamma * lam) ** (k - t) * delta[k]
+                    if episode_ends_after[k] or k == size - 1:
+                        break
+                    k += 1
+                expected[t, e, i] = total
+    np.testing.assert_allclose(buffer.advantages, expected, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(buffer.returns, expected + values, rtol=1e-5, atol=1e-6)
+
+
+class Recorder(BaseCallback):
+    """Keeps the infos of every step of a rollout."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.infos: list[list[dict[str, Any]]] = []
+
+    def _on_step(self) -> bool:
+        self.infos.append([dict(info) for info in self.locals["infos"]])
+        return True
+
+
+def test_truncated_episodes_bootstrap_the_terminal_value() -> None:
+    model = make_model(n_agents=2, n_envs=2, max_cycles=5, n_steps=12, gamma=0.9, reward_scale=0.5)
+    recorder = Recorder()
+    _, callback = model._setup_learn(model.n_steps, recorder)
+    assert model.collect_rollouts(model.env, callback, model.rollout_buffer, model.n_steps)
+    buffer = model.rollout_buffer
+    assert len(recorder.infos) == model.n_steps
+    truncations = 0
+    for t, infos in enumerate(recorder.infos):
+        for e, info in enumerate(infos):
+            expected = 0.5 * info["agent_rewards"].astype(np.float32)
+            if info.get("TimeLimit.truncated", False):
+                truncations += 1
+                terminal = model.policy.obs_to_tensor(info["terminal_observation"])[0]
+                with th.no_grad():
+                    bootstrap = 0.9 * model.policy.state_values(terminal)[0].numpy()
+                assert np.all(np.abs(bootstrap) > 1e-3)  # the check below can tell it apart
+                expected = expected + bootstrap
+                assert buffer.episode_starts[t + 1, e] == 1
+            np.testing.assert_allclose(buffer.rewards[t, e], expected, rtol=1e-5, atol=1e-6)
+    assert truncations == 2 * 2  # after steps 5 and 10 in both envs
+
+
+# ------------------------------------------------------------------ 5. persistence
+def test_save_load_round_trip(tmp_path) -> None:
+    model = make_model(
+        n_agents=2,
+        n_envs=1,
+        share_parameters=True,
+        option_ent_coef=0.3,
+        reward_scale=0.25,
+        option_advantage_offset=0.1,
+        clip_range_option=0.15,
+    )
+    model.learn(16)
+    path = tmp_path / "mappoc.zip"
+    model.save(path)
+    env = linear_etc_v0.joint_env(n_agents=2, max_cycles=20)
+    loaded = MAPPOC.load(path, env=env)
+    saved, restored = parameters(model), parameters(loaded)
+    assert saved.keys() == restored.keys()
+    for key in saved:
+        assert th.equal(saved[key], restored[key]), key
+    assert loaded.option_ent_coef == 0.3
+    assert loaded.reward_scale == 0.25
+    assert loaded.option_advantage_offset == 0.1
+    assert loaded.clip_range_option == 0.15
+    assert loaded.policy.share_parameters is True
+    assert loaded.policy_kwargs["share_parameters"] is True
+    assert loaded.n_agents == 2
+
+    obs = {key: v.numpy() for key, v in joint_obs_batch(env, steps=6).items()}
+    expected, _ = model.predict(obs, deterministic=True)
+    got, _ = loaded.predict(obs, deterministic=True)
+    for a, b in zip(expected, got, strict=True):
+        np.testing.assert_array_equal(a["comm"], b["comm"])
+        np.testing.assert_array_equal(a["control"], b["control"])
+    loaded.learn(16)  # the loaded model keeps training
+
+    without_env = MAPPOC.load(path)
+    assert all(th.equal(saved[k], v) for k, v in parameters(without_env).items())
+
+
+def test_load_with_other_number_of_agents_raises(tmp_path) -> None:
+    model = make_model(n_agents=2)
+    path = tmp_path / "two_agents.zip"
+    model.save(path)
+    with pytest.raises(ValueError, match=r"2 agents.*3"):
+        MAPPOC.load(path, env=linear_etc_v0.joint_env(n_agents=3))
+    with pytest.raises(ValueError, match=r"2 agents.*3"):
+        MAPPOC.load(path, env=linear_etc_v0.parallel_env(n_agents=3))
+    with pytest.raises(ValueError, match=r"2 agents.*3"):
+        model.set_env(linear_etc_v0.parallel_env(n_agents=3))
+
+
+def test_load_missing_file_raises(tmp_path) -> None:
+    # SB3 also tries "<path>.zip" and then raises FileNotFoundError.
+    with pytest.raises(FileNotFoundError):
+        MAPPOC.load(tmp_path / "missing")
+    with pytest.raises(FileNotFoundError):
+        MAPPOC.load(tmp_path / "missing.zip", env=linear_etc_v0.joint_env(n_agents=2))
+
+
+# --------------------------------------------------------------- 6. determinism
+def test_same_seed_same_parameters_other_seed_differs() -> None:
+    def run(seed: int) -> dict[str, th.Tensor]:
+        model = make_model(n_agents=2, n_envs=2, seed=seed, n_steps=16, batch_size=8)
+        model.learn(64)
+        return parameters(model)
+
+    first, second, other = run(7), run(7), run(8)
+    for key in first:
+        assert th.equal(first[key], second[key]), key
+    assert any(not th.equal(first[key], other[key]) for key in first)
+
+
+# ------------------------------------------------------------------ 7. bad input
+@pytest.mark.parametrize("env_id", ["Pendulum-v1", "CartPole-v1"])
+def test_env_without_joint_spaces_is_rejected(env_id: str) -> None:
+    with pytest.raises(ValueError, match=r"Dict observation space.*(JointEnv|LinearETC)"):
+        MAPPOC("MlpHybridPolicy", env_id)
+
+
+@pytest.mark.parametrize("name", ["batch_size", "n_steps", "n_epochs"])
+@pytest.mark.parametrize("value", [0, -4])
+def test_non_positive_sizes_are_rejected(name: str, value: int) -> None:
+    env = linear_etc_v0.joint_env(n_agents=2)
+    kwargs = {"n_steps": 16, "batch_size": 16, "n_epochs": 1, name: value}
+    with pytest.raises(ValueError, match=name):
+        MAPPOC("MlpHybridPolicy", env, **kwargs)
+
+
+def test_use_sde_is_rejected() -> None:
+    env = linear_etc_v0.joint_env(n_agents=2)
+    with pytest.raises(ValueError, match="use_sde|gSDE"):
+        MAPPOC("MlpHybridPolicy", env, n_steps=16, batch_size=16, policy_kwargs={"use_sde": True})
+
+
+class InjectNaN(gym.Wrapper):
+    """Puts a NaN into the observation or into one agent's reward at one step."""
+
+    def __init__(self, env: gym.Env, where: str, at_step: int) -> None:
+        super().__init__(env)
+        self.where, self.at_step, self.steps = where, at_step, 0
+
+    def step(self, action: Any) -> tuple[Any, float, bool, bool, dict]:
+        obs, reward, terminated, truncated, info = self.env.step(action)
+        self.steps += 1
+        if self.steps == self.at_step:
+            if self.where == "obs":
+                obs = {**obs, "local": obs["local"].copy()}
+                obs["local"][1, 0] = np.nan
+            else:
+                info["agent_rewards"] = info["agent_rewards"].copy()
+                info["agent_rewards"][1] = np.nan
+        return obs, reward, terminated, truncated, info
+
+
+@pytest.mark.parametrize(
+    ("where", "max_cycles"),
+    [("obs", 50), ("reward", 50), ("obs", 5)],
+    ids=["observation", "reward", "terminal-observation-of-truncated-episode"],
+)
+def test_non_finite_rollout_data_is_rejected(where: str, max_cycles: int) -> None:
+    # With max_cycles=5 the NaN observation of step 5 is the terminal observation of a truncated
+    # episode: it reaches the buffer through the bootstrap gamma * V(terminal obs).
+    env = InjectNaN(linear_etc_v0.joint_env(n_agents=2, max_cycles=max_cycles), where, at_step=5)
+    model = MAPPOC("MlpHybridPolicy", env, n_steps=16, batch_size=16, n_epochs=1, seed=0, policy_kwargs=TINY)
+    with pytest.raises(ValueError, match="non-finite"):
+        model.learn(16)
+    if max_cycles > 5:
+        # Caught right after the step that produced it, before that step is counted or stored.
+        assert model.num_timesteps == 4
+    assert np.all(np.isfinite(model.rollout_buffer.rewards))
+    assert all(th.all(th.isfinite(p)) for p in model.policy.parameters())
+
+
+# ------------------------------------------------------------------ 8. PettingZoo
+def test_pettingzoo_network_is_adapted_to_the_joint_view() -> None:
+    parallel = linear_etc_v0.parallel_env(n_agents=3, max_cycles=10)
+    model = MAPPOC("MlpHybridPolicy", parallel, n_steps=16, batch_size=16, n_epochs=1, seed=0, policy_kwargs=TINY)
+    assert model.n_agents == 3 and model.n_control == 1
+    assert isinstance(model.env, DummyVecEnv)
+    assert model.env.envs[0].unwrapped.network is parallel
+    model.learn(32)
+    assert model.num_timesteps == 32
+    views, _ = parallel.reset(seed=0)  # the wrapped PettingZoo env is still usable on its own
+    assert set(views) == set(parallel.possible_agents)
+    action, _ = model.predict(model.env.reset(), deterministic=True)
+    assert action[0]["comm"].shape == (3,) and action[0]["control"].shape == (3, 1)
+
+
+# ---------------------------------------------------- 9. frozen mu, option override
+@pytest.mark.parametrize("train_option_policy", [False, True])
+def test_train_option_policy_switch(train_option_policy: bool) -> None:
+    model = make_model(n_agents=2, train_option_policy=train_option_policy, n_epochs=2, batch_size=8)
+    mu_before, pi_before = net_slices(model.policy, "mu"), net_slices(model.policy, "pi")
+    model.learn(32)
+    mu_after, pi_after = net_slices(model.policy, "mu"), net_slices(model.policy, "pi")
+    assert any(not th.equal(a, b) for a, b in zip(pi_before, pi_after, strict=True))
+    mu_unchanged = all(th.equal(a, b) for a, b in zip(mu_before, mu_after, strict=True))
+    assert mu_unchanged is (not train_option_policy)
+
+
+def test_option_override_drives_the_rollouts() -> None:
+    model = make_model(n_agents=3, n_envs=2, n_steps=16)
+
+    def send_when_ahead(obs: dict[str, np.ndarray]) -> np.ndarray:
+        return (obs["local"][..., 0] > 0).astype(np.int64)
+
+    model.option_override = send_when_ahead
+    model.learn(32)
+    buffer = model.rollout_buffer
+    expected = (buffer.observations["local"][..., 0] > 0).astype(np.int64)
+    assert 0 < expected.mean() < 1  # the override is not constant
+    np.testing.assert_array_equal(buffer.comm, expected)
+    # The next stored observation shows the overridden options' timers (within episodes).
+    age = buffer.observations["age"][..., 0]
+    within = buffer.episode_starts[1:] == 0
+    advanced = np.where(expected[:-1] == 1, 0, age[:-1] + 1)
+    np.testing.assert_array_equal(age[1:][within], advanced[within])
