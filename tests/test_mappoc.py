@@ -351,8 +351,9 @@ def fill(buffer: HybridRolloutBuffer, rewards: np.ndarray, values: np.ndarray, s
     obs = {key: np.zeros((n_envs, *space.shape), np.float32) for key, space in buffer.observation_space.spaces.items()}
     for t in range(buffer.buffer_size):
         zeros = np.zeros((n_envs, n), np.float32)
+        option_values = np.stack([values[t], values[t] - 1.0], axis=-1)  # option 0 is the one taken
         buffer.add(
-            obs, zeros.astype(np.int64), np.zeros((n_envs, n, 1)), rewards[t], starts[t], values[t], zeros, zeros
+            obs, zeros.astype(np.int64), np.zeros((n_envs, n, 1)), rewards[t], starts[t], option_values, zeros, zeros
         )
 
 
@@ -639,3 +640,20 @@ def test_option_override_drives_the_rollouts() -> None:
     within = buffer.episode_starts[1:] == 0
     advanced = np.where(expected[:-1] == 1, 0, age[:-1] + 1)
     np.testing.assert_array_equal(age[1:][within], advanced[within])
+
+
+def test_option_advantages_subtract_the_state_value_under_mu() -> None:
+    """V(s) = mu(taken) Q(taken) + mu(other) Q(other); option advantage = lambda-return - V(s)."""
+    buffer = gae_buffer(1, n_envs=1, gamma=0.9, gae_lambda=0.8)
+    obs = {key: np.zeros((1, *space.shape), np.float32) for key, space in buffer.observation_space.spaces.items()}
+    comm = np.array([[1, 0]])
+    option_values = np.array([[[2.0, 6.0], [3.0, -1.0]]], np.float32)  # taken: 6.0 (agent 0), 3.0 (agent 1)
+    log_prob = np.log(np.array([[0.25, 0.5]], np.float32))
+    buffer.add(
+        obs, comm, np.zeros((1, 2, 1)), np.array([[1.0, 1.0]]), np.array([1.0]), option_values, log_prob, log_prob
+    )
+    buffer.compute_returns_and_advantage(last_values=np.array([[0.0, 0.0]], np.float32), dones=np.array([1]))
+    np.testing.assert_allclose(buffer.values[0, 0], [6.0, 3.0])
+    np.testing.assert_allclose(buffer.state_values[0, 0], [0.25 * 6 + 0.75 * 2, 0.5 * 3 + 0.5 * -1])
+    np.testing.assert_allclose(buffer.returns[0, 0], [1.0, 1.0])
+    np.testing.assert_allclose(buffer.option_advantages[0, 0], [1.0 - 3.0, 1.0 - 1.0])

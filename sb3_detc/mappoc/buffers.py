@@ -21,6 +21,7 @@ class HybridRolloutSamples(NamedTuple):
     old_log_prob_control: th.Tensor  # (B, N)
     advantages: th.Tensor  # (B, N) GAE advantages
     returns: th.Tensor  # (B, N) lambda-returns, targets of Q_i(s, o_taken)
+    option_advantages: th.Tensor  # (B, N) lambda-return minus V_i(s) = sum_o mu_i(o) Q_i(s, o) at collection
 
 
 class HybridRolloutBuffer:
@@ -30,7 +31,10 @@ class HybridRolloutBuffer:
     of the *taken* option, ``delta_t = r_t + gamma Q(s_{t+1}, o_{t+1}) - Q(s_t, o_t)``,
     per agent, cut at episode ends; truncated episodes are bootstrapped by the caller
     (added to the reward, as SB3 does). The lambda-returns ``A + Q(s, o)`` are the
-    critic's regression targets.
+    critic's regression targets. ``option_advantages`` are the lambda-returns minus the
+    state value ``V(s) = sum_o mu(o | s) Q(s, o)`` at collection time (a sampled advantage
+    of the taken option, for :class:`~sb3_detc.mappoc.mappoc.MAPPOC` with
+    ``option_advantage="return"``).
 
     :param buffer_size: steps per environment and rollout
     :param observation_space: joint observation space (Dict of (N, ...) boxes)
@@ -74,10 +78,12 @@ class HybridRolloutBuffer:
         self.rewards = np.zeros((*shape, n), dtype=np.float32)
         self.episode_starts = np.zeros(shape, dtype=np.float32)
         self.values = np.zeros((*shape, n), dtype=np.float32)
+        self.state_values = np.zeros((*shape, n), dtype=np.float32)
         self.log_prob_comm = np.zeros((*shape, n), dtype=np.float32)
         self.log_prob_control = np.zeros((*shape, n), dtype=np.float32)
         self.advantages = np.zeros((*shape, n), dtype=np.float32)
         self.returns = np.zeros((*shape, n), dtype=np.float32)
+        self.option_advantages = np.zeros((*shape, n), dtype=np.float32)
         self.pos = 0
         self.full = False
 
@@ -92,7 +98,7 @@ class HybridRolloutBuffer:
         control: np.ndarray,
         rewards: np.ndarray,
         episode_start: np.ndarray,
-        values: np.ndarray,
+        option_values: np.ndarray,
         log_prob_comm: np.ndarray,
         log_prob_control: np.ndarray,
     ) -> None:
@@ -103,7 +109,7 @@ class HybridRolloutBuffer:
         :param control: controls (n_envs, N, m)
         :param rewards: per-agent rewards (n_envs, N), already scaled and bootstrapped at timeouts
         :param episode_start: whether ``obs`` starts an episode (n_envs,)
-        :param values: ``Q_i(s, o_taken)`` (n_envs, N)
+        :param option_values: ``Q_i(s, o)`` of both options (n_envs, N, 2)
         :param log_prob_comm: ``log mu_i(o_i)`` (n_envs, N)
         :param log_prob_control: ``log pi_i(u_i)`` (n_envs, N)
         """
@@ -115,7 +121,11 @@ class HybridRolloutBuffer:
         self.control[self.pos] = control
         self.rewards[self.pos] = rewards
         self.episode_starts[self.pos] = episode_start
-        self.values[self.pos] = values
+        taken = np.take_along_axis(option_values, comm[..., None], axis=-1)[..., 0]
+        p_taken = np.exp(log_prob_comm)
+        other = option_values.sum(-1) - taken  # two options: the one not taken
+        self.values[self.pos] = taken
+        self.state_values[self.pos] = p_taken * taken + (1 - p_taken) * other
         self.log_prob_comm[self.pos] = log_prob_comm
         self.log_prob_control[self.pos] = log_prob_control
         self.pos += 1
@@ -140,6 +150,7 @@ class HybridRolloutBuffer:
             last_gae = delta + self.gamma * self.gae_lambda * alive * last_gae
             self.advantages[t] = last_gae
         self.returns = self.advantages + self.values
+        self.option_advantages = self.returns - self.state_values
 
     def get(self, batch_size: int | None = None) -> Generator[HybridRolloutSamples, None, None]:
         """Shuffled minibatches over all stored steps and environments.
@@ -163,6 +174,7 @@ class HybridRolloutBuffer:
                 self.log_prob_control,
                 self.advantages,
                 self.returns,
+                self.option_advantages,
             )
         ]
         batch_size = total if batch_size is None else batch_size

@@ -60,6 +60,11 @@ class MAPPOC(OnPolicyAlgorithm):
     :param max_grad_norm: maximum gradient norm, or None for no clipping (paper: none)
     :param action_noise_std: standard deviation of extra Gaussian noise on the controls
         (the curriculum changes it during training); log-probabilities refer to the noisy controls
+    :param option_advantage: advantage of the taken option in ``mu``'s loss: ``"greedy"``
+        (the paper: ``Q(o) - max_o' Q(o')`` with the current critic) or ``"return"`` (the
+        lambda-return minus ``V(s) = sum_o mu(o) Q(s, o)`` at collection time, standardised
+        per agent like the control advantages: a sampled advantage that does not rely on the
+        critic telling the two options apart)
     :param option_advantage_offset: constant added to the greedy option advantage (the
         paper's code used a 0.1 "deliberation" offset; the paper and the default use 0)
     :param reward_scale: factor applied to rewards for learning only (paper: 0.1)
@@ -99,6 +104,7 @@ class MAPPOC(OnPolicyAlgorithm):
         vf_coef: float = 1.0,
         max_grad_norm: float | None = None,
         action_noise_std: float = 0.0,
+        option_advantage: str = "greedy",
         option_advantage_offset: float = 0.0,
         reward_scale: float = 0.1,
         normalize_advantage: bool = True,
@@ -157,6 +163,9 @@ class MAPPOC(OnPolicyAlgorithm):
         self.clip_range_option = clip_range_option
         self.option_ent_coef = option_ent_coef
         self.action_noise_std = action_noise_std
+        if option_advantage not in ("greedy", "return"):
+            raise ValueError(f"option_advantage must be 'greedy' or 'return', got {option_advantage!r}.")
+        self.option_advantage = option_advantage
         self.option_advantage_offset = option_advantage_offset
         self.reward_scale = reward_scale
         self.normalize_advantage = normalize_advantage
@@ -251,14 +260,13 @@ class MAPPOC(OnPolicyAlgorithm):
                     with th.no_grad():
                         rewards[idx] += self.gamma * self.policy.state_values(terminal_obs)[0].cpu().numpy()
 
-            q = action.option_values.gather(-1, action.comm[..., None])[..., 0]
             buffer.add(
                 obs,  # type: ignore[arg-type]
                 comm,
                 control,
                 rewards,
                 self._last_episode_starts,  # type: ignore[arg-type]
-                q.cpu().numpy(),
+                action.option_values.cpu().numpy(),
                 action.log_prob_comm.cpu().numpy(),
                 action.log_prob_control.cpu().numpy(),
             )
@@ -293,9 +301,7 @@ class MAPPOC(OnPolicyAlgorithm):
                 evaluation = self.policy.evaluate_actions(data.observations, data.comm, data.control)
 
                 # Control policy: PPO clipped surrogate on GAE advantages of the taken option.
-                advantages = data.advantages
-                if self.normalize_advantage and len(advantages) > 1:
-                    advantages = (advantages - advantages.mean(0)) / (advantages.std(0) + 1e-8)
+                advantages = self._normalized(data.advantages)
                 log_ratio_pi = evaluation.log_prob_control - data.old_log_prob_control
                 ratio_pi = th.exp(log_ratio_pi)
                 pi_loss = clipped_surrogate_loss(advantages, ratio_pi, clip_pi)
@@ -307,7 +313,10 @@ class MAPPOC(OnPolicyAlgorithm):
                 loss = pi_loss + self.vf_coef * q_loss
 
                 # Options: PPO clipped surrogate on the greedy advantage Q(o) - max_o' Q(o'), no gradient into Q.
-                advantages_mu = greedy_option_advantage(q, data.comm, self.option_advantage_offset)
+                if self.option_advantage == "greedy":
+                    advantages_mu = greedy_option_advantage(q, data.comm, self.option_advantage_offset)
+                else:
+                    advantages_mu = self._normalized(data.option_advantages) + self.option_advantage_offset
                 log_ratio_mu = evaluation.log_prob_comm - data.old_log_prob_comm
                 ratio_mu = th.exp(log_ratio_mu)
                 mu_loss = clipped_surrogate_loss(advantages_mu, ratio_mu, clip_mu)
@@ -354,6 +363,12 @@ class MAPPOC(OnPolicyAlgorithm):
         self.logger.record("train/action_noise_std", self.action_noise_std)
         self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
         self.logger.record("rollout/broadcast_rate", float(buffer.comm.mean()))
+
+    def _normalized(self, advantages: th.Tensor) -> th.Tensor:
+        """Standardise advantages per agent over the minibatch (if ``normalize_advantage``)."""
+        if self.normalize_advantage and len(advantages) > 1:
+            return (advantages - advantages.mean(0)) / (advantages.std(0) + 1e-8)
+        return advantages
 
     def learn(
         self: SelfMAPPOC,
