@@ -23,7 +23,8 @@ boundary). The three envs are measured interleaved (A, B, C, A, B, C, ...) so th
 machine load hits all of them alike; the table reports the median over ``--repeats``.
 
 Everything is printed to stdout (a markdown table and the machine); nothing is written to
-disk. PyTorch is not imported.
+disk. The benchmark itself never imports PyTorch (``import sb3_detc`` may load it; the
+output says whether it is loaded).
 
 Run: ``.venv/bin/python benchmarks/env_throughput.py [--seconds 10] [--repeats 3] [--seed 0]``.
 """
@@ -247,15 +248,19 @@ def main(argv: Sequence[str] | None = None) -> None:
     for repeat in range(args.repeats):
         for bench, rng in zip(benches, rngs, strict=True):
             bench.runs.append(measure(bench, args.seconds, args.seed + repeat, rng))
-            print(f"repeat {repeat + 1}/{args.repeats} {bench.name}: {bench.runs[-1].rate:.0f} steps/s", flush=True)
+            load = os.getloadavg()[0]
+            print(
+                f"repeat {repeat + 1}/{args.repeats} {bench.name}: {bench.runs[-1].rate:.0f} steps/s (load {load:.2f})",
+                flush=True,
+            )
     load_after = os.getloadavg()
 
     print()
     print(f"date: {datetime.datetime.now().astimezone().isoformat(timespec='seconds')}")
     print(f"command: {' '.join([os.path.basename(sys.executable), *sys.argv])}")
     print(f"machine: {machine_line()}")
-    print(f"load average (1 min) before/after: {load_before[0]:.2f}/{load_after[0]:.2f}; torch imported: ", end="")
-    print("yes" if "torch" in sys.modules else "no")
+    torch_loaded = "yes, by an import, unused" if "torch" in sys.modules else "no"
+    print(f"load average (1 min) before/after: {load_before[0]:.2f}/{load_after[0]:.2f}; torch loaded: {torch_loaded}")
     print(
         f"settings: {args.repeats} interleaved repeats x {args.seconds:g} s per env, seed {args.seed}, "
         "uniformly random actions, resets included in the time"

@@ -11,6 +11,7 @@ from sb3_detc.envs.linear import (
     LinearSystem,
     LQRController,
     lqr_cost_per_step,
+    lqr_episode_cost,
     lqr_gain,
     lqr_reward_per_step,
 )
@@ -309,3 +310,35 @@ def test_lqr_cost_matches_simulation(n: int, steps: int) -> None:
     mean_w, se_w = simulated_cost(env, LQRController(env, gain=worse), steps, burn_in=300, batch=500, seed=123)
     assert abs(mean_w - theory_worse) < 4 * se_w, (mean_w, theory_worse, se_w)
     assert mean_w > theory + 10 * max(se, se_w)
+
+
+def episode_costs(system: LinearSystem, controller: LQRController, seeds: range) -> np.ndarray:
+    costs = []
+    for seed in seeds:
+        obs, _ = system.reset_arrays(seed)
+        total, done = 0.0, False
+        while not done:
+            obs, rewards, terminated, truncated, _ = system.step_arrays(controller(obs.message))
+            total -= rewards.sum()
+            done = terminated or truncated
+        costs.append(total)
+    return np.array(costs)
+
+
+def test_lqr_episode_cost_of_a_single_step_is_the_initial_stage_cost():
+    system = LinearSystem(n_agents=3, max_cycles=1, init_std=0.3)
+    _, _, q, _, _ = system.joint_matrices()
+    assert lqr_episode_cost(system) == pytest.approx(0.09 * np.trace(q))
+
+
+def test_lqr_episode_cost_bounds_simulated_episodes():
+    system = LinearSystem(n_agents=3, max_cycles=40)
+    bound = lqr_episode_cost(system)
+    controller = LQRController(system)
+    costs = episode_costs(system, controller, range(300))
+    mean, sem = costs.mean(), costs.std() / np.sqrt(len(costs))
+    # the stationary gain is near-optimal on a finite horizon: not below the bound, and close to it
+    assert bound - 3 * sem < mean < 1.05 * bound + 3 * sem
+    # a detuned controller is clearly worse, so the check can fail
+    lazy = LQRController(system, gain=0.3 * controller.gain)
+    assert episode_costs(system, lazy, range(100)).mean() > 1.2 * bound

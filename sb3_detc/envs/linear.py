@@ -31,6 +31,7 @@ __all__ = [
     "lqr_gain",
     "lqr_cost_per_step",
     "lqr_reward_per_step",
+    "lqr_episode_cost",
 ]
 
 
@@ -267,6 +268,31 @@ def lqr_reward_per_step(system: LinearSystem) -> float:
     :return: ``-lqr_cost_per_step(system) / N``
     """
     return -lqr_cost_per_step(system) / system.n_agents
+
+
+def lqr_episode_cost(system: LinearSystem) -> float:
+    """Expected team cost of one whole episode under the optimal finite-horizon LQR controller.
+
+    The exact lower bound for episodic returns: over ``T = max_cycles`` steps from the
+    random initial state ``x_0 ~ N(0, init_std^2 I)``, with full state information every
+    step (periodic communication) and no terminal cost, the optimal expected cost is
+    ``init_std^2 trace(P_0) + sum_{k=1}^{T-1} trace(P_k W)`` with the Riccati recursion
+    ``P_T = 0``, ``P_k = Q + A'P_{k+1}A - A'P_{k+1}B (R + B'P_{k+1}B)^{-1} B'P_{k+1}A``.
+    (The noise after the last stage cost, ``w_{T-1}``, costs nothing.) Divide by N for
+    the mean per-agent cost that a joint env's episode return reports.
+
+    :param system: the linear system
+    :return: expected team cost per episode (sum over agents and steps)
+    """
+    a, b, q, r, w = system.joint_matrices()
+    p = np.zeros_like(a)
+    noise_cost = 0.0
+    for _ in range(system.max_cycles):
+        noise_cost += float(np.trace(p @ w))
+        bp = b.T @ p
+        p = q + a.T @ p @ a - (bp @ a).T @ np.linalg.solve(r + bp @ b, bp @ a)
+        p = 0.5 * (p + p.T)
+    return system.init_std**2 * float(np.trace(p)) + noise_cost
 
 
 class LQRController:
