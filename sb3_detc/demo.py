@@ -189,7 +189,7 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(
         prog="python -m sb3_detc.demo", description="Event-triggered communication schemes on the linear benchmark."
     )
-    parser.add_argument("--episodes", type=int, default=5, help="seeded episodes per scheme (default 5)")
+    parser.add_argument("--episodes", type=int, default=30, help="seeded episodes per scheme (default 30)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the first episode (default 0)")
     parser.add_argument("--n-agents", type=int, default=3, help="number of agents N >= 2 (default 3)")
     args = parser.parse_args(argv)

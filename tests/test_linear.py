@@ -106,7 +106,7 @@ def test_formation_weights_in_joint_cost() -> None:
 @pytest.mark.parametrize("n", [2, 20])
 def test_transition_without_noise(n: int) -> None:
     dt = 0.2
-    env = LinearSystem(n_agents=n, dt=dt, noise_pos=0.0, noise_vel=0.0, init_std=1.0)
+    env = LinearSystem(n_agents=n, dt=dt, noise_pos=0.0, noise_vel=0.0, jump_prob=0.0, init_std=1.0)
     a, b, _, _, w = env.joint_matrices()
     assert np.all(w == 0)
     rng = np.random.default_rng(0)
@@ -122,7 +122,7 @@ def test_transition_without_noise(n: int) -> None:
 
 
 def test_controls_are_clipped() -> None:
-    env = LinearSystem(n_agents=2, noise_pos=0.0, noise_vel=0.0, u_max=2.0, dt=0.5)
+    env = LinearSystem(n_agents=2, noise_pos=0.0, noise_vel=0.0, jump_prob=0.0, u_max=2.0, dt=0.5)
     obs, _ = env.reset_arrays(seed=0)
     x = obs.local.copy()
     obs, rewards, *_ = env.step_arrays(np.array([[100.0], [-100.0]]))
@@ -133,7 +133,7 @@ def test_controls_are_clipped() -> None:
 
 def test_noise_and_initial_statistics() -> None:
     # One step from the origin with zero control gives x1 = w; reset gives x0 ~ N(0, init_std^2).
-    env = LinearSystem(n_agents=20, init_std=0.0, noise_pos=0.03, noise_vel=0.2)
+    env = LinearSystem(n_agents=20, init_std=0.0, noise_pos=0.03, noise_vel=0.2, jump_prob=0.0)
     samples = []
     for seed in range(200):
         obs, _ = env.reset_arrays(seed=seed)
@@ -233,7 +233,7 @@ def test_bad_parameters(kwargs: dict, name: str) -> None:
 
 
 def test_zero_weights_are_allowed_but_lqr_needs_q_reg() -> None:
-    env = LinearSystem(q_reg=0.0, q_vel=0.0, q_form=0.0, noise_pos=0.0, noise_vel=0.0, init_std=0.0)
+    env = LinearSystem(q_reg=0.0, q_vel=0.0, q_form=0.0, noise_pos=0.0, noise_vel=0.0, jump_prob=0.0, init_std=0.0)
     env.reset_arrays(seed=0)
     env.step_arrays(np.zeros((3, 1)))
     with pytest.raises(ValueError, match="q_reg"):
@@ -263,7 +263,7 @@ def test_lqr_gain_solves_the_riccati_equation() -> None:
     assert lqr_reward_per_step(env) == pytest.approx(-lqr_cost_per_step(env) / 4)
     # Coupling: the gain of agent 0 depends on agent 1's position error (formation term).
     assert abs(k[0, 2]) > 1e-3
-    assert lqr_cost_per_step(LinearSystem(n_agents=4, noise_pos=0.0, noise_vel=0.0)) == 0.0
+    assert lqr_cost_per_step(LinearSystem(n_agents=4, noise_pos=0.0, noise_vel=0.0, jump_prob=0.0)) == 0.0
 
 
 def test_lqr_controller_matches_gain() -> None:

@@ -56,7 +56,11 @@ class LinearSystem(CommunicatingSystem):
 
         x_i[k+1] = A x_i[k] + B u_i[k] + w_i[k],
         A = [[1, dt], [0, 1]],  B = [[dt^2 / 2], [dt]],
-        w_i[k] ~ N(0, diag(noise_pos^2, noise_vel^2)), i.i.d. over agents and time.
+        w_i[k] ~ N(0, diag(noise_pos^2, noise_vel^2)), i.i.d. over agents and time,
+
+    plus, with ``jump_prob > 0``, a velocity kick ``N(0, jump_std^2)`` with probability
+    ``jump_prob`` per agent and step. The LQR helpers use the total noise covariance ``W``;
+    with full state information the LQR law is optimal for any such white noise.
 
     The initial state is ``N(0, init_std^2)`` in every component. The control ``u_i`` is a
     scalar acceleration in ``control_space = Box(-u_max, u_max, (1,))``; controls outside
@@ -98,6 +102,10 @@ class LinearSystem(CommunicatingSystem):
     :param init_std: standard deviation of every initial state component (>= 0)
     :param u_max: control bound, controls are clipped to [-u_max, u_max] (> 0)
     :param max_cycles: episode length in steps (an integer >= 1); episodes are truncated after it
+    :param jump_prob: probability per agent and step of an impulsive disturbance, a velocity
+        kick ``N(0, jump_std^2)`` on top of the Gaussian noise (the situation event-triggered
+        communication is made for: a state that changes rarely but suddenly)
+    :param jump_std: standard deviation of a velocity kick (>= 0)
     """
 
     metadata: dict[str, Any] = {"render_modes": [], "name": "linear_etc_v0", "is_parallelizable": True}
@@ -111,10 +119,12 @@ class LinearSystem(CommunicatingSystem):
         q_form: float = 10.0,
         r: float = 0.1,
         noise_pos: float = 0.01,
-        noise_vel: float = 0.05,
+        noise_vel: float = 0.01,
         init_std: float = 0.2,
         u_max: float = 10.0,
         max_cycles: int = 100,
+        jump_prob: float = 0.02,
+        jump_std: float = 1.0,
     ) -> None:
         super().__init__()
         if isinstance(n_agents, bool) or not isinstance(n_agents, (int, np.integer)) or n_agents < 2:
@@ -130,6 +140,10 @@ class LinearSystem(CommunicatingSystem):
         self.noise_vel = _check_non_negative("noise_vel", noise_vel)
         self.init_std = _check_non_negative("init_std", init_std)
         self.u_max = _check_positive("u_max", u_max)
+        self.jump_prob = _check_non_negative("jump_prob", jump_prob)
+        if self.jump_prob > 1:
+            raise ValueError(f"jump_prob must be a probability in [0, 1], got {jump_prob!r}.")
+        self.jump_std = _check_non_negative("jump_std", jump_std)
         # A plain attribute: PettingZoo's parallel_api_test sets it.
         self.max_cycles = int(max_cycles)
         self.render_mode = None
@@ -169,7 +183,7 @@ class LinearSystem(CommunicatingSystem):
         q[0::2, 0::2] = self.q_reg * eye + self.q_form * laplacian
         q[1::2, 1::2] = self.q_vel * eye
         r = self.r * eye
-        w = np.kron(eye, np.diag(self._noise_std**2))
+        w = np.kron(eye, np.diag(self._noise_std**2 + [0.0, self.jump_prob * self.jump_std**2]))
         return a, b, q, r, w
 
     # ----------------------------------------------------------------- array core
@@ -197,6 +211,9 @@ class LinearSystem(CommunicatingSystem):
         rewards = -(self.q_reg * e**2 + self.q_vel * v**2 + self.r * u**2 + shared)
 
         noise = self._noise_std * self.np_random.standard_normal((self.n_agents, 2))
+        if self.jump_prob > 0:  # impulsive disturbances: rare, large velocity kicks
+            kicks = self.np_random.random(self.n_agents) < self.jump_prob
+            noise[:, 1] += kicks * self.jump_std * self.np_random.standard_normal(self.n_agents)
         self._x = x @ self._a.T + u[:, None] * self._b + noise
         self._steps += 1
         truncated = self._steps >= self.max_cycles
