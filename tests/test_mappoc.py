@@ -657,3 +657,36 @@ def test_option_advantages_subtract_the_state_value_under_mu() -> None:
     np.testing.assert_allclose(buffer.state_values[0, 0], [0.25 * 6 + 0.75 * 2, 0.5 * 3 + 0.5 * -1])
     np.testing.assert_allclose(buffer.returns[0, 0], [1.0, 1.0])
     np.testing.assert_allclose(buffer.option_advantages[0, 0], [1.0 - 3.0, 1.0 - 1.0])
+
+
+def test_option_advantage_modes() -> None:
+    with pytest.raises(ValueError, match="option_advantage"):
+        MAPPOC("MlpHybridPolicy", "sb3_detc/LinearETC-v0", option_advantage="best")
+    model = MAPPOC(
+        "MlpHybridPolicy",
+        "sb3_detc/LinearETC-v0",
+        option_advantage="return",
+        n_steps=32,
+        batch_size=16,
+        n_epochs=2,
+        learning_rate=1e-3,
+        seed=0,
+        policy_kwargs=dict(net_arch=[16, 16]),
+    )
+    chain, start, stop = model.policy._where["mu"]
+    before = model.policy.chains[chain].weights[0][start:stop].detach().clone()
+    model.learn(64)
+    after = model.policy.chains[chain].weights[0][start:stop].detach()
+    assert not th.equal(before, after)
+    buffer = model.rollout_buffer
+    np.testing.assert_allclose(buffer.option_advantages, buffer.returns - buffer.state_values, rtol=1e-6)
+    taken = np.take_along_axis(buffer.option_values, buffer.comm[..., None], axis=-1)[..., 0]
+    np.testing.assert_array_equal(buffer.values, taken)
+
+
+def test_evaluate_policy_runs_on_the_joint_vec_env() -> None:
+    from stable_baselines3.common.evaluation import evaluate_policy
+
+    model = MAPPOC("MlpHybridPolicy", "sb3_detc/LinearETC-v0", n_steps=16, seed=0, policy_kwargs=dict(net_arch=[8]))
+    mean, std = evaluate_policy(model, model.get_env(), n_eval_episodes=2)
+    assert np.isfinite(mean) and np.isfinite(std) and mean < 0

@@ -23,6 +23,11 @@ class HybridRolloutSamples(NamedTuple):
     returns: th.Tensor  # (B, N) lambda-returns, targets of Q_i(s, o_taken)
     option_advantages: th.Tensor  # (B, N) lambda-return minus V_i(s) = sum_o mu_i(o) Q_i(s, o) at collection
 
+    def select(self, idx: th.Tensor) -> HybridRolloutSamples:
+        """The samples ``idx`` of the batch axis."""
+        observations = {key: value[idx] for key, value in self.observations.items()}
+        return HybridRolloutSamples(observations, *(field[idx] for field in self[1:]))
+
 
 class HybridRolloutBuffer:
     """On-policy storage of joint observations, options, controls and per-agent rewards.
@@ -77,6 +82,7 @@ class HybridRolloutBuffer:
         self.control = np.zeros(shape + self.control_shape, dtype=np.float32)
         self.rewards = np.zeros((*shape, n), dtype=np.float32)
         self.episode_starts = np.zeros(shape, dtype=np.float32)
+        self.option_values = np.zeros((*shape, n, 2), dtype=np.float32)
         self.values = np.zeros((*shape, n), dtype=np.float32)
         self.state_values = np.zeros((*shape, n), dtype=np.float32)
         self.log_prob_comm = np.zeros((*shape, n), dtype=np.float32)
@@ -124,6 +130,7 @@ class HybridRolloutBuffer:
         taken = np.take_along_axis(option_values, comm[..., None], axis=-1)[..., 0]
         p_taken = np.exp(log_prob_comm)
         other = option_values.sum(-1) - taken  # two options: the one not taken
+        self.option_values[self.pos] = option_values
         self.values[self.pos] = taken
         self.state_values[self.pos] = p_taken * taken + (1 - p_taken) * other
         self.log_prob_comm[self.pos] = log_prob_comm
@@ -152,35 +159,47 @@ class HybridRolloutBuffer:
         self.returns = self.advantages + self.values
         self.option_advantages = self.returns - self.state_values
 
-    def get(self, batch_size: int | None = None) -> Generator[HybridRolloutSamples, None, None]:
-        """Shuffled minibatches over all stored steps and environments.
-
-        :param batch_size: samples per minibatch (None: everything at once)
-        """
+    def tensors(self) -> HybridRolloutSamples:
+        """The whole rollout as tensors, environments and steps flattened into one batch axis."""
         if not self.full:
-            raise RuntimeError("HybridRolloutBuffer.get needs a full buffer.")
+            raise RuntimeError("HybridRolloutBuffer needs a full rollout; keep adding steps.")
         total = self.buffer_size * self.n_envs
 
         def flat(array: np.ndarray) -> th.Tensor:
             return th.as_tensor(array.reshape(total, *array.shape[2:]), device=self.device)
 
-        observations = {key: flat(value) for key, value in self.observations.items()}
-        tensors = [
-            flat(a)
-            for a in (
-                self.comm,
-                self.control,
-                self.log_prob_comm,
-                self.log_prob_control,
-                self.advantages,
-                self.returns,
-                self.option_advantages,
-            )
-        ]
+        return HybridRolloutSamples(
+            {key: flat(value) for key, value in self.observations.items()},
+            *(
+                flat(a)
+                for a in (
+                    self.comm,
+                    self.control,
+                    self.log_prob_comm,
+                    self.log_prob_control,
+                    self.advantages,
+                    self.returns,
+                    self.option_advantages,
+                )
+            ),
+        )
+
+    def minibatch_indices(self, batch_size: int | None = None) -> Generator[th.Tensor, None, None]:
+        """Shuffled index minibatches over all stored samples (the last one may be smaller).
+
+        :param batch_size: samples per minibatch (None: everything at once)
+        """
+        total = self.buffer_size * self.n_envs
         batch_size = total if batch_size is None else batch_size
         order = th.randperm(total, device=self.device)
         for start in range(0, total, batch_size):
-            idx = order[start : start + batch_size]
-            yield HybridRolloutSamples(
-                {key: value[idx] for key, value in observations.items()}, *(t[idx] for t in tensors)
-            )
+            yield order[start : start + batch_size]
+
+    def get(self, batch_size: int | None = None) -> Generator[HybridRolloutSamples, None, None]:
+        """Shuffled minibatches over all stored steps and environments.
+
+        :param batch_size: samples per minibatch (None: everything at once)
+        """
+        data = self.tensors()
+        for idx in self.minibatch_indices(batch_size):
+            yield data.select(idx)

@@ -296,9 +296,14 @@ class MAPPOC(OnPolicyAlgorithm):
             k: [] for k in ("pi_loss", "mu_loss", "q_loss", "entropy_mu", "clip_pi", "clip_mu", "kl_pi", "kl_mu")
         }
         continue_training = True
+        rollout = self.rollout_buffer.tensors()
+        # The networks' inputs depend on stored observations and options only: build them once.
+        inputs = self.policy.training_inputs(rollout.observations, rollout.comm)
+        samples = rollout._replace(observations={})
         for epoch in range(self.n_epochs):
-            for data in self.rollout_buffer.get(self.batch_size):
-                evaluation = self.policy.evaluate_actions(data.observations, data.comm, data.control)
+            for idx in self.rollout_buffer.minibatch_indices(self.batch_size):
+                data = samples.select(idx)
+                evaluation = self.policy.evaluate_inputs([x.select(idx) for x in inputs], data.comm, data.control)
 
                 # Control policy: PPO clipped surrogate on GAE advantages of the taken option.
                 advantages = self._normalized(data.advantages)

@@ -136,6 +136,18 @@ class HybridEvaluation(NamedTuple):
     option_values: th.Tensor  # (B, N, 2)
 
 
+class ChainInput(NamedTuple):
+    """Inputs of some networks of one batched chain, stacked: (groups, B, agents per group, width)."""
+
+    chain: int  # index of the chain
+    nets: tuple[str, ...]  # networks of the chain these inputs feed, in chain order
+    x: th.Tensor
+
+    def select(self, idx: th.Tensor) -> ChainInput:
+        """The same inputs for the samples ``idx`` of the batch axis."""
+        return ChainInput(self.chain, self.nets, self.x[:, idx])
+
+
 def gaussian_log_prob(x: th.Tensor, mean: th.Tensor, log_std: th.Tensor) -> th.Tensor:
     """Log-density of a diagonal Gaussian, summed over the last axis."""
     z = (x - mean) * th.exp(-log_std)
@@ -317,35 +329,72 @@ class MlpHybridPolicy(BasePolicy):
         true = relative_views(obs["message"], obs["message"], self.others).flatten(2)
         return th.cat([obs["local"], held, ages, true], dim=-1)
 
-    def _run(self, inputs: dict[str, th.Tensor]) -> dict[str, th.Tensor]:
-        """Evaluate the named networks of all agents; inputs and outputs shaped (B, N, features)."""
-        batch = next(iter(inputs.values())).shape[0]
-        outputs: dict[str, th.Tensor] = {}
+    def stack_inputs(self, features: dict[str, th.Tensor]) -> list[ChainInput]:
+        """Arrange per-network features for the batched chains.
+
+        The result depends on no parameter, so training computes it once per rollout and
+        only indexes it (:meth:`ChainInput.select`) for every minibatch.
+
+        :param features: inputs of some of the networks ``mu``, ``q``, ``pi``, each (B, N, features)
+        :return: one :class:`ChainInput` per chain that evaluates at least one of them
+        """
+        stacked = []
         for c, chain in enumerate(self.chains):
-            nets = [net for net in NETS if net in inputs and self._where[net][0] == c]
+            nets = tuple(net for net in NETS if net in features and self._where[net][0] == c)
             if not nets:
                 continue
             width = max(chain.in_features)
-            grouped = [self._to_groups(inputs[net]) for net in nets]
-            stacked = th.cat([F.pad(x, (0, width - x.shape[-1])) for x in grouped])
-            start, stop = self._where[nets[0]][1], self._where[nets[-1]][2]
-            out = chain(stacked, start, stop)
-            groups = self._where[nets[0]][2] - self._where[nets[0]][1]
-            for k, net in enumerate(nets):
-                block = out[k * groups : (k + 1) * groups, :, : self.out_features[net]]
+            grouped = [self._to_groups(features[net]) for net in nets]
+            x = th.cat([F.pad(g, (0, width - g.shape[-1])) for g in grouped])
+            stacked.append(ChainInput(c, nets, x))
+        return stacked
+
+    def apply_chains(self, stacked: list[ChainInput]) -> dict[str, th.Tensor]:
+        """Evaluate the networks of all agents on stacked inputs.
+
+        :param stacked: inputs from :meth:`stack_inputs` (possibly indexed by :meth:`ChainInput.select`)
+        :return: outputs of every network in ``stacked``, each (B, N, outputs)
+        """
+        outputs: dict[str, th.Tensor] = {}
+        for item in stacked:
+            groups, batch, per_group, width = item.x.shape
+            start, stop = self._where[item.nets[0]][1], self._where[item.nets[-1]][2]
+            out = self.chains[item.chain](item.x.reshape(groups, batch * per_group, width), start, stop)
+            size = self._where[item.nets[0]][2] - self._where[item.nets[0]][1]
+            for k, net in enumerate(item.nets):
+                block = out[k * size : (k + 1) * size, :, : self.out_features[net]]
                 outputs[net] = self._from_groups(block, batch)
         return outputs
 
     def _to_groups(self, x: th.Tensor) -> th.Tensor:
+        """(B, N, f) -> (groups, B, agents per group, f): one group per agent, or one shared group."""
         if self.share_parameters:
             ids = self.agent_id.expand(x.shape[0], -1, -1)
-            return th.cat([x, ids], dim=-1).reshape(1, -1, x.shape[-1] + self.n_agents)
-        return x.transpose(0, 1)
+            return th.cat([x, ids], dim=-1)[None]
+        return x.transpose(0, 1)[:, :, None]
 
     def _from_groups(self, y: th.Tensor, batch: int) -> th.Tensor:
+        """(groups, B * agents per group, outputs) -> (B, N, outputs)."""
         if self.share_parameters:
             return y.reshape(batch, self.n_agents, -1)
         return y.transpose(0, 1)
+
+    def _run(self, features: dict[str, th.Tensor]) -> dict[str, th.Tensor]:
+        return self.apply_chains(self.stack_inputs(features))
+
+    def training_inputs(self, obs: PyTorchObs, comm: th.Tensor) -> list[ChainInput]:
+        """Stacked inputs of all networks for stored observations and options (no parameters involved).
+
+        :param obs: joint observations (B, N, ...) from before the options
+        :param comm: stored options (B, N)
+        """
+        return self.stack_inputs(
+            {
+                "mu": self.option_features(obs),
+                "q": self.critic_features(obs),
+                "pi": self.control_features(obs, comm),
+            }
+        )
 
     # ------------------------------------------------------------------ acting
     def forward(
@@ -389,13 +438,16 @@ class MlpHybridPolicy(BasePolicy):
         :param comm: stored options (B, N)
         :param control: stored controls (B, N, m)
         """
-        out = self._run(
-            {
-                "mu": self.option_features(obs),
-                "q": self.critic_features(obs),
-                "pi": self.control_features(obs, comm),
-            }
-        )
+        return self.evaluate_inputs(self.training_inputs(obs, comm), comm, control)
+
+    def evaluate_inputs(self, stacked: list[ChainInput], comm: th.Tensor, control: th.Tensor) -> HybridEvaluation:
+        """Like :meth:`evaluate_actions`, from inputs prepared by :meth:`training_inputs`.
+
+        :param stacked: stacked inputs of the same samples as ``comm`` and ``control``
+        :param comm: stored options (B, N)
+        :param control: stored controls (B, N, m)
+        """
+        out = self.apply_chains(stacked)
         log_p = F.log_softmax(out["mu"], dim=-1)
         log_prob_comm = log_p.gather(-1, comm.long()[..., None])[..., 0]
         entropy = -(log_p.exp() * log_p).sum(-1)
