@@ -690,3 +690,34 @@ def test_evaluate_policy_runs_on_the_joint_vec_env() -> None:
     model = MAPPOC("MlpHybridPolicy", "sb3_detc/LinearETC-v0", n_steps=16, seed=0, policy_kwargs=dict(net_arch=[8]))
     mean, std = evaluate_policy(model, model.get_env(), n_eval_episodes=2)
     assert np.isfinite(mean) and np.isfinite(std) and mean < 0
+
+
+def test_normalize_reward_divides_by_the_running_return_std() -> None:
+    infos: list[np.ndarray] = []
+
+    class Record(BaseCallback):
+        def _on_step(self) -> bool:
+            infos.append(np.stack([info["agent_rewards"] for info in self.locals["infos"]]))
+            return True
+
+    model = MAPPOC(
+        "MlpHybridPolicy",
+        "sb3_detc/LinearETC-v0",
+        n_steps=40,
+        reward_scale=2.0,
+        normalize_reward=True,
+        seed=0,
+        policy_kwargs=dict(net_arch=[8]),
+    )
+    model.learn(40, callback=Record())
+    raw = 2.0 * np.array(infos)  # (T, envs, N), no truncation within 40 steps (episodes last 100)
+    stored = model.rollout_buffer.rewards
+    factors = stored / raw
+    assert np.all(factors > 0)
+    # the factor of the last step is 1 / std of the discounted returns seen so far, per agent
+    np.testing.assert_allclose(factors[-1, 0], 1 / np.sqrt(model.reward_rms.var + 1e-8), rtol=1e-4)
+    returns = np.zeros_like(raw[0])
+    for r in raw:
+        returns = 0.99 * returns + r
+    assert model._discounted_returns == pytest.approx(returns)
+    assert not np.allclose(factors[0], factors[-1])  # the scale adapts

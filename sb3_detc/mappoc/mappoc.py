@@ -13,6 +13,7 @@ from stable_baselines3.common.buffers import RolloutBuffer
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.on_policy_algorithm import OnPolicyAlgorithm
 from stable_baselines3.common.policies import BasePolicy
+from stable_baselines3.common.running_mean_std import RunningMeanStd
 from stable_baselines3.common.save_util import load_from_zip_file
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
 from stable_baselines3.common.utils import FloatSchedule, explained_variance, obs_as_tensor
@@ -68,6 +69,10 @@ class MAPPOC(OnPolicyAlgorithm):
     :param option_advantage_offset: constant added to the greedy option advantage (the
         paper's code used a 0.1 "deliberation" offset; the paper and the default use 0)
     :param reward_scale: factor applied to rewards for learning only (paper: 0.1)
+    :param normalize_reward: divide every agent's (scaled) reward by a running standard
+        deviation of its discounted return, clipped to [-10, 10], as SB3's ``VecNormalize``
+        does for single-agent rewards (which it cannot do here: per-agent rewards travel in
+        ``info``); useful where returns span orders of magnitude during training
     :param normalize_advantage: standardise the control advantages per agent and minibatch
     :param target_kl: stop the epochs of an update early when the control policy's
         approximate KL divergence exceeds ``1.5 * target_kl`` (None: never)
@@ -107,6 +112,7 @@ class MAPPOC(OnPolicyAlgorithm):
         option_advantage: str = "greedy",
         option_advantage_offset: float = 0.0,
         reward_scale: float = 0.1,
+        normalize_reward: bool = False,
         normalize_advantage: bool = True,
         target_kl: float | None = None,
         share_parameters: bool = False,
@@ -168,6 +174,9 @@ class MAPPOC(OnPolicyAlgorithm):
         self.option_advantage = option_advantage
         self.option_advantage_offset = option_advantage_offset
         self.reward_scale = reward_scale
+        self.normalize_reward = normalize_reward
+        self.reward_rms: RunningMeanStd | None = None
+        self._discounted_returns: np.ndarray | None = None
         self.normalize_advantage = normalize_advantage
         self.target_kl = target_kl
         self.train_option_policy = train_option_policy
@@ -196,7 +205,7 @@ class MAPPOC(OnPolicyAlgorithm):
         self._control_low, self._control_high = control_space.low, control_space.high
 
     def _excluded_save_params(self) -> list[str]:
-        return [*super()._excluded_save_params(), "option_override"]
+        return [*super()._excluded_save_params(), "option_override", "_discounted_returns"]
 
     # ------------------------------------------------------------------ rollouts
     def collect_rollouts(
@@ -244,6 +253,8 @@ class MAPPOC(OnPolicyAlgorithm):
             new_obs, _, dones, infos = env.step([{"comm": c, "control": u} for c, u in zip(comm, clipped, strict=True)])
             rewards = self.reward_scale * _agent_rewards(infos)
             _check_finite(new_obs, rewards)
+            if self.normalize_reward:
+                rewards = self._normalized_rewards(rewards, dones)
             self.num_timesteps += env.num_envs
 
             callback.update_locals(locals())
@@ -368,6 +379,17 @@ class MAPPOC(OnPolicyAlgorithm):
         self.logger.record("train/action_noise_std", self.action_noise_std)
         self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
         self.logger.record("rollout/broadcast_rate", float(buffer.comm.mean()))
+
+    def _normalized_rewards(self, rewards: np.ndarray, dones: np.ndarray) -> np.ndarray:
+        """Rewards divided by the running standard deviation of the discounted returns, per agent."""
+        if self.reward_rms is None:
+            self.reward_rms = RunningMeanStd(shape=(self.n_agents,))
+        if self._discounted_returns is None or self._discounted_returns.shape != rewards.shape:
+            self._discounted_returns = np.zeros_like(rewards, dtype=np.float64)
+        self._discounted_returns = self._discounted_returns * self.gamma + rewards
+        self.reward_rms.update(self._discounted_returns)
+        self._discounted_returns[np.asarray(dones, dtype=bool)] = 0.0
+        return np.clip(rewards / np.sqrt(self.reward_rms.var + 1e-8), -10.0, 10.0).astype(np.float32)
 
     def _normalized(self, advantages: th.Tensor) -> th.Tensor:
         """Standardise advantages per agent over the minibatch (if ``normalize_advantage``)."""
