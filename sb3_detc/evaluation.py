@@ -40,6 +40,7 @@ def evaluate_communication(
     env: gym.Env | str,
     n_eval_episodes: int = 10,
     deterministic: bool = True,
+    deterministic_options: bool | None = None,
     option_override: OptionOverride | None = None,
     seed: int | None = None,
 ) -> CommunicationReport:
@@ -49,6 +50,8 @@ def evaluate_communication(
     :param env: a joint env (not vectorised) or its registered id
     :param n_eval_episodes: number of episodes
     :param deterministic: mode of ``mu`` and mean of ``pi`` instead of samples
+    :param deterministic_options: mode (True) or samples (False) of ``mu`` whatever
+        ``deterministic`` says (None: as ``deterministic``)
     :param option_override: options to use instead of ``mu``'s (e.g. a
         :class:`~sb3_detc.triggers.RandomTrigger`), with the model's control policy
     :param seed: seed of the first episode (the following ones continue its generator)
@@ -73,7 +76,12 @@ def evaluate_communication(
                 comm = None
                 if option_override is not None:
                     comm = th.as_tensor(option_override(batch), device=policy.device)
-                action = policy(obs_as_tensor(batch, policy.device), deterministic=deterministic, comm=comm)
+                action = policy(
+                    obs_as_tensor(batch, policy.device),
+                    deterministic=deterministic,
+                    comm=comm,
+                    deterministic_options=deterministic_options,
+                )
             options = action.comm[0].cpu().numpy()
             control = np.clip(action.control[0].cpu().numpy(), low, high)
             obs, reward, terminated, truncated, info = env.step({"comm": options, "control": control})

@@ -403,6 +403,7 @@ class MlpHybridPolicy(BasePolicy):
         deterministic: bool = False,
         comm: th.Tensor | None = None,
         action_noise_std: float = 0.0,
+        deterministic_options: bool | None = None,
     ) -> HybridAction:
         """Sample all options, deliver the broadcasts, then sample all controls (same-step delivery).
 
@@ -411,12 +412,16 @@ class MlpHybridPolicy(BasePolicy):
         :param comm: options to use instead of sampling them from ``mu`` (e.g. a baseline's)
         :param action_noise_std: standard deviation of extra Gaussian exploration noise added
             to the sampled controls (curriculum); log-probabilities refer to the noisy controls
+        :param deterministic_options: mode (True) or sample (False) of ``mu`` regardless of
+            ``deterministic`` (None: as ``deterministic``)
         :return: the hybrid action with its log-probabilities and the option values
         """
         out = self._run({"mu": self.option_features(obs), "q": self.critic_features(obs)})
         logits = out["mu"]
+        if deterministic_options is None:
+            deterministic_options = deterministic
         if comm is None:
-            if deterministic:
+            if deterministic_options:
                 comm = logits.argmax(-1)
             else:
                 comm = th.distributions.Categorical(logits=logits).sample()
