@@ -721,3 +721,22 @@ def test_normalize_reward_divides_by_the_running_return_std() -> None:
         returns = 0.99 * returns + r
     assert model._discounted_returns == pytest.approx(returns)
     assert not np.allclose(factors[0], factors[-1])  # the scale adapts
+
+
+def test_options_are_sampled_with_mu_probabilities() -> None:
+    model = MAPPOC("MlpHybridPolicy", "sb3_detc/LinearETC-v0", n_steps=8, seed=0, policy_kwargs=dict(net_arch=[8]))
+    policy = model.policy
+    chain, start, stop = policy._where["mu"]
+    with th.no_grad():
+        policy.chains[chain].weights[-1][start:stop] = 0.0
+        bias = policy.chains[chain].biases[-1]
+        bias[start:stop] = 0.0
+        bias[start:stop, 0, 1] = math.log(0.3 / 0.7)  # P(broadcast) = 0.3 for every agent
+    obs = model.env.reset()
+    batch = {key: th.as_tensor(np.repeat(value, 20000, axis=0)) for key, value in obs.items()}
+    with th.no_grad():
+        action = policy(batch)
+    rate = action.comm.float().mean(0).numpy()
+    np.testing.assert_allclose(rate, 0.3, atol=0.015)
+    expected = np.where(action.comm.numpy() == 1, math.log(0.3), math.log(0.7))
+    np.testing.assert_allclose(action.log_prob_comm.numpy(), expected, rtol=1e-5)

@@ -423,8 +423,9 @@ class MlpHybridPolicy(BasePolicy):
         if comm is None:
             if deterministic_options:
                 comm = logits.argmax(-1)
-            else:
-                comm = th.distributions.Categorical(logits=logits).sample()
+            else:  # two options: broadcast with probability sigmoid(logit_1 - logit_0)
+                p_broadcast = th.sigmoid(logits[..., 1] - logits[..., 0])
+                comm = (th.rand_like(p_broadcast) < p_broadcast).long()
         comm = comm.long()
         mean = self._run({"pi": self.control_features(obs, comm)})["pi"]
         log_std = self.log_std.expand(self.n_agents, -1)
