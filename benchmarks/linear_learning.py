@@ -4,7 +4,9 @@ For every communication cost ``xi`` and seed, MAPPOC trains on ``sb3_detc/Linear
 and is then evaluated on the same seeded episodes in three ways, all with its learned
 control policy (deterministic: mean control):
 
-* **learned**: options from the learned policy over options (sampled, as in training);
+* **learned**: options sampled from the learned policy over options, as in training (its
+  mode is a poor summary of a stochastic trigger: an agent whose most likely option is
+  "silent" in some state may never broadcast again);
 * **random, same rate**: options drawn at random with the learned broadcast rate (the
   paper's baseline at equal communication);
 * **periodic**: every agent broadcasts every step.
@@ -19,11 +21,11 @@ from __future__ import annotations
 
 import argparse
 import json
+import multiprocessing
 import time
 from pathlib import Path
 
 import gymnasium as gym
-import numpy as np
 import torch as th
 from stable_baselines3.common.env_util import make_vec_env
 
@@ -38,47 +40,76 @@ HYPERPARAMS = {
     "n_steps": 512,
     "batch_size": 256,
     "n_epochs": 10,
-    "reward_scale": 1.0,
-    "normalize_reward": True,
+    "reward_scale": 0.01,
     "option_ent_coef": 0.01,
     "policy_kwargs": {"net_arch": [64, 64], "learn_log_std": True},
 }
+EVAL_SEED = 10_000
 
 
-def run(comm_cost: float, seed: int, timesteps: int, eval_episodes: int) -> dict[str, float]:
-    """Train one model and evaluate it; returns the table row."""
+def run(job: tuple[float, int, str, int, int]) -> dict[str, float | int | str]:
+    """Train one model and evaluate it at equal communication; returns one table row."""
+    comm_cost, seed, option_advantage, timesteps, eval_episodes = job
+    th.set_num_threads(1)
     env = make_vec_env("sb3_detc/LinearETC-v0", n_envs=2, seed=seed, env_kwargs={"comm_cost": comm_cost})
-    model = MAPPOC("MlpHybridPolicy", env, seed=seed, **HYPERPARAMS)
+    model = MAPPOC("MlpHybridPolicy", env, seed=seed, option_advantage=option_advantage, **HYPERPARAMS)
     start = time.perf_counter()
     model.learn(timesteps)
     train_seconds = time.perf_counter() - start
     eval_env = gym.make("sb3_detc/LinearETC-v0", comm_cost=comm_cost)
     bound = lqr_episode_cost(LinearSystem()) / eval_env.unwrapped.n_agents  # per agent, like the returns
 
-    def cost(report) -> float:
-        return -report.mean_control_return / bound
+    def evaluate(**kwargs) -> tuple[float, float]:
+        report = evaluate_communication(model, eval_env, eval_episodes, deterministic=True, seed=EVAL_SEED, **kwargs)
+        return -report.mean_control_return / bound, report.savings
 
-    learned = evaluate_communication(model, eval_env, eval_episodes, deterministic=False, seed=10_000)
-    # the control policy's mean for the comparisons at equal communication
-    learned_det = evaluate_communication(
-        model, eval_env, eval_episodes, deterministic=True, seed=10_000,
-        option_override=None,
-    )
-    random = evaluate_communication(
-        model, eval_env, eval_episodes, deterministic=True, seed=10_000,
-        option_override=RandomTrigger(1 - learned.broadcast_rate, seed=seed),
-    )
-    periodic = evaluate_communication(
-        model, eval_env, eval_episodes, deterministic=True, seed=10_000, option_override=RandomTrigger(0.0)
-    )
+    cost_learned, savings = evaluate(deterministic_options=False)
+    cost_random, _ = evaluate(option_override=RandomTrigger(savings, seed=seed))
+    cost_periodic, _ = evaluate(option_override=RandomTrigger(0.0))
     return {
         "comm_cost": comm_cost,
         "seed": seed,
-        "train_seconds": train_seconds,
-        "savings": learned.savings,
-        "cost_learned": cost(learned),
-        "savings_mode": learned_det.savings,
-        "cost_mode": cost(learned_det),
-        "cost_random_same_rate": cost(random),
-        "cost_periodic": cost(periodic),
+        "option_advantage": option_advantage,
+        "timesteps": timesteps,
+        "train_seconds": round(train_seconds, 1),
+        "savings": round(savings, 3),
+        "cost_learned": round(cost_learned, 3),
+        "cost_random_same_rate": round(cost_random, 3),
+        "cost_periodic": round(cost_periodic, 3),
     }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--comm-costs", type=float, nargs="+", default=[0.03, 0.1])
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
+    parser.add_argument("--option-advantages", nargs="+", default=["greedy", "return"])
+    parser.add_argument("--timesteps", type=int, default=250_000)
+    parser.add_argument("--eval-episodes", type=int, default=60)
+    parser.add_argument("--workers", type=int, default=2, help="parallel training processes")
+    parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "linear_learning.json")
+    args = parser.parse_args()
+    jobs = [
+        (xi, seed, adv, args.timesteps, args.eval_episodes)
+        for xi in args.comm_costs
+        for adv in args.option_advantages
+        for seed in args.seeds
+    ]
+    with multiprocessing.get_context("spawn").Pool(args.workers) as pool:
+        rows = pool.map(run, jobs)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(rows, indent=1))
+    bound = lqr_episode_cost(LinearSystem())
+    print(f"episode cost bound (optimal centralised LQR, periodic communication): {bound:.3f} per team")
+    print()
+    print("| comm cost | option advantage | seed | savings | cost learned | cost random, same rate | cost periodic |")
+    print("|---|---|---|---|---|---|---|")
+    for row in rows:
+        print(
+            f"| {row['comm_cost']} | {row['option_advantage']} | {row['seed']} | {row['savings']:.2f} | "
+            f"{row['cost_learned']:.2f} | {row['cost_random_same_rate']:.2f} | {row['cost_periodic']:.2f} |"
+        )
+
+
+if __name__ == "__main__":
+    main()

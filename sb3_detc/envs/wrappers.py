@@ -268,6 +268,24 @@ class JointEnv(gym.Env):
         self.render_mode = network.render_mode
         self.n_agents = network.n_agents
 
+    @property
+    def comm_cost(self) -> float:
+        """Communication cost ``xi >= 0`` charged per broadcast, read from and written to the network.
+
+        Settable through wrappers and vectorised envs, e.g.
+        ``vec_env.env_method("set_wrapper_attr", "comm_cost", 0.0)``; the new cost applies
+        from the next step on.
+
+        :raises ValueError: on setting a negative or non-finite cost
+        """
+        return self.network.comm_cost
+
+    @comm_cost.setter
+    def comm_cost(self, value: float) -> None:
+        if not np.isfinite(value) or value < 0:
+            raise ValueError(f"comm_cost must be a finite number >= 0, got {value!r}.")
+        self.network.comm_cost = float(value)
+
     def reset(self, *, seed: int | None = None, options: dict | None = None) -> tuple[dict, dict]:
         """Start an episode (Gymnasium seeding)."""
         super().reset(seed=seed)

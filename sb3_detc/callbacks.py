@@ -1,0 +1,648 @@
+"""SB3 callbacks for MAPPOC: the paper's curriculum, its communication baselines and communication metrics.
+
+Put them in a :class:`~stable_baselines3.common.callbacks.CallbackList` (or an rl-zoo
+hyperparameter file, e.g. ``callback: sb3_detc.callbacks.CurriculumCallback``):
+
+* curriculum (Sec. 4 of the method reference): :class:`ActionNoiseSchedule` (phase I),
+  :class:`OptionEntropySchedule` (phase II), :class:`TentNoiseSchedule` (phase III), or
+  all three with the paper's numbers in :class:`CurriculumCallback`;
+* baselines (Sec. 6): :class:`RandomSkipCallback` (the paper's random communication
+  skips), :class:`PeriodicCommCallback` (broadcast every step or every k-th step), or any
+  trigger of :mod:`sb3_detc.triggers` with :class:`FixedTriggerCallback`;
+* :class:`CommMetricsCallback`: communication savings, inter-event times, per-agent
+  returns with and without the communication cost, package travel and fall rate, per rollout.
+
+**Iterations.** The curriculum counts iterations ``h`` as the paper does: one iteration is
+one rollout (one ``collect_rollouts`` call, ``n_steps * n_envs`` environment steps; the
+paper's 2048). ``h`` at a rollout's start is ``model.num_timesteps // (n_steps * n_envs)``,
+the number of rollouts collected before it, so it continues over ``learn`` calls with
+``reset_num_timesteps=False``. With ``unit="timesteps"`` the boundaries are environment steps
+(``model.num_timesteps`` at the rollout's start) instead. Values are set at the start of a
+rollout, so a rollout and the update that follows it use the values of the same iteration.
+"""
+
+from __future__ import annotations
+
+import math
+import weakref
+from typing import Any
+
+import numpy as np
+import torch as th
+from stable_baselines3.common.callbacks import BaseCallback
+
+from sb3_detc.triggers import PeriodicTrigger, RandomTrigger
+
+__all__ = [
+    "PAPER_STEPS_PER_ITERATION",
+    "ActionNoiseSchedule",
+    "CommMetricsCallback",
+    "CurriculumCallback",
+    "FixedTriggerCallback",
+    "OptionEntropySchedule",
+    "PeriodicCommCallback",
+    "RandomSkipCallback",
+    "TentNoiseSchedule",
+    "linear_decay",
+    "tent",
+]
+
+#: Environment steps of one iteration in the paper; converts its boundaries to ``unit="timesteps"``.
+PAPER_STEPS_PER_ITERATION = 2048
+
+UNITS = ("iterations", "timesteps")
+
+
+# ----------------------------------------------------------------------------- pure schedules
+def linear_decay(t: float, start: float, end: float, initial: float, final: float) -> float:
+    """``initial`` until ``start``, linear to ``final`` at ``end``, then ``final``.
+
+    :param t: position (iteration or timestep)
+    :param start: last position with the initial value
+    :param end: first position with the final value (``> start``)
+    :param initial: value until ``start``
+    :param final: value from ``end`` on
+    :return: the value at ``t``
+    """
+    return float(np.interp(t, [start, end], [initial, final]))
+
+
+def tent(t: float, start: float, peak: float, end: float, height: float) -> float:
+    """0 until ``start``, linear to ``height`` at ``peak``, linear back to 0 at ``end``, then 0.
+
+    :param t: position (iteration or timestep)
+    :param start: last position with 0
+    :param peak: position of the maximum (``start < peak < end``)
+    :param end: first position with 0 again
+    :param height: value at ``peak``
+    :return: the value at ``t``
+    """
+    return float(np.interp(t, [start, peak, end], [0.0, height, 0.0]))
+
+
+def _check_unit(unit: str) -> str:
+    if unit not in UNITS:
+        raise ValueError(f"unit must be one of {UNITS}, got {unit!r}.")
+    return unit
+
+
+def _check_value(name: str, value: float) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
+        raise ValueError(f"{name} must be a number, got {value!r}.")
+    if not math.isfinite(value) or value < 0:
+        raise ValueError(f"{name} must be a finite number >= 0, got {value!r}.")
+    return float(value)
+
+
+def _boundaries(unit: str, **named: tuple[float | None, float]) -> list[float]:
+    """Resolve boundaries (None: the paper's iteration, converted to timesteps if needed) and check them.
+
+    :param unit: ``"iterations"`` or ``"timesteps"``
+    :param named: name -> (given value or None, the paper's value in iterations), in increasing order
+    :return: the boundaries in the order given
+    :raises ValueError: if a boundary is negative or not finite, or they do not strictly increase
+    """
+    scale = 1 if unit == "iterations" else PAPER_STEPS_PER_ITERATION
+    values = []
+    for name, (given, paper) in named.items():
+        values.append(_check_value(name, paper * scale if given is None else given))
+    names = list(named)
+    for j in range(1, len(values)):
+        if not values[j - 1] < values[j]:
+            a, b = names[j - 1], names[j]
+            raise ValueError(f"the boundaries must increase: {a}={values[j - 1]:g} must be < {b}={values[j]:g}.")
+    return values
+
+
+# ----------------------------------------------------------------------------- curriculum
+#: Per model, the action-noise terms of every noise schedule: ``action_noise_std`` is their maximum.
+_NOISE_TERMS: weakref.WeakKeyDictionary[Any, weakref.WeakKeyDictionary[Any, float]] = weakref.WeakKeyDictionary()
+
+
+class _Schedule(BaseCallback):
+    """Sets a model attribute from a schedule of the iteration (or timestep) at every rollout start.
+
+    :param unit: ``"iterations"`` (rollouts) or ``"timesteps"`` (environment steps)
+    :param verbose: verbosity level
+    """
+
+    def __init__(self, unit: str = "iterations", verbose: int = 0) -> None:
+        super().__init__(verbose)
+        self.unit = _check_unit(unit)
+
+    def position(self) -> int:
+        """Current iteration (rollouts collected so far) or timestep, depending on :attr:`unit`."""
+        if self.unit == "timesteps":
+            return int(self.model.num_timesteps)
+        return int(self.model.num_timesteps // (self.model.n_steps * self.model.n_envs))
+
+    def value(self, t: float) -> float:
+        """The scheduled value at position ``t`` (pure: depends on the constructor's arguments only)."""
+        raise NotImplementedError
+
+    def _on_rollout_start(self) -> None:
+        self.apply(self.position())
+
+    def apply(self, t: float) -> None:
+        """Set and log the value of position ``t`` on the model."""
+        raise NotImplementedError
+
+    def _on_step(self) -> bool:
+        return True
+
+
+class _NoiseSchedule(_Schedule):
+    """A schedule of the extra action noise; several of them on one model combine by their maximum."""
+
+    #: Key of the own term in the logger (``curriculum/<term_name>``).
+    term_name = "noise"
+
+    def _init_callback(self) -> None:
+        _NOISE_TERMS.setdefault(self.model, weakref.WeakKeyDictionary())[self] = 0.0
+
+    def apply(self, t: float) -> None:
+        value = self.value(t)
+        terms = _NOISE_TERMS.setdefault(self.model, weakref.WeakKeyDictionary())
+        terms[self] = value
+        self.model.action_noise_std = max(terms.values())
+        self.logger.record(f"curriculum/{self.term_name}", value)
+        self.logger.record("curriculum/action_noise_std", self.model.action_noise_std)
+
+    def _on_training_end(self) -> None:
+        # A finished callback no longer contributes (e.g. to a later learn() with other callbacks).
+        _NOISE_TERMS.get(self.model, {}).pop(self, None)
+
+
+class ActionNoiseSchedule(_NoiseSchedule):
+    """Phase I of the curriculum: extra Gaussian action noise decaying linearly to 0.
+
+    Sets ``model.action_noise_std`` to ``initial_std`` at ``start``, linearly decaying to 0 at
+    ``end`` (paper: 0.25 -> 0 over iterations 0..900). Logs its own term as
+    ``curriculum/noise_decay`` and the model's value as ``curriculum/action_noise_std``.
+
+    The noise schedules (this one and :class:`TentNoiseSchedule`) own ``action_noise_std``
+    while they train: the model's value is the **maximum** of the terms of all noise schedules
+    attached to it (whatever their order in a ``CallbackList``), and the constructor's value is
+    overwritten at the first rollout.
+
+    :param initial_std: noise standard deviation until ``start`` (>= 0)
+    :param start: end of the constant part (default 0)
+    :param end: first position without noise (default: the paper's 900 iterations, or
+        ``900 * 2048`` in timesteps)
+    :param unit: ``"iterations"`` (rollouts) or ``"timesteps"`` (environment steps)
+    :param verbose: verbosity level
+    :raises ValueError: on a negative value or boundaries that do not increase
+    """
+
+    term_name = "noise_decay"
+
+    def __init__(
+        self,
+        initial_std: float = 0.25,
+        start: float = 0,
+        end: float | None = None,
+        unit: str = "iterations",
+        verbose: int = 0,
+    ) -> None:
+        super().__init__(unit, verbose)
+        self.initial_std = _check_value("initial_std", initial_std)
+        self.start, self.end = _boundaries(self.unit, start=(start, 0), end=(end, 900))
+
+    def value(self, t: float) -> float:
+        """Noise standard deviation at position ``t``."""
+        return linear_decay(t, self.start, self.end, self.initial_std, 0.0)
+
+
+class TentNoiseSchedule(_NoiseSchedule):
+    """Phase III of the curriculum: tent-shaped extra Gaussian action noise.
+
+    ``model.action_noise_std`` rises linearly from 0 at ``start`` to ``peak_std`` at ``peak``
+    and falls back to 0 at ``end`` (paper: 0 -> 0.25 over iterations 1500..2000, back to 0 at
+    2500). Logs its own term as ``curriculum/noise_tent`` and the model's value as
+    ``curriculum/action_noise_std``. Combines with :class:`ActionNoiseSchedule` by the maximum.
+
+    :param peak_std: noise standard deviation at ``peak`` (>= 0)
+    :param start: last position without noise (default: 1500 iterations)
+    :param peak: position of the maximum (default: 2000 iterations)
+    :param end: first position without noise again (default: 2500 iterations)
+    :param unit: ``"iterations"`` (rollouts) or ``"timesteps"`` (environment steps; default
+        boundaries: the paper's iterations times 2048)
+    :param verbose: verbosity level
+    :raises ValueError: on a negative value or boundaries that do not increase
+    """
+
+    term_name = "noise_tent"
+
+    def __init__(
+        self,
+        peak_std: float = 0.25,
+        start: float | None = None,
+        peak: float | None = None,
+        end: float | None = None,
+        unit: str = "iterations",
+        verbose: int = 0,
+    ) -> None:
+        super().__init__(unit, verbose)
+        self.peak_std = _check_value("peak_std", peak_std)
+        self.start, self.peak, self.end = _boundaries(
+            self.unit, start=(start, 1500), peak=(peak, 2000), end=(end, 2500)
+        )
+
+    def value(self, t: float) -> float:
+        """Noise standard deviation at position ``t``."""
+        return tent(t, self.start, self.peak, self.end, self.peak_std)
+
+
+class OptionEntropySchedule(_Schedule):
+    """Phase II of the curriculum: decay of the entropy coefficient ``zeta`` of the policy over options.
+
+    Sets ``model.option_ent_coef`` to ``initial`` until ``start``, then linearly to ``final`` at
+    ``end``, then ``final``. The paper's code uses 0.1 until iteration 800 and 0.02 from 1500
+    on for an entropy *summed* over minibatches of 32; MAPPOC averages over the minibatch, so
+    the defaults are ``32 * 0.1 = 3.2`` and ``32 * 0.02 = 0.64``. Logged as
+    ``curriculum/option_ent_coef``; the update after the rollout uses the same value
+    (``train/option_ent_coef``).
+
+    :param initial: coefficient until ``start`` (>= 0)
+    :param final: coefficient from ``end`` on (>= 0)
+    :param start: end of the constant initial part (default: 800 iterations)
+    :param end: first position with the final value (default: 1500 iterations)
+    :param unit: ``"iterations"`` (rollouts) or ``"timesteps"`` (environment steps; default
+        boundaries: the paper's iterations times 2048)
+    :param verbose: verbosity level
+    :raises ValueError: on a negative value or boundaries that do not increase
+    """
+
+    def __init__(
+        self,
+        initial: float = 3.2,
+        final: float = 0.64,
+        start: float | None = None,
+        end: float | None = None,
+        unit: str = "iterations",
+        verbose: int = 0,
+    ) -> None:
+        super().__init__(unit, verbose)
+        self.initial = _check_value("initial", initial)
+        self.final = _check_value("final", final)
+        self.start, self.end = _boundaries(self.unit, start=(start, 800), end=(end, 1500))
+
+    def value(self, t: float) -> float:
+        """Entropy coefficient at position ``t``."""
+        return linear_decay(t, self.start, self.end, self.initial, self.final)
+
+    def apply(self, t: float) -> None:
+        value = self.value(t)
+        self.model.option_ent_coef = value
+        self.logger.record("curriculum/option_ent_coef", value)
+
+
+class CurriculumCallback(BaseCallback):
+    """The paper's three-phase curriculum (Sec. 4) in one callback, with the paper's numbers by default.
+
+    * phase I, :class:`ActionNoiseSchedule`: extra action noise 0.25 -> 0 over iterations 0..900;
+    * phase II, :class:`OptionEntropySchedule`: ``zeta`` 3.2 until 800, linear to 0.64 at 1500
+      (the paper's 0.1 and 0.02 for a minibatch sum over 32, as a mean);
+    * phase III, :class:`TentNoiseSchedule`: extra action noise 0 -> 0.25 over 1500..2000,
+      back to 0 at 2500.
+
+    Phases I and III both set ``model.action_noise_std``: it is the **maximum** of the two
+    terms. With the default boundaries they do not overlap, so the maximum is exactly the
+    paper's piecewise schedule; with overlapping custom boundaries the maximum never exceeds
+    the larger of the two intended noise levels (a sum could exceed both peaks, and standard
+    deviations of independent noises do not add anyway).
+
+    Every rollout start logs ``curriculum/action_noise_std``, its terms
+    ``curriculum/noise_decay`` and ``curriculum/noise_tent``, ``curriculum/option_ent_coef``,
+    the position ``curriculum/iteration`` (or ``curriculum/timesteps``) and the phase
+    ``curriculum/phase``: the latest phase that has started (``"I"`` until phase II starts,
+    then ``"II"`` until phase III starts, ...; so ``"II"`` from 800 on although phase I's noise
+    decays until 900), and ``"done"`` once every phase has ended (default: from 2500 on).
+
+    :param noise_std: phase I initial noise standard deviation
+    :param noise_end: phase I end (first position without noise; default 900 iterations)
+    :param ent_initial: phase II initial entropy coefficient (mean over the minibatch)
+    :param ent_final: phase II final entropy coefficient
+    :param ent_start: phase II start (end of the constant initial coefficient; default 800)
+    :param ent_end: phase II end (first position with the final coefficient; default 1500)
+    :param tent_std: phase III peak noise standard deviation
+    :param tent_start: phase III start (default 1500)
+    :param tent_peak: phase III peak (default 2000)
+    :param tent_end: phase III end (default 2500)
+    :param unit: ``"iterations"`` (rollouts) or ``"timesteps"`` (environment steps; default
+        boundaries: the paper's iterations times 2048)
+    :param verbose: verbosity level
+    :raises ValueError: on a negative value or boundaries that do not increase within a phase
+    """
+
+    def __init__(
+        self,
+        noise_std: float = 0.25,
+        noise_end: float | None = None,
+        ent_initial: float = 3.2,
+        ent_final: float = 0.64,
+        ent_start: float | None = None,
+        ent_end: float | None = None,
+        tent_std: float = 0.25,
+        tent_start: float | None = None,
+        tent_peak: float | None = None,
+        tent_end: float | None = None,
+        unit: str = "iterations",
+        verbose: int = 0,
+    ) -> None:
+        super().__init__(verbose)
+        self.unit = _check_unit(unit)
+        self.noise = ActionNoiseSchedule(noise_std, end=noise_end, unit=unit)
+        self.entropy = OptionEntropySchedule(ent_initial, ent_final, start=ent_start, end=ent_end, unit=unit)
+        self.tent = TentNoiseSchedule(tent_std, start=tent_start, peak=tent_peak, end=tent_end, unit=unit)
+        self.schedules: tuple[_Schedule, ...] = (self.noise, self.entropy, self.tent)
+
+    def values(self, t: float) -> dict[str, float | str]:
+        """Everything the curriculum sets at position ``t`` and the phase (pure).
+
+        :param t: iteration or timestep (as :attr:`unit`)
+        :return: ``action_noise_std``, ``noise_decay``, ``noise_tent``, ``option_ent_coef``, ``phase``
+        """
+        decay, bump = self.noise.value(t), self.tent.value(t)
+        return {
+            "action_noise_std": max(decay, bump),
+            "noise_decay": decay,
+            "noise_tent": bump,
+            "option_ent_coef": self.entropy.value(t),
+            "phase": self.phase(t),
+        }
+
+    def phase(self, t: float) -> str:
+        """Phase at position ``t``: ``"I"``, ``"II"``, ``"III"`` (the latest started) or ``"done"``."""
+        if t >= max(self.noise.end, self.entropy.end, self.tent.end):
+            return "done"
+        if t >= self.tent.start:
+            return "III"
+        if t >= self.entropy.start:
+            return "II"
+        return "I"
+
+    def _init_callback(self) -> None:
+        for schedule in self.schedules:
+            schedule.init_callback(self.model)
+
+    def _on_training_start(self) -> None:
+        for schedule in self.schedules:
+            schedule.on_training_start(self.locals, self.globals)
+
+    def _on_rollout_start(self) -> None:
+        t = self.noise.position()
+        for schedule in self.schedules:
+            schedule.on_rollout_start()
+        self.logger.record(f"curriculum/{'iteration' if self.unit == 'iterations' else 'timesteps'}", t)
+        self.logger.record("curriculum/phase", self.phase(t))
+
+    def _on_step(self) -> bool:
+        return True
+
+    def _on_training_end(self) -> None:
+        for schedule in self.schedules:
+            schedule.on_training_end()
+
+
+# ----------------------------------------------------------------------------- baselines
+class FixedTriggerCallback(BaseCallback):
+    """Train MAPPOC's control policy with a fixed, non-learned trigger instead of the policy over options.
+
+    At the start of training: ``model.option_override = trigger`` (the rollouts take their
+    options from it), ``model.train_option_policy = False`` (``mu`` is not updated), and,
+    unless ``charge_comm_cost``, the communication cost of every training env is set to 0.
+
+    This is a training *mode*: nothing is restored at the end of training, so a following
+    ``learn`` keeps the trigger and the zero cost. The override is not saved with the model
+    and evaluation envs are not changed: evaluate with
+    :func:`~sb3_detc.evaluation.evaluate_communication` and ``option_override=callback.trigger``
+    (its ``mean_control_return`` excludes the communication cost).
+
+    :param trigger: callable joint observations (B, N, ...) -> options (B, N), e.g. from
+        :mod:`sb3_detc.triggers`
+    :param charge_comm_cost: keep the training envs' communication cost (default: set it to 0)
+    :param verbose: verbosity level
+    """
+
+    def __init__(self, trigger: Any, charge_comm_cost: bool = False, verbose: int = 0) -> None:
+        if not callable(trigger):
+            raise ValueError(f"trigger must be callable (joint observations -> options), got {trigger!r}.")
+        super().__init__(verbose)
+        self.trigger = trigger
+        self.charge_comm_cost = bool(charge_comm_cost)
+
+    def _on_training_start(self) -> None:
+        self.model.option_override = self.trigger
+        self.model.train_option_policy = False
+        if not self.charge_comm_cost:
+            set_comm_cost(self.training_env, 0.0)
+
+    def _on_step(self) -> bool:
+        return True
+
+
+def set_comm_cost(vec_env: Any, comm_cost: float) -> None:
+    """Set the communication cost of every env of a VecEnv (through its wrappers).
+
+    :param vec_env: a VecEnv of joint sb3_detc envs (:class:`~sb3_detc.envs.wrappers.JointEnv`)
+    :param comm_cost: the new cost per broadcast (>= 0)
+    :raises ValueError: if an env has no ``comm_cost`` (not a joint sb3_detc env)
+    """
+    done = vec_env.env_method("set_wrapper_attr", "comm_cost", comm_cost, force=False)
+    if not all(done):
+        raise ValueError("the training envs have no comm_cost: use joint sb3_detc envs (JointEnv).")
+
+
+class RandomSkipCallback(FixedTriggerCallback):
+    """The paper's baseline (Sec. 6): random communication skips, no communication cost, ``mu`` not trained.
+
+    Every agent stays silent with probability ``skip_prob`` in every step, independently
+    (:class:`~sb3_detc.triggers.RandomTrigger`), so the expected savings are ``skip_prob``.
+    Combine it with :class:`ActionNoiseSchedule` for the paper's baseline (phase I only).
+    See :class:`FixedTriggerCallback` for what changes on the model and the envs (not restored).
+
+    :param skip_prob: probability of staying silent (paper: about 0.55; its code: 0.495)
+    :param seed: seed of the trigger's random generator (None: the model's seed at training start)
+    :param charge_comm_cost: keep the training envs' communication cost (default: set it to 0)
+    :param verbose: verbosity level
+    """
+
+    def __init__(
+        self, skip_prob: float = 0.55, seed: int | None = None, charge_comm_cost: bool = False, verbose: int = 0
+    ) -> None:
+        super().__init__(RandomTrigger(skip_prob, seed), charge_comm_cost, verbose)
+        self.skip_prob = self.trigger.skip_prob
+        self.seed = seed
+
+    def _on_training_start(self) -> None:
+        if self.seed is None and getattr(self.model, "seed", None) is not None:
+            self.trigger = RandomTrigger(self.skip_prob, self.model.seed)
+            self.seed = self.model.seed
+        super()._on_training_start()
+
+
+class PeriodicCommCallback(FixedTriggerCallback):
+    """Periodic communication baseline: every agent broadcasts every ``period``-th step; ``mu`` not trained.
+
+    ``period=1`` (default) is communication in every step, the reference of the savings
+    ``Gamma``. Steps are counted per episode and all agents broadcast at the same steps
+    (:class:`~sb3_detc.triggers.PeriodicTrigger`: steps ``period - 1, 2 period - 1, ...`` of
+    every episode). No communication cost is charged by default, as for the random-skip
+    baseline: with a fixed trigger the cost cannot change any decision, it only shifts the
+    returns (and with terminating episodes a per-step penalty would even reward ending early).
+    See :class:`FixedTriggerCallback` for what changes on the model and the envs (not restored).
+
+    :param period: steps between two broadcasts of an agent (integer >= 1)
+    :param charge_comm_cost: keep the training envs' communication cost (default: set it to 0)
+    :param verbose: verbosity level
+    """
+
+    def __init__(self, period: int = 1, charge_comm_cost: bool = False, verbose: int = 0) -> None:
+        super().__init__(PeriodicTrigger(period), charge_comm_cost, verbose)
+        self.period = self.trigger.period
+
+
+# ----------------------------------------------------------------------------- metrics
+class CommMetricsCallback(BaseCallback):
+    """Communication metrics of every rollout, logged to the SB3 logger (stdout, CSV, TensorBoard, ...).
+
+    Reads ``infos`` and ``dones`` of every step (``info["comm"]``, ``info["agent_rewards"]``,
+    ``info["control_rewards"]``, and ``info["package_x"]`` where present). Per rollout:
+
+    * ``comm/savings_agent_{i}``: ``Gamma_i = 1 - broadcasts_i / steps`` over the rollout's
+      steps (all envs), and their mean ``comm/savings``;
+    * inter-event times, the numbers of steps between two consecutive broadcasts of one agent
+      in one episode (the reset is not an event; an interval counts in the rollout of its
+      closing broadcast): ``comm/inter_event_time_mean_agent_{i}``,
+      ``comm/inter_event_time_min_agent_{i}``, over all agents ``comm/inter_event_time_mean``
+      and ``comm/inter_event_time_min``, and the histogram ``comm/inter_event_times``
+      (TensorBoard only); not logged in a rollout without intervals;
+    * over the episodes that finished in the rollout (and that the callback saw from their
+      start): ``comm/ep_return_agent_{i}`` (with the communication cost) and
+      ``comm/ep_control_return_agent_{i}`` (without), their agent means ``comm/ep_return``
+      and ``comm/ep_control_return``, ``comm/episodes`` (how many), ``comm/fall_rate`` (the
+      fraction that terminated rather than being truncated: falls and package drops in
+      Multiwalker, but also reaching the end of the terrain) and, where the env reports
+      ``package_x`` (Multiwalker), ``comm/package_travel`` (final minus initial package x,
+      the initial one from the VecEnv's ``reset_infos``); not logged in a rollout in which no
+      episode finished.
+
+    :param histogram: record the inter-event times as a histogram (TensorBoard)
+    :param verbose: verbosity level
+    """
+
+    def __init__(self, histogram: bool = True, verbose: int = 0) -> None:
+        super().__init__(verbose)
+        self.histogram = histogram
+        self._n_agents: int | None = None
+
+    # --------------------------------------------------------------- per-env state
+    def _on_training_start(self) -> None:
+        n_envs = self.training_env.num_envs
+        starts = getattr(self.model, "_last_episode_starts", None)
+        # Only episodes seen from their first step are reported (learn() may continue an episode).
+        self._tracked = np.ones(n_envs, bool) if starts is None else np.asarray(starts, bool).copy()
+        self._start_x = np.array([self._reset_package_x(e) for e in range(n_envs)])
+        self._ep_step = np.zeros(n_envs, np.int64)
+        self._n_agents = None
+        self._reset_rollout()
+
+    def _reset_package_x(self, env_idx: int) -> float:
+        reset_infos = getattr(self.training_env, "reset_infos", None)
+        if reset_infos is None or env_idx >= len(reset_infos):
+            return math.nan
+        return float(reset_infos[env_idx].get("package_x", math.nan))
+
+    def _init_agents(self, n_agents: int) -> None:
+        n_envs = len(self._tracked)
+        self._n_agents = n_agents
+        self._ep_return = np.zeros((n_envs, n_agents))
+        self._ep_control_return = np.zeros((n_envs, n_agents))
+        self._last_event = np.full((n_envs, n_agents), -1, np.int64)
+        self._reset_rollout()
+
+    def _reset_rollout(self) -> None:
+        n = self._n_agents or 0
+        self._broadcasts = np.zeros(n, np.int64)
+        self._steps = 0
+        self._intervals: list[list[int]] = [[] for _ in range(n)]
+        self._returns: list[np.ndarray] = []
+        self._control_returns: list[np.ndarray] = []
+        self._terminated: list[bool] = []
+        self._travel: list[float] = []
+
+    # --------------------------------------------------------------- callbacks
+    def _on_rollout_start(self) -> None:
+        self._reset_rollout()
+
+    def _on_step(self) -> bool:
+        infos, dones = self.locals["infos"], self.locals["dones"]
+        for e, (info, done) in enumerate(zip(infos, dones, strict=True)):
+            if "comm" not in info:
+                raise ValueError("CommMetricsCallback needs info['comm']: use a joint sb3_detc env (JointEnv).")
+            comm = np.asarray(info["comm"], np.int64)
+            if self._n_agents is None:
+                self._init_agents(len(comm))
+            k = self._ep_step[e]
+            self._broadcasts += comm
+            for i in np.flatnonzero(comm):
+                if self._last_event[e, i] >= 0:
+                    self._intervals[i].append(int(k - self._last_event[e, i]))
+                self._last_event[e, i] = k
+            self._ep_return[e] += info["agent_rewards"]
+            self._ep_control_return[e] += info["control_rewards"]
+            self._ep_step[e] += 1
+            if done:
+                self._end_episode(e, info)
+        self._steps += len(infos)
+        return True
+
+    def _end_episode(self, e: int, info: dict[str, Any]) -> None:
+        if self._tracked[e]:
+            self._returns.append(self._ep_return[e].copy())
+            self._control_returns.append(self._ep_control_return[e].copy())
+            self._terminated.append(not info.get("TimeLimit.truncated", False))
+            if "package_x" in info and math.isfinite(self._start_x[e]):
+                self._travel.append(float(info["package_x"]) - self._start_x[e])
+        self._tracked[e] = True
+        self._ep_return[e] = 0.0
+        self._ep_control_return[e] = 0.0
+        self._last_event[e] = -1
+        self._ep_step[e] = 0
+        self._start_x[e] = self._reset_package_x(e)  # the VecEnv reset env e after this step
+
+    def _on_rollout_end(self) -> None:
+        if self._n_agents is None or self._steps == 0:
+            return
+        record = self.logger.record
+        savings = 1.0 - self._broadcasts / self._steps
+        for i, value in enumerate(savings):
+            record(f"comm/savings_agent_{i}", float(value))
+        record("comm/savings", float(savings.mean()))
+
+        every = [t for agent in self._intervals for t in agent]
+        if every:
+            for i, agent in enumerate(self._intervals):
+                record(f"comm/inter_event_time_mean_agent_{i}", float(np.mean(agent)) if agent else math.nan)
+                record(f"comm/inter_event_time_min_agent_{i}", float(np.min(agent)) if agent else math.nan)
+            record("comm/inter_event_time_mean", float(np.mean(every)))
+            record("comm/inter_event_time_min", float(np.min(every)))
+            if self.histogram:
+                record(
+                    "comm/inter_event_times",
+                    th.tensor(every, dtype=th.float32),
+                    exclude=("stdout", "log", "json", "csv"),
+                )
+
+        if self._returns:
+            returns, control = np.mean(self._returns, axis=0), np.mean(self._control_returns, axis=0)
+            for i in range(self._n_agents):
+                record(f"comm/ep_return_agent_{i}", float(returns[i]))
+                record(f"comm/ep_control_return_agent_{i}", float(control[i]))
+            record("comm/ep_return", float(returns.mean()))
+            record("comm/ep_control_return", float(control.mean()))
+            record("comm/episodes", len(self._returns))
+            record("comm/fall_rate", float(np.mean(self._terminated)))
+            if self._travel:
+                record("comm/package_travel", float(np.mean(self._travel)))
