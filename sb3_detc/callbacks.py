@@ -161,6 +161,7 @@ class _NoiseSchedule(_Schedule):
         _NOISE_TERMS.setdefault(self.model, weakref.WeakKeyDictionary())[self] = 0.0
 
     def apply(self, t: float) -> None:
+        """Set this schedule's term of position ``t``, ``action_noise_std`` to the maximum term, and log both."""
         value = self.value(t)
         terms = _NOISE_TERMS.setdefault(self.model, weakref.WeakKeyDictionary())
         terms[self] = value
@@ -292,6 +293,7 @@ class OptionEntropySchedule(_Schedule):
         return linear_decay(t, self.start, self.end, self.initial, self.final)
 
     def apply(self, t: float) -> None:
+        """Set ``model.option_ent_coef`` to the value of position ``t`` and log it."""
         value = self.value(t)
         self.model.option_ent_coef = value
         self.logger.record("curriculum/option_ent_coef", value)
