@@ -35,6 +35,7 @@ from sb3_detc.triggers import PeriodicTrigger, RandomTrigger
 
 __all__ = [
     "PAPER_STEPS_PER_ITERATION",
+    "set_comm_cost",
     "ActionNoiseSchedule",
     "CommMetricsCallback",
     "CurriculumCallback",
