@@ -10,16 +10,6 @@ import torch as th
 from sb3_detc.envs import linear_etc_v0, multiwalker_etc_v0
 from sb3_detc.mappoc import MAPPOC, Inbox, run_decentralised_step
 
-
-@pytest.fixture(autouse=True, scope="module")
-def one_torch_thread():
-    """Tiny networks: one thread is much faster than two on a busy machine."""
-    threads = th.get_num_threads()
-    th.set_num_threads(1)
-    yield
-    th.set_num_threads(threads)
-
-
 ENVS = {
     "linear": (linear_etc_v0, {"max_cycles": 60}),
     "multiwalker": (multiwalker_etc_v0, {"max_cycles": 60}),
