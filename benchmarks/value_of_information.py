@@ -32,7 +32,6 @@ def steady_cost(system: LinearSystem, trigger, steps: int, burn_in: int, seed: i
     """Mean team cost per step after ``burn_in`` and the broadcast rate, one long episode."""
     controller = LQRController(system)
     n = system.n_agents
-    idx = np.arange(n)
     rng = np.random.default_rng(seed)
     obs, _ = system.reset_arrays(seed)
     held = obs.message.copy()
@@ -40,9 +39,7 @@ def steady_cost(system: LinearSystem, trigger, steps: int, burn_in: int, seed: i
     for k in range(steps):
         comm = trigger(obs.message, held, rng)
         held = hold(held, obs.message, comm)
-        views = np.repeat(held[None], n, axis=0)
-        views[idx, idx] = obs.message
-        obs, rewards, *_ = system.step_arrays(controller(views)[idx, idx])
+        obs, rewards, *_ = system.step_arrays(controller.on_views(held, obs.message))
         if k >= burn_in:
             costs.append(-rewards.sum())
             broadcasts += comm.sum()

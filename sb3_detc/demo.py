@@ -119,11 +119,7 @@ def networked_control(controller: LQRController, obs: dict[str, np.ndarray], com
     :return: controls, shape (N, 1)
     """
     held = hold(obs["held"], obs["message"], comm)  # (N, 2): what every receiver holds now
-    n = len(comm)
-    idx = np.arange(n)
-    views = np.repeat(held[None], n, axis=0)  # views[i]: the team as agent i knows it
-    views[idx, idx] = obs["local"]
-    return controller(views)[idx, idx]
+    return controller.on_views(held, obs["local"])
 
 
 def run_scheme(

@@ -342,3 +342,17 @@ def test_lqr_episode_cost_bounds_simulated_episodes():
     # a detuned controller is clearly worse, so the check can fail
     lazy = LQRController(system, gain=0.3 * controller.gain)
     assert episode_costs(system, lazy, range(100)).mean() > 1.2 * bound
+
+
+def test_lqr_on_views_uses_own_state_and_held_others():
+    system = LinearSystem(n_agents=3)
+    controller = LQRController(system)
+    rng = np.random.default_rng(4)
+    held, own = rng.normal(size=(3, 2)), rng.normal(size=(3, 2))
+    controls = controller.on_views(held, own)
+    for i in range(3):
+        view = held.copy()
+        view[i] = own[i]
+        np.testing.assert_allclose(controls[i, 0], -controller.gain[i] @ view.ravel())
+    # with every broadcast fresh, it is the centralised law
+    np.testing.assert_allclose(controller.on_views(own, own), controller(own))

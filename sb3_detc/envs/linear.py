@@ -334,6 +334,21 @@ class LQRController:
             raise ValueError(f"gain must have shape {(self.n_agents, 2 * self.n_agents)}, got {gain.shape}.")
         self.gain = gain
 
+    def on_views(self, held: np.ndarray, own: np.ndarray) -> np.ndarray:
+        """Controls when every agent applies its row of the gain to its own view of the team.
+
+        Agent i's view is the held broadcasts of the others with its own row replaced by its
+        own current state: the model-based event-triggered controller on held states.
+
+        :param held: held broadcasts of all agents, shape (N, 2)
+        :param own: every agent's own current state, shape (N, 2)
+        :return: controls, shape (N, 1)
+        """
+        idx = np.arange(self.n_agents)
+        views = np.repeat(np.asarray(held, dtype=np.float64)[None], self.n_agents, axis=0)
+        views[idx, idx] = own
+        return self(views)[idx, idx]
+
     def __call__(self, states: np.ndarray) -> np.ndarray:
         """Controls of all agents.
 
