@@ -522,3 +522,20 @@ def test_comm_metrics_package_travel_and_fall_rate_in_multiwalker() -> None:
     assert np.all(np.abs(travel) > 1e-3) and np.all(np.abs(travel) < 5)
     assert logged["comm/savings"] == 0.0 and logged["comm/inter_event_time_mean"] == 1.0
     assert capture.rows == []  # nothing dumped yet: the values wait in the logger
+
+
+def test_paper_setup_runs_end_to_end_on_multiwalker() -> None:
+    """The README's usage: MAPPOC on Multiwalker with the curriculum and the metrics."""
+    from stable_baselines3.common.callbacks import CallbackList
+    from stable_baselines3.common.logger import configure
+
+    from sb3_detc import MAPPOC
+    from sb3_detc.callbacks import CommMetricsCallback, CurriculumCallback
+
+    model = MAPPOC("MlpHybridPolicy", "sb3_detc/MultiwalkerETC-v0", n_steps=128, n_epochs=1, seed=0)
+    model.set_logger(configure(None, []))
+    model.learn(256, callback=CallbackList([CurriculumCallback(), CommMetricsCallback()]))
+    logged = model.logger.name_to_value
+    assert model.action_noise_std == pytest.approx(0.25 * (1 - 1 / 900))  # phase I, iteration 1
+    assert 0.0 <= logged["comm/savings"] <= 1.0
+    assert logged["train/option_ent_coef"] == pytest.approx(3.2)
