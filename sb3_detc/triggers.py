@@ -1,12 +1,22 @@
 """Non-learned communication triggers, usable wherever MAPPOC accepts an option override.
 
 A trigger maps a batch of joint observations (dict of arrays shaped (B, N, ...)) to
-options (B, N) in {0, 1}.
+options (B, N) in {0, 1}. :func:`evaluate_trigger` runs a trigger with a given control law
+(e.g. :func:`lqr_on_held_states` on the linear system) and reports a :class:`TriggerPoint`
+(savings and control cost); :func:`sweep_send_on_delta` gives the cost-versus-savings curve.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import gymnasium as gym
 import numpy as np
+
+from sb3_detc.envs.linear import LinearSystem, LQRController
+from sb3_detc.envs.wrappers import JointEnv
+from sb3_detc.network import hold
 
 
 class RandomTrigger:
@@ -82,3 +92,146 @@ class SendOnDelta:
     def __call__(self, obs: dict[str, np.ndarray]) -> np.ndarray:
         """Options for a batch of joint observations, (B, N)."""
         return (self.distance(obs) > self.delta).astype(np.int64)
+
+
+# --------------------------------------------------------------------- evaluation of triggers
+#: A trigger: options (B, N) from a batch of joint observations (dict of (B, N, ...) arrays).
+Trigger = Callable[[dict[str, np.ndarray]], np.ndarray]
+#: A control law: controls (N, m) from one joint observation (no batch axis) and this step's options (N,).
+Control = Callable[[dict[str, np.ndarray], np.ndarray], np.ndarray]
+
+
+@dataclass
+class TriggerPoint:
+    """One point of a cost-versus-savings curve.
+
+    :param label: name of the trigger (e.g. ``"send-on-delta 0.1"``)
+    :param savings: communication savings ``Gamma = 1 - broadcasts / agent-steps``
+    :param cost: mean team control cost per episode (minus the sum of the agents' control
+        rewards over the episode; the communication cost is not included)
+    :param cost_sem: standard error of ``cost`` over the episodes (0 for a single episode)
+    :param episodes: number of episodes
+    """
+
+    label: str
+    savings: float
+    cost: float
+    cost_sem: float
+    episodes: int
+
+
+def _check_episodes(n_episodes: int) -> int:
+    if isinstance(n_episodes, bool) or not isinstance(n_episodes, (int, np.integer)) or n_episodes < 1:
+        raise ValueError(f"n_episodes must be an integer >= 1, got {n_episodes!r}.")
+    return int(n_episodes)
+
+
+def evaluate_trigger(
+    env: gym.Env,
+    trigger: Trigger,
+    control: Control,
+    n_episodes: int = 20,
+    seed: int = 0,
+    label: str = "",
+) -> TriggerPoint:
+    """Run whole episodes of a joint env with a non-learned trigger and a given control law.
+
+    Every step, the options are ``trigger(batch)[0]`` with ``batch`` the joint observation
+    with a batch axis of size 1, and the controls ``control(obs, options)`` (same-step
+    delivery: the control law may use this step's broadcasts). Episode ``i`` is reset with
+    seed ``seed + i``, so different triggers and controls see the same initial states and
+    disturbances (for systems whose randomness does not depend on the actions, like
+    :class:`~sb3_detc.envs.linear.LinearSystem`). A trigger with its own random generator
+    (:class:`RandomTrigger`) is not re-seeded: seed it when it is built.
+
+    :param env: a joint env (e.g. ``gymnasium.make("sb3_detc/LinearETC-v0")``), not vectorised
+    :param trigger: options (B, N) from a batch of joint observations, e.g. :class:`SendOnDelta`
+    :param control: controls (N, m) from one joint observation and this step's options (N,),
+        e.g. :func:`lqr_on_held_states`
+    :param n_episodes: number of episodes (>= 1)
+    :param seed: seed of the first episode
+    :param label: name of the point
+    :return: savings and team control cost per episode
+    :raises ValueError: if ``env`` is not a joint env or ``n_episodes < 1``
+    """
+    n_episodes = _check_episodes(n_episodes)
+    if not isinstance(env.unwrapped, JointEnv):
+        raise ValueError(f"evaluate_trigger needs a joint sb3_detc env, got {env}.")
+    costs = np.zeros(n_episodes)
+    broadcasts, agent_steps = 0, 0
+    for episode in range(n_episodes):
+        obs, _ = env.reset(seed=int(seed) + episode)
+        done = False
+        while not done:
+            batch = {key: np.asarray(value)[None] for key, value in obs.items()}
+            options = np.asarray(trigger(batch))[0].astype(np.int64)
+            controls = control(obs, options)
+            obs, _, terminated, truncated, info = env.step({"comm": options, "control": controls})
+            costs[episode] -= float(np.sum(info["control_rewards"]))
+            broadcasts += int(options.sum())
+            agent_steps += options.size
+            done = terminated or truncated
+    sem = float(costs.std(ddof=1) / np.sqrt(n_episodes)) if n_episodes > 1 else 0.0
+    return TriggerPoint(
+        label=label,
+        savings=1.0 - broadcasts / agent_steps,
+        cost=float(costs.mean()),
+        cost_sem=sem,
+        episodes=n_episodes,
+    )
+
+
+def lqr_on_held_states(system_or_env: LinearSystem | gym.Env) -> Control:
+    """Control law of the model-based event-triggered baseline: LQR on held broadcasts.
+
+    Every agent applies its row of the centralised LQR gain to its own view of the team
+    after this step's broadcasts (same-step delivery): the others' held broadcasts, its own
+    current state. With broadcasts every step it is the centralised LQR controller.
+
+    :param system_or_env: a :class:`~sb3_detc.envs.linear.LinearSystem` or a joint env around one
+    :return: ``control(obs, comm)`` -> controls (N, 1)
+    :raises ValueError: if no linear system is found
+    """
+    system = system_or_env
+    if not isinstance(system, LinearSystem):
+        network = getattr(getattr(system_or_env, "unwrapped", None), "network", None)
+        system = getattr(network, "system", None)
+    if not isinstance(system, LinearSystem):
+        raise ValueError(f"lqr_on_held_states needs a LinearSystem or a joint env around one, got {system_or_env!r}.")
+    controller = LQRController(system)
+
+    def control(obs: dict[str, np.ndarray], comm: np.ndarray) -> np.ndarray:
+        held = hold(np.asarray(obs["held"]), np.asarray(obs["message"]), np.asarray(comm))
+        return controller.on_views(held, obs["local"])
+
+    return control
+
+
+def sweep_send_on_delta(
+    env: gym.Env,
+    control: Control,
+    deltas: Sequence[float],
+    n_episodes: int = 20,
+    seed: int = 0,
+) -> list[TriggerPoint]:
+    """Cost versus savings of send-on-delta over thresholds: the classic event-triggered reference.
+
+    :param env: a joint env, as for :func:`evaluate_trigger`
+    :param control: the control law, e.g. :func:`lqr_on_held_states`
+    :param deltas: thresholds (non-empty, each a finite number >= 0)
+    :param n_episodes: episodes per threshold (>= 1), the same seeds for every threshold
+    :param seed: seed of the first episode
+    :return: one point per threshold, in the order of ``deltas``, labelled ``"send-on-delta <delta>"``
+    :raises ValueError: on an empty ``deltas``, a negative or non-finite threshold, or ``n_episodes < 1``
+    """
+    deltas = list(deltas)
+    if not deltas:
+        raise ValueError("deltas must not be empty.")
+    for delta in deltas:
+        if isinstance(delta, bool) or not np.isfinite(delta) or delta < 0:
+            raise ValueError(f"every delta must be a finite number >= 0, got {delta!r}.")
+    _check_episodes(n_episodes)
+    return [
+        evaluate_trigger(env, SendOnDelta(delta), control, n_episodes, seed, label=f"send-on-delta {delta:g}")
+        for delta in deltas
+    ]
