@@ -740,3 +740,27 @@ def test_options_are_sampled_with_mu_probabilities() -> None:
     np.testing.assert_allclose(rate, 0.3, atol=0.015)
     expected = np.where(action.comm.numpy() == 1, math.log(0.3), math.log(0.7))
     np.testing.assert_allclose(action.log_prob_comm.numpy(), expected, rtol=1e-5)
+
+
+def test_team_reward_trains_every_agent_on_the_mean_reward() -> None:
+    infos: list[np.ndarray] = []
+
+    class Record(BaseCallback):
+        def _on_step(self) -> bool:
+            infos.append(np.stack([info["agent_rewards"] for info in self.locals["infos"]]))
+            return True
+
+    model = MAPPOC(
+        "MlpHybridPolicy",
+        "sb3_detc/LinearETC-v0",
+        n_steps=20,
+        reward_scale=0.5,
+        team_reward=True,
+        seed=0,
+        policy_kwargs=dict(net_arch=[8]),
+    )
+    model.learn(20, callback=Record())
+    raw = np.array(infos)  # (T, envs, N); episodes last 100 steps, so no timeout bootstrap here
+    assert not np.allclose(raw[..., 0], raw[..., 1])  # the agents' own rewards differ
+    expected = 0.5 * np.repeat(raw.mean(-1, keepdims=True), 3, axis=-1)
+    np.testing.assert_allclose(model.rollout_buffer.rewards, expected, rtol=1e-5)

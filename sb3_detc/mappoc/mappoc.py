@@ -73,6 +73,11 @@ class MAPPOC(OnPolicyAlgorithm):
         deviation of its discounted return, clipped to [-10, 10], as SB3's ``VecNormalize``
         does for single-agent rewards (which it cannot do here: per-agent rewards travel in
         ``info``); useful where returns span orders of magnitude during training
+    :param team_reward: train every agent on the team's mean reward instead of its own (the
+        paper: own rewards). A broadcast mostly helps the *others* act, so with own rewards the
+        sender sees only part of its value; on the linear system this made the difference
+        between a trigger no better than random skipping and one clearly better in a first run
+        (see the project notes)
     :param normalize_advantage: standardise the control advantages per agent and minibatch
     :param target_kl: stop the epochs of an update early when the control policy's
         approximate KL divergence exceeds ``1.5 * target_kl`` (None: never)
@@ -113,6 +118,7 @@ class MAPPOC(OnPolicyAlgorithm):
         option_advantage_offset: float = 0.0,
         reward_scale: float = 0.1,
         normalize_reward: bool = False,
+        team_reward: bool = False,
         normalize_advantage: bool = True,
         target_kl: float | None = None,
         share_parameters: bool = False,
@@ -175,6 +181,7 @@ class MAPPOC(OnPolicyAlgorithm):
         self.option_advantage_offset = option_advantage_offset
         self.reward_scale = reward_scale
         self.normalize_reward = normalize_reward
+        self.team_reward = team_reward
         self.reward_rms: RunningMeanStd | None = None
         self._discounted_returns: np.ndarray | None = None
         self.normalize_advantage = normalize_advantage
@@ -253,6 +260,8 @@ class MAPPOC(OnPolicyAlgorithm):
             new_obs, _, dones, infos = env.step([{"comm": c, "control": u} for c, u in zip(comm, clipped, strict=True)])
             rewards = self.reward_scale * _agent_rewards(infos)
             _check_finite(new_obs, rewards)
+            if self.team_reward:
+                rewards = np.repeat(rewards.mean(axis=1, keepdims=True), self.n_agents, axis=1)
             if self.normalize_reward:
                 rewards = self._normalized_rewards(rewards, dones)
             self.num_timesteps += env.num_envs
