@@ -75,9 +75,7 @@ class MAPPOC(OnPolicyAlgorithm):
         ``info``); useful where returns span orders of magnitude during training
     :param team_reward: train every agent on the team's mean reward instead of its own (the
         paper: own rewards). A broadcast mostly helps the *others* act, so with own rewards the
-        sender sees only part of its value; on the linear system this made the difference
-        between a trigger no better than random skipping and one clearly better in a first run
-        (see the project notes)
+        sender sees only part of its value
     :param normalize_advantage: standardise the control advantages per agent and minibatch
     :param target_kl: stop the epochs of an update early when the control policy's
         approximate KL divergence exceeds ``1.5 * target_kl`` (None: never)
