@@ -692,7 +692,8 @@ def test_evaluate_policy_runs_on_the_joint_vec_env() -> None:
     assert np.isfinite(mean) and np.isfinite(std) and mean < 0
 
 
-def test_normalize_reward_divides_by_the_running_return_std() -> None:
+def learn_recording_rewards(n_steps: int, **kwargs: Any) -> tuple[MAPPOC, np.ndarray]:
+    """One rollout on the linear env; returns the model and the env's per-agent rewards (T, envs, N)."""
     infos: list[np.ndarray] = []
 
     class Record(BaseCallback):
@@ -701,16 +702,15 @@ def test_normalize_reward_divides_by_the_running_return_std() -> None:
             return True
 
     model = MAPPOC(
-        "MlpHybridPolicy",
-        "sb3_detc/LinearETC-v0",
-        n_steps=40,
-        reward_scale=2.0,
-        normalize_reward=True,
-        seed=0,
-        policy_kwargs=dict(net_arch=[8]),
+        "MlpHybridPolicy", "sb3_detc/LinearETC-v0", n_steps=n_steps, seed=0, policy_kwargs=dict(net_arch=[8]), **kwargs
     )
-    model.learn(40, callback=Record())
-    raw = 2.0 * np.array(infos)  # (T, envs, N), no truncation within 40 steps (episodes last 100)
+    model.learn(n_steps, callback=Record())
+    return model, np.array(infos)
+
+
+def test_normalize_reward_divides_by_the_running_return_std() -> None:
+    model, raw = learn_recording_rewards(40, reward_scale=2.0, normalize_reward=True)
+    raw = 2.0 * raw  # no truncation within 40 steps (episodes last 100)
     stored = model.rollout_buffer.rewards
     factors = stored / raw
     assert np.all(factors > 0)
@@ -743,24 +743,8 @@ def test_options_are_sampled_with_mu_probabilities() -> None:
 
 
 def test_team_reward_trains_every_agent_on_the_mean_reward() -> None:
-    infos: list[np.ndarray] = []
-
-    class Record(BaseCallback):
-        def _on_step(self) -> bool:
-            infos.append(np.stack([info["agent_rewards"] for info in self.locals["infos"]]))
-            return True
-
-    model = MAPPOC(
-        "MlpHybridPolicy",
-        "sb3_detc/LinearETC-v0",
-        n_steps=20,
-        reward_scale=0.5,
-        team_reward=True,
-        seed=0,
-        policy_kwargs=dict(net_arch=[8]),
-    )
-    model.learn(20, callback=Record())
-    raw = np.array(infos)  # (T, envs, N); episodes last 100 steps, so no timeout bootstrap here
+    # episodes last 100 steps, so no timeout bootstrap within this rollout
+    model, raw = learn_recording_rewards(20, reward_scale=0.5, team_reward=True)
     assert not np.allclose(raw[..., 0], raw[..., 1])  # the agents' own rewards differ
     expected = 0.5 * np.repeat(raw.mean(-1, keepdims=True), 3, axis=-1)
     np.testing.assert_allclose(model.rollout_buffer.rewards, expected, rtol=1e-5)
