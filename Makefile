@@ -17,7 +17,7 @@ $(VENV)/.installed: setup.cfg pyproject.toml
 install: $(VENV)/.installed
 
 run: install
-	$(PY) -m sb3_detc.demo
+	$(PY) -m sb3_detc.compare
 
 test: install
 	$(PY) -m pytest -q

@@ -1,0 +1,38 @@
+"""Run a trained model with rl-zoo3: ``python -m sb3_detc.enjoy --algo mappoc --env ID [rl-zoo3 options]``.
+
+Registers sb3-detc's algorithms with rl-zoo3, checks the input, then runs
+``rl_zoo3.enjoy``: it loads the latest run of ``--algo`` on ``--env`` from ``-f`` (default
+``logs``, where :mod:`sb3_detc.train` saves) or ``--exp-id``, and shows it in a window
+(Multiwalker) or, with ``--no-render`` or for environments that do not render (the linear
+agents), just prints the episode returns. Videos: :mod:`sb3_detc.record_video`.
+"""
+
+from __future__ import annotations
+
+import sys
+from collections.abc import Sequence
+
+import rl_zoo3.enjoy
+
+from sb3_detc.zoo import check_model_arguments, render_modes, run_cli
+
+
+def _enjoy() -> None:
+    argv, known = check_model_arguments(sys.argv[1:])
+    if "--no-render" not in argv and "human" not in render_modes(known.env):
+        print(f"{known.env} does not render: running without rendering")
+        argv.append("--no-render")
+    sys.argv[1:] = argv
+    rl_zoo3.enjoy.enjoy()
+
+
+def main(argv: Sequence[str] | None = None) -> None:
+    """Run the enjoy command line.
+
+    :param argv: rl-zoo3 ``enjoy`` arguments (default: ``sys.argv[1:]``)
+    """
+    run_cli("python -m sb3_detc.enjoy", _enjoy, argv)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,208 @@
+"""The paper's training figure from run logs: ``python -m sb3_detc.plot [-f logs] [--env ID] [-o FILE]``.
+
+Two panels over iterations: the episode return (team mean per agent, communication cost
+included, ``comm/ep_return``) and the communication savings (``comm/savings``), both
+logged by :class:`~sb3_detc.callbacks.CommMetricsCallback` into every run's
+``progress.csv`` (written by :mod:`sb3_detc.train`). Every curve is smoothed with a moving
+average over ``--window`` iterations (the paper: 50); the runs of one algorithm (e.g.
+several seeds) are drawn as their mean and a band from their minimum to their maximum.
+Dashed vertical lines mark the curriculum phases of the first run that logs them
+(``curriculum/phase``, or the start and end of the option entropy decay,
+``curriculum/option_ent_coef``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import math
+import sys
+import warnings
+from collections.abc import Sequence
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402  (after choosing the file backend)
+import numpy as np  # noqa: E402
+from huggingface_sb3 import EnvironmentName  # noqa: E402
+
+from sb3_detc.zoo import InputError, run_cli  # noqa: E402
+
+__all__ = ["curriculum_phases", "find_runs", "main", "plot_runs", "read_progress", "smooth"]
+
+#: Logged values of the two panels: (column, axis label).
+PANELS = (("comm/ep_return", "return"), ("comm/savings", "communication savings"))
+
+
+def read_progress(run: str | Path) -> dict[str, np.ndarray]:
+    """Columns of a run's ``progress.csv`` as float arrays (missing values NaN), indexed by iteration.
+
+    :param run: the run's log folder
+    :return: ``{"iteration": ..., column: ...}``; text columns (e.g. ``curriculum/phase``) as str arrays
+    :raises InputError: if the file is missing, empty or has no ``time/iterations`` column
+    """
+    path = Path(run) / "progress.csv"
+    if not path.is_file():
+        raise InputError(f"no progress.csv in {str(run)!r}: train with python -m sb3_detc.train")
+    with path.open(newline="") as file:
+        rows = list(csv.DictReader(file))
+    if not rows or "time/iterations" not in rows[0]:
+        raise InputError(f"{path}: no iterations logged yet")
+    columns: dict[str, np.ndarray] = {}
+    for key in rows[0]:
+        values = [row.get(key) or "" for row in rows]
+        try:
+            columns[key] = np.array([float(v) if v != "" else math.nan for v in values])
+        except ValueError:
+            columns[key] = np.array(values)
+    columns["iteration"] = columns.pop("time/iterations")
+    return columns
+
+
+def smooth(values: np.ndarray, window: int) -> np.ndarray:
+    """Trailing moving average over ``window`` entries that skips NaN (NaN where the window has none).
+
+    :param values: the series
+    :param window: number of entries averaged (>= 1)
+    :return: the smoothed series, same length
+    """
+    if window < 1:
+        raise ValueError(f"window must be >= 1, got {window}.")
+    valid = np.isfinite(values)
+    sums = np.cumsum(np.where(valid, values, 0.0))
+    counts = np.cumsum(valid)
+    shifted_sums = np.concatenate([np.zeros(window), sums[:-window]])[: len(values)]
+    shifted_counts = np.concatenate([np.zeros(window), counts[:-window]])[: len(values)]
+    n = counts - shifted_counts
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(n > 0, (sums - shifted_sums) / np.maximum(n, 1), math.nan)
+
+
+def curriculum_phases(progress: dict[str, np.ndarray]) -> list[tuple[float, str]]:
+    """Iterations at which a curriculum phase starts, with the phase's name.
+
+    From ``curriculum/phase`` (:class:`~sb3_detc.callbacks.CurriculumCallback`) where logged,
+    else from ``curriculum/option_ent_coef`` (:class:`~sb3_detc.callbacks.OptionEntropySchedule`):
+    "entropy decay" where it first leaves its initial value, "decayed" where it first reaches
+    its last logged value after that.
+
+    :param progress: a run's columns from :func:`read_progress`
+    :return: (iteration, name) of every phase start after the first phase
+    """
+    iterations = progress["iteration"]
+    phase = progress.get("curriculum/phase")
+    if phase is not None and phase.dtype.kind in "US":
+        return [(float(iterations[k]), str(phase[k])) for k in range(1, len(phase)) if phase[k] != phase[k - 1]]
+    coef = progress.get("curriculum/option_ent_coef")
+    if coef is None or coef.dtype.kind != "f" or not np.isfinite(coef).any():
+        return []
+    coef = coef[np.isfinite(coef)]
+    iterations = iterations[np.isfinite(progress["curriculum/option_ent_coef"])]
+    moved = np.flatnonzero(coef != coef[0])
+    if len(moved) == 0:
+        return []
+    marks = [(float(iterations[moved[0]]), "entropy decay")]
+    settled = np.flatnonzero((coef == coef[-1]) & (np.arange(len(coef)) > moved[0]))
+    if len(settled) and settled[0] > moved[0]:
+        marks.append((float(iterations[settled[0]]), "decayed"))
+    return marks
+
+
+def find_runs(folder: str | Path, algo: str, env_id: str) -> list[Path]:
+    """Log folders of an algorithm's runs on an environment that have a ``progress.csv``, by run id.
+
+    :param folder: rl-zoo3's log folder (``-f``)
+    :param algo: the algorithm name
+    :param env_id: the environment id
+    :return: the run folders ``<folder>/<algo>/<env>_<id>``
+    """
+    prefix = f"{EnvironmentName(env_id)}_"
+    runs = []
+    for path in (Path(folder) / algo).glob(f"{prefix}*"):
+        run_id = path.name[len(prefix) :]
+        if run_id.isdigit() and (path / "progress.csv").is_file():
+            runs.append((int(run_id), path))
+    return [path for _, path in sorted(runs)]
+
+
+def plot_runs(groups: dict[str, Sequence[str | Path]], out: str | Path, window: int = 50, title: str = "") -> Path:
+    """Draw the figure for groups of runs (label -> run folders) into a PNG file.
+
+    :param groups: one entry per curve: its label and its runs (seeds)
+    :param out: the PNG file
+    :param window: iterations of the moving average
+    :param title: the figure's title
+    :return: the written file
+    :raises InputError: if a group has no runs or a run lacks the plotted values
+    """
+    fig, axes = plt.subplots(1, len(PANELS), figsize=(11, 4))
+    phases: list[tuple[float, str]] = []
+    for label, runs in groups.items():
+        if not runs:
+            raise InputError(f"no runs with a progress.csv for {label}")
+        progress = [read_progress(run) for run in runs]
+        phases = phases or curriculum_phases(progress[0])
+        length = min(len(p["iteration"]) for p in progress)
+        iterations = progress[0]["iteration"][:length]
+        for ax, (column, _) in zip(axes, PANELS, strict=True):
+            curves = []
+            for run, p in zip(runs, progress, strict=True):
+                if column not in p or p[column].dtype.kind != "f":
+                    raise InputError(f"{run}: {column} not logged: add sb3_detc.callbacks.CommMetricsCallback")
+                curves.append(smooth(p[column][:length], window))
+            curves = np.array(curves)
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)  # iterations where no run has a value
+                mean = np.nanmean(curves, axis=0)
+                low, high = np.nanmin(curves, axis=0), np.nanmax(curves, axis=0)
+            (line,) = ax.plot(iterations, mean, label=f"{label} ({len(runs)} run{'s' * (len(runs) > 1)})")
+            if len(runs) > 1:
+                ax.fill_between(iterations, low, high, color=line.get_color(), alpha=0.25, linewidth=0)
+    for ax, (_, name) in zip(axes, PANELS, strict=True):
+        for iteration, phase in phases:
+            ax.axvline(iteration, color="0.4", linestyle="--", linewidth=1)
+            ax.annotate(phase, (iteration, 1.0), xycoords=("data", "axes fraction"), rotation=90, va="top", ha="right")
+        ax.set_xlabel("iteration")
+        ax.set_ylabel(f"{name} (moving average over {window})")
+        ax.grid(alpha=0.3)
+    axes[0].legend(loc="lower right")
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=120)
+    plt.close(fig)
+    return out
+
+
+def _main() -> None:
+    parser = argparse.ArgumentParser(prog="python -m sb3_detc.plot", description=__doc__.splitlines()[0])
+    parser.add_argument("-f", "--folder", default="logs", help="rl-zoo3 log folder (default: logs)")
+    parser.add_argument("--env", default="sb3_detc/LinearETC-v0", help="environment id")
+    parser.add_argument("--algos", nargs="+", default=["mappoc", "ppo_random_skip"], help="algorithms to draw")
+    parser.add_argument("--window", type=int, default=50, help="iterations of the moving average (default: 50)")
+    parser.add_argument("-o", "--out", default=None, help="PNG file (default: <folder>/<env>.png)")
+    args = parser.parse_args(sys.argv[1:])
+    if args.window < 1:
+        raise InputError(f"--window must be >= 1, got {args.window}")
+    groups = {algo: find_runs(args.folder, algo, args.env) for algo in args.algos}
+    groups = {algo: runs for algo, runs in groups.items() if runs}
+    if not groups:
+        raise InputError(f"no runs of {', '.join(args.algos)} on {args.env} with a progress.csv in {args.folder!r}")
+    out = args.out or Path(args.folder) / f"{EnvironmentName(args.env)}.png"
+    print(f"Saved {plot_runs(groups, out, args.window, title=args.env)}")
+
+
+def main(argv: Sequence[str] | None = None) -> None:
+    """Run the plot command line (bad input: one line on stderr, exit code 2).
+
+    :param argv: the arguments (default: ``sys.argv[1:]``)
+    """
+    run_cli("python -m sb3_detc.plot", _main, argv)
+
+
+if __name__ == "__main__":
+    main()
