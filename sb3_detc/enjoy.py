@@ -2,9 +2,9 @@
 
 Registers sb3-detc's algorithms with rl-zoo3, checks the input, then runs
 ``rl_zoo3.enjoy``: it loads the latest run of ``--algo`` on ``--env`` from ``-f`` (default
-``logs``, where :mod:`sb3_detc.train` saves) or ``--exp-id``, and shows it in a window
-(Multiwalker) or, with ``--no-render`` or for environments that do not render (the linear
-agents), just prints the episode returns. Videos: :mod:`sb3_detc.record_video`.
+``logs``, where :mod:`sb3_detc.train` saves) or ``--exp-id``, runs it and prints the
+episode returns. sb3-detc's environments draw no window (rendering is off-screen), so
+rendering is switched off; videos: :mod:`sb3_detc.record_video`.
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ from sb3_detc.zoo import check_model_arguments, render_modes, run_cli
 def _enjoy() -> None:
     argv, known = check_model_arguments(sys.argv[1:])
     if "--no-render" not in argv and "human" not in render_modes(known.env):
-        print(f"{known.env} does not render: running without rendering")
+        print(f"{known.env} does not render in a window: running without rendering (videos: sb3_detc.record_video)")
         argv.append("--no-render")
     sys.argv[1:] = argv
     rl_zoo3.enjoy.enjoy()

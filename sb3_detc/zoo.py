@@ -1,6 +1,6 @@
 """rl-baselines3-zoo integration: algorithm names, hyperparameter files, run logs and input checks.
 
-:func:`register` adds sb3-detc's algorithms to rl-zoo3 (``rl_zoo3.utils.ALGOS``) together
+Importing this module (:func:`register`) adds sb3-detc's algorithms to rl-zoo3 (``rl_zoo3.utils.ALGOS``) together
 with Optuna samplers for ``--optimize``:
 
 * ``mappoc``: :class:`~sb3_detc.MAPPOC`, hyperparameters in ``hyperparams/mappoc.yml``;
@@ -31,8 +31,8 @@ import gymnasium as gym
 import optuna
 import rl_zoo3.exp_manager
 import yaml
-from rl_zoo3.hyperparams_opt import HYPERPARAMS_CONVERTER, HYPERPARAMS_SAMPLER
 from huggingface_sb3 import EnvironmentName
+from rl_zoo3.hyperparams_opt import HYPERPARAMS_CONVERTER, HYPERPARAMS_SAMPLER
 from rl_zoo3.utils import ALGOS, get_class_by_name, get_latest_run_id
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.callbacks import BaseCallback
@@ -132,11 +132,14 @@ def convert_mappoc_params(sampled_params: dict[str, Any]) -> dict[str, Any]:
 
 
 def register() -> None:
-    """Add sb3-detc's algorithms and their Optuna samplers to rl-zoo3 (idempotent)."""
+    """Add sb3-detc's algorithms and their Optuna samplers to rl-zoo3 (idempotent; done on import)."""
     ALGOS.update(ALGORITHMS)
     for name in ALGORITHMS:
         HYPERPARAMS_SAMPLER[name] = sample_mappoc_params
         HYPERPARAMS_CONVERTER[name] = convert_mappoc_params
+
+
+register()
 
 
 # ----------------------------------------------------------------------------- run logs
@@ -211,7 +214,7 @@ def _check_callbacks(entry: Any, where: str) -> None:
         if isinstance(item, dict):
             if len(item) != 1:
                 raise InputError(f"{where}: a callback with arguments is one 'name: {{arguments}}' item, got {item}")
-            (name, kwargs), = item.items()
+            ((name, kwargs),) = item.items()
         else:
             name, kwargs = item, {}
         if not isinstance(name, str) or "." not in name:
@@ -375,7 +378,6 @@ def run_cli(prog: str, main: Callable[[], None], argv: Sequence[str] | None = No
     :raises SystemExit: with code 2 after printing ``<prog>: error: <what is wrong>`` on stderr
     """
     argv = list(sys.argv[1:] if argv is None else argv)
-    register()
     try:
         with _argv(argv):
             main()

@@ -55,6 +55,13 @@ PROGRESS_SCALE = 130.0 / stock.SCALE
 #: Number of local-state values: package (dx, dy, angle) then the walker's 14 own values.
 N_LOCAL = 17
 
+#: Broadcast marks in rendered frames: colours of a broadcast (disc) and of silence (ring),
+#: radius and height above the hull centre in pixels.
+BROADCAST_COLOR = (0, 170, 60)
+SILENT_COLOR = (150, 150, 150)
+MARKER_RADIUS = 6
+MARKER_HEIGHT = 28
+
 # Own-state row read from Box2D (see EtcBipedalWalker.raw_state) -> stock normalisation:
 # hull angle, angular velocity, vx, vy, then per leg hip angle, hip speed, knee angle + 1, knee speed, contact.
 _LEG_SCALE = (1.0, 1.0 / stock.SPEED_HIP, 1.0, 1.0 / stock.SPEED_KNEE, 1.0)
@@ -222,6 +229,22 @@ class EtcMultiWalkerEnv(MultiWalkerEnv):
             - (self.n_walkers - 1) * stock.WALKER_SEPERATION * stock.TERRAIN_STEP
         )
         return super().render(close)
+
+    def draw_broadcasts(self, broadcast: np.ndarray) -> np.ndarray:
+        """Mark every walker's option on the last drawn frame: a disc above a walker that broadcast, a ring otherwise.
+
+        :param broadcast: the step's options (N,), 1 = broadcast
+        :return: the marked frame, RGB (400, 600, 3) uint8
+        """
+        render_scale = stock.SCALE / self.package_scale / 0.75  # the stock drawing's scale
+        for walker, sent in zip(self.walkers, broadcast, strict=True):
+            x = (walker.hull.position.x - self.scroll) * render_scale
+            y = stock.VIEWPORT_H - walker.hull.position.y * render_scale - MARKER_HEIGHT
+            if sent:
+                pygame.draw.circle(self.screen, BROADCAST_COLOR, (x, y), MARKER_RADIUS)
+            else:
+                pygame.draw.circle(self.screen, SILENT_COLOR, (x, y), MARKER_RADIUS, width=2)
+        return np.transpose(np.array(pygame.surfarray.pixels3d(self.screen)), axes=(1, 0, 2))
 
     def close(self) -> None:
         """Drop the off-screen surface (pygame itself is left alone)."""
@@ -394,11 +417,18 @@ class MultiwalkerSystem(CommunicatingSystem):
         truncated = not terminated and physics.frames >= self.max_cycles
         return obs, rewards, terminated, truncated, {"package_x": package_x}
 
-    def render(self) -> np.ndarray | None:
-        """RGB image (400, 600, 3) uint8 of the stock drawing (no LIDAR rays); None without render mode."""
+    def render(self, broadcast: np.ndarray | None = None) -> np.ndarray | None:
+        """RGB image (400, 600, 3) uint8 of the stock drawing (no LIDAR rays); None without render mode.
+
+        :param broadcast: the step's options (N,) to mark above the walkers (a green disc: broadcast,
+            a grey ring: silent); None: no marks
+        """
         if self.render_mode is None:
             return None
-        return self.physics.render()
+        frame = self.physics.render()
+        if broadcast is None:
+            return frame
+        return self.physics.draw_broadcasts(np.asarray(broadcast))
 
     def close(self) -> None:
         """Release the rendering surface."""

@@ -13,6 +13,7 @@ which applies the one rule of :mod:`sb3_detc.network`.
 
 from __future__ import annotations
 
+import inspect
 from typing import Any
 
 import gymnasium as gym
@@ -110,6 +111,7 @@ class EventTriggeredNetwork(BaseParallelWrapper):
         self.age = np.zeros((n, 1))
         self.trigger_held = np.zeros((n, self.n_trig))
         self.broadcasts = np.zeros(n, dtype=np.int64)
+        self.last_comm = np.zeros(n, dtype=np.int64)
 
     def observation_space(self, agent: str) -> spaces.Dict:
         """Networked observation space of one agent."""
@@ -145,6 +147,7 @@ class EventTriggeredNetwork(BaseParallelWrapper):
         self.age = np.zeros((self.n_agents, 1))
         self.trigger_held = self._trigger_of(obs).copy()
         self.broadcasts = np.zeros(self.n_agents, dtype=np.int64)
+        self.last_comm = np.zeros(self.n_agents, dtype=np.int64)
         return self._joint_obs(obs), info
 
     def step_joint(
@@ -176,6 +179,7 @@ class EventTriggeredNetwork(BaseParallelWrapper):
         self.held, self.trigger_held = held, trigger_held
         self.age = advance_timer(self.age, comm)
         self.broadcasts += comm
+        self.last_comm = comm
         rewards = control_rewards - self.comm_cost * comm
         if terminated or truncated:
             self.agents = []
@@ -238,6 +242,15 @@ class EventTriggeredNetwork(BaseParallelWrapper):
             dict.fromkeys(names, truncated),
             agent_infos,
         )
+
+    def render(self) -> np.ndarray | None:
+        """Render the system; a system whose ``render`` takes ``broadcast`` (Multiwalker) marks the last step's options.
+
+        :return: the system's frame (None without render mode)
+        """
+        if "broadcast" in inspect.signature(self.system.render).parameters:
+            return self.system.render(broadcast=self.last_comm)
+        return self.system.render()
 
     def state(self) -> np.ndarray:
         """Global state of the system (for centralised critics)."""
@@ -304,8 +317,8 @@ class JointEnv(gym.Env):
         return obs, float(rewards.mean()), terminated, truncated, info
 
     def render(self) -> np.ndarray | None:
-        """Render the physical system."""
-        return self.network.system.render()
+        """Render the physical system, the last step's broadcasts marked (:meth:`EventTriggeredNetwork.render`)."""
+        return self.network.render()
 
     def close(self) -> None:
         """Close the physical system."""

@@ -1,0 +1,260 @@
+"""rl-zoo3 integration: hyperparameter files, the train/enjoy/plot/record_video command lines, bad input."""
+
+from __future__ import annotations
+
+import csv
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from rl_zoo3.utils import ALGOS, get_callback_list
+from stable_baselines3.common.env_util import make_vec_env
+
+from sb3_detc import MAPPOC, compare, enjoy, plot, record_video, train, zoo
+from sb3_detc.callbacks import CommMetricsCallback, CurriculumCallback, OptionEntropySchedule, RandomSkipCallback
+
+LINEAR = "sb3_detc/LinearETC-v0"
+MULTIWALKER = "sb3_detc/MultiwalkerETC-v0"
+ENVS = (LINEAR, MULTIWALKER)
+
+
+def cli(module: str, *args: str, cwd: Path) -> subprocess.CompletedProcess:
+    """Run ``python -m <module> <args>`` headless in ``cwd``."""
+    env = {**os.environ, "SDL_VIDEODRIVER": "dummy", "SDL_AUDIODRIVER": "dummy"}
+    return subprocess.run(
+        [sys.executable, "-m", module, *args], cwd=cwd, env=env, capture_output=True, text=True, check=False
+    )
+
+
+def run_folder(logs: Path, algo: str, env_id: str, run_id: int) -> Path:
+    return logs / algo / f"{env_id.replace('/', '-')}_{run_id}"
+
+
+# ----------------------------------------------------------------------------- hyperparameter files
+@pytest.mark.parametrize("algo", sorted(zoo.ALGORITHMS))
+@pytest.mark.parametrize("env_id", ENVS)
+def test_hyperparameter_files_build_models(algo: str, env_id: str) -> None:
+    entry = zoo.check_hyperparams_file(zoo.HYPERPARAMS_DIR / f"{algo}.yml", algo, env_id)
+    kwargs = {k: v for k, v in entry.items() if k not in zoo.ZOO_KEYS}
+    kwargs["policy_kwargs"] = eval(kwargs["policy_kwargs"])  # rl-zoo3 evaluates the string the same way
+    env = make_vec_env(env_id, n_envs=entry.get("n_envs", 1), env_kwargs=entry.get("env_kwargs"))
+    model = zoo.ALGORITHMS[algo](env=env, **kwargs)
+    assert isinstance(model, MAPPOC) and model.n_agents == 3
+    callbacks = get_callback_list(entry)
+    assert any(isinstance(c, CommMetricsCallback) for c in callbacks)
+    if algo == "ppo_random_skip":
+        assert any(isinstance(c, RandomSkipCallback) for c in callbacks)
+    env.close()
+
+
+def test_multiwalker_entry_has_the_paper_settings() -> None:
+    entry = zoo.check_hyperparams_file(zoo.HYPERPARAMS_DIR / "mappoc.yml", "mappoc", MULTIWALKER)
+    assert entry["n_steps"] * entry["n_envs"] == 2048
+    assert entry["n_timesteps"] == 3000 * 2048
+    assert (entry["learning_rate"], entry["batch_size"], entry["n_epochs"]) == (3e-5, 32, 10)
+    assert entry["env_kwargs"]["comm_cost"] == 0.25
+    assert eval(entry["policy_kwargs"])["net_arch"] == [96, 96, 96]
+    assert any(isinstance(c, CurriculumCallback) for c in get_callback_list(entry))
+
+
+def test_linear_entry_decays_the_option_entropy_within_the_budget() -> None:
+    entry = zoo.check_hyperparams_file(zoo.HYPERPARAMS_DIR / "mappoc.yml", "mappoc", LINEAR)
+    (schedule,) = [c for c in get_callback_list(entry) if isinstance(c, OptionEntropySchedule)]
+    iterations = entry["n_timesteps"] / (entry["n_steps"] * entry["n_envs"])
+    assert schedule.end < iterations
+
+
+def test_register_adds_algorithms_and_samplers() -> None:
+    zoo.register()
+    assert ALGOS["mappoc"] is MAPPOC and ALGOS["ppo_random_skip"] is MAPPOC
+    from rl_zoo3.hyperparams_opt import HYPERPARAMS_SAMPLER
+
+    assert HYPERPARAMS_SAMPLER["mappoc"] is zoo.sample_mappoc_params
+
+
+def test_sampled_parameters_build_a_model() -> None:
+    optuna = pytest.importorskip("optuna")
+    trial = optuna.trial.FixedTrial(
+        {
+            "learning_rate": 1e-4,
+            "n_steps": 128,
+            "batch_size": 256,
+            "n_epochs": 5,
+            "gamma": 0.99,
+            "gae_lambda": 0.95,
+            "clip_range": 0.2,
+            "clip_range_option": 0.2,
+            "option_ent_coef": 0.01,
+            "max_grad_norm": 0.5,
+            "reward_scale": 0.01,
+            "team_reward": True,
+            "net_arch": "paper",
+        }
+    )
+    params = zoo.sample_mappoc_params(trial, 0, 1, {})
+    assert params["batch_size"] == 128  # at most one rollout
+    assert params["policy_kwargs"]["net_arch"] == [96, 96, 96]
+    model = MAPPOC("MlpHybridPolicy", make_vec_env(LINEAR, n_envs=1), **params)
+    assert model.n_steps == 128
+
+
+# ----------------------------------------------------------------------------- end to end
+def test_train_continue_enjoy_plot_through_the_command_line(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    logs = tmp_path / "logs"
+    common = ["--env", LINEAR, "-f", str(logs), "--num-threads", "1", "--eval-freq", "-1", "--verbose", "0"]
+    first = cli("sb3_detc.train", "--algo", "mappoc", "-n", "256", "--seed", "1", *common, cwd=tmp_path)
+    assert first.returncode == 0, first.stderr
+    run = run_folder(logs, "mappoc", LINEAR, 1)
+    model = run / "sb3_detc-LinearETC-v0.zip"
+    assert model.is_file()
+    with (run / "progress.csv").open() as file:
+        rows = list(csv.DictReader(file))
+    assert len(rows) == 1 and float(rows[0]["time/iterations"]) == 1
+    assert 0 <= float(rows[0]["comm/savings"]) <= 1
+
+    more = cli("sb3_detc.train", "--algo", "mappoc", "-n", "256", "-i", str(model), *common, cwd=tmp_path)
+    assert more.returncode == 0, more.stderr
+    assert "Loading pretrained agent" in more.stdout
+    assert (run_folder(logs, "mappoc", LINEAR, 2) / "sb3_detc-LinearETC-v0.zip").is_file()
+
+    baseline = cli("sb3_detc.train", "--algo", "ppo_random_skip", "-n", "256", *common, cwd=tmp_path)
+    assert baseline.returncode == 0, baseline.stderr
+
+    shown = cli("sb3_detc.enjoy", "--env", LINEAR, "-f", str(logs), "-n", "150", cwd=tmp_path)
+    assert shown.returncode == 0, shown.stderr
+    assert "Episode Reward" in shown.stdout and "does not render" in shown.stdout
+
+    assert "does not render" in bad(record_video.main, ["-f", str(logs)], capsys)
+
+    figure = tmp_path / "figure.png"
+    drawn = cli("sb3_detc.plot", "-f", str(logs), "--env", LINEAR, "-o", str(figure), cwd=tmp_path)
+    assert drawn.returncode == 0, drawn.stderr
+    assert figure.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_video_marks_broadcasts(tmp_path: Path) -> None:
+    logs = tmp_path / "logs"
+    trained = cli(
+        "sb3_detc.train",
+        *("--algo", "mappoc", "--env", MULTIWALKER, "-f", str(logs), "-n", "64", "--eval-freq", "-1"),
+        *("--num-threads", "1", "--verbose", "0", "-params", "n_steps:64", "n_epochs:1"),
+        cwd=tmp_path,
+    )
+    assert trained.returncode == 0, trained.stderr
+    videos = tmp_path / "videos"
+    recorded = cli(
+        "sb3_detc.record_video",
+        *("--env", MULTIWALKER, "-f", str(logs), "-n", "20", "-o", str(videos)),
+        cwd=tmp_path,
+    )
+    assert recorded.returncode == 0, recorded.stderr
+    assert list(videos.glob("*.mp4"))
+
+
+def test_rendered_frames_mark_who_broadcast() -> None:
+    import gymnasium as gym
+
+    from sb3_detc.envs.multiwalker import BROADCAST_COLOR, SILENT_COLOR
+
+    env = gym.make(MULTIWALKER, render_mode="rgb_array")
+    env.reset(seed=0)
+    action = {"comm": np.array([1, 0, 1]), "control": np.zeros((3, 4), np.float32)}
+    env.step(action)
+    frame = env.render()
+    assert np.all(frame == BROADCAST_COLOR, axis=-1).sum() > 50  # two discs
+    assert np.all(frame == SILENT_COLOR, axis=-1).sum() > 10  # one ring
+    env.step({**action, "comm": np.zeros(3, np.int64)})
+    assert not np.all(env.render() == BROADCAST_COLOR, axis=-1).any()
+    env.close()
+
+
+def test_compare_table_and_figure(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    logs = tmp_path / "logs"
+    compare.main(["-n", "256", "-f", str(logs), "--eval-episodes", "2", "-o", str(tmp_path / "c.png")])
+    out = capsys.readouterr().out
+    assert "| mappoc | 1 |" in out and "| ppo_random_skip | 1 |" in out
+    assert (tmp_path / "c.png").is_file()
+
+
+# ----------------------------------------------------------------------------- bad input
+def bad(main, argv: list[str], capsys: pytest.CaptureFixture) -> str:
+    """Run a command line that must fail; return its single error line."""
+    with pytest.raises(SystemExit) as exit_info:
+        main(argv)
+    assert exit_info.value.code == 2
+    err = capsys.readouterr().err
+    assert "Traceback" not in err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1, err
+    return lines[0]
+
+
+def test_unknown_algorithm_and_environment(capsys: pytest.CaptureFixture) -> None:
+    assert "unknown algorithm 'mapoc' (did you mean 'mappoc'?)" in bad(train.main, ["--algo", "mapoc"], capsys)
+    line = bad(train.main, ["--env", "sb3_detc/LinearETC-v9"], capsys)
+    assert "unknown environment 'sb3_detc/LinearETC-v9' (did you mean 'sb3_detc/LinearETC-v0'?)" in line
+    assert "unknown environment" in bad(enjoy.main, ["--env", "Nope-v0"], capsys)
+
+
+def write(path: Path, text: str) -> str:
+    path.write_text(text)
+    return str(path)
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        ("sb3_detc/LinearETC-v0:\n  n_timesteps: 100\n   policy: x\n", "not valid YAML at line 3"),
+        ("- just\n- a list\n", "expected a mapping"),
+        ("sb3_detc/MultiwalkerETC-v0: {n_timesteps: 1, policy: MlpHybridPolicy}\n", "no entry for"),
+        (
+            "sb3_detc/LinearETC-v0: {n_timesteps: 1, policy: MlpHybridPolicy, learnig_rate: 0.1}\n",
+            "unknown hyperparameter 'learnig_rate' (did you mean 'learning_rate'?)",
+        ),
+        ("sb3_detc/LinearETC-v0: {policy: MlpHybridPolicy}\n", "missing hyperparameter 'n_timesteps'"),
+        (
+            "sb3_detc/LinearETC-v0: {n_timesteps: 1, policy: MlpHybridPolicy, callback: sb3_detc.callbacks.Nope}\n",
+            "unknown callback 'sb3_detc.callbacks.Nope'",
+        ),
+        (
+            "sb3_detc/LinearETC-v0:\n  n_timesteps: 1\n  policy: MlpHybridPolicy\n  callback:\n"
+            "    - sb3_detc.callbacks.OptionEntropySchedule: {intial: 0.1}\n",
+            "unexpected keyword argument 'intial'",
+        ),
+    ],
+)
+def test_bad_hyperparameter_files(tmp_path: Path, capsys: pytest.CaptureFixture, text: str, message: str) -> None:
+    conf = write(tmp_path / "bad.yml", text)
+    assert message in bad(train.main, ["-conf", conf, "-f", str(tmp_path / "logs")], capsys)
+
+
+def test_bad_values_inside_rl_zoo_are_one_line(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    conf = write(tmp_path / "bad.yml", "sb3_detc/LinearETC-v0: {n_timesteps: 1, policy: MlpHybridPolicy, n_steps: 0}\n")
+    assert "n_steps" in bad(train.main, ["-conf", conf, "-f", str(tmp_path / "logs"), "--eval-freq", "-1"], capsys)
+
+
+def test_missing_models(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    logs = str(tmp_path / "logs")
+    assert "no trained mappoc model for sb3_detc/LinearETC-v0" in bad(enjoy.main, ["-f", logs], capsys)
+    assert "no trained mappoc model" in bad(record_video.main, ["--env", MULTIWALKER, "-f", logs], capsys)
+    missing = str(tmp_path / "missing.zip")
+    assert "no saved model" in bad(train.main, ["-i", missing, "-f", logs], capsys)
+    assert "no runs of mappoc, ppo_random_skip" in bad(plot.main, ["-f", logs], capsys)
+
+
+def test_smooth_averages_the_trailing_window_and_skips_nan() -> None:
+    values = np.array([1.0, np.nan, 3.0, 5.0, np.nan])
+    np.testing.assert_allclose(plot.smooth(values, 2), [1.0, 1.0, 3.0, 4.0, 5.0])
+    assert np.isnan(plot.smooth(np.array([np.nan, 1.0]), 1)[0])
+
+
+def test_curriculum_phases_from_the_logs() -> None:
+    iterations = np.arange(1.0, 7.0)
+    phases = {"iteration": iterations, "curriculum/phase": np.array(["I", "I", "II", "II", "III", "done"])}
+    assert plot.curriculum_phases(phases) == [(3.0, "II"), (5.0, "III"), (6.0, "done")]
+    coef = {"iteration": iterations, "curriculum/option_ent_coef": np.array([0.1, 0.1, 0.05, 0.001, 0.001, 0.001])}
+    assert plot.curriculum_phases(coef) == [(3.0, "entropy decay"), (4.0, "decayed")]
+    assert plot.curriculum_phases({"iteration": iterations}) == []
