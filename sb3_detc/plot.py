@@ -139,6 +139,7 @@ def plot_runs(groups: dict[str, Sequence[str | Path]], out: str | Path, window: 
     """
     fig, axes = plt.subplots(1, len(PANELS), figsize=(11, 4))
     phases: list[tuple[float, str]] = []
+    drawn: list[list[np.ndarray]] = [[] for _ in PANELS]
     for label, runs in groups.items():
         if not runs:
             raise InputError(f"no runs with a progress.csv for {label}")
@@ -157,25 +158,43 @@ def plot_runs(groups: dict[str, Sequence[str | Path]], out: str | Path, window: 
                 warnings.simplefilter("ignore", RuntimeWarning)  # iterations where no run has a value
                 mean = np.nanmean(curves, axis=0)
                 low, high = np.nanmin(curves, axis=0), np.nanmax(curves, axis=0)
+            drawn[PANELS.index((column, _))].append(mean)
             (line,) = ax.plot(iterations, mean, label=f"{label} ({len(runs)} run{'s' * (len(runs) > 1)})")
             if len(runs) > 1:
                 ax.fill_between(iterations, low, high, color=line.get_color(), alpha=0.25, linewidth=0)
-    for ax, (_, name) in zip(axes, PANELS, strict=True):
+    for ax, (_, name), curves in zip(axes, PANELS, drawn, strict=True):
+        scale = _symlog_threshold(np.concatenate(curves))
+        if scale is not None:  # early returns can be orders of magnitude below the final ones
+            ax.set_yscale("symlog", linthresh=scale)
+            name = f"{name}, symmetric log scale"
         for iteration, phase in phases:
             ax.axvline(iteration, color="0.4", linestyle="--", linewidth=1)
             ax.annotate(phase, (iteration, 1.0), xycoords=("data", "axes fraction"), rotation=90, va="top", ha="right")
         ax.set_xlabel("iteration")
-        ax.set_ylabel(f"{name} (moving average over {window})")
+        ax.set_ylabel(name)
         ax.grid(alpha=0.3)
     axes[0].legend(loc="lower right")
-    if title:
-        fig.suptitle(title)
+    fig.suptitle(f"{title}{': ' if title else ''}moving averages over {window} iterations")
     fig.tight_layout()
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(out, dpi=120)
     plt.close(fig)
     return out
+
+
+def _symlog_threshold(values: np.ndarray, span: float = 100.0) -> float | None:
+    """Linear range of a symmetric log axis for values spanning more than ``span`` in magnitude, else None.
+
+    :param values: the plotted values (NaN allowed)
+    :param span: ratio of the largest to the smallest magnitude above which the axis turns logarithmic
+    :return: the smallest nonzero magnitude, or None for a linear axis
+    """
+    magnitudes = np.abs(values[np.isfinite(values)])
+    magnitudes = magnitudes[magnitudes > 0]
+    if len(magnitudes) == 0 or magnitudes.max() < span * magnitudes.min():
+        return None
+    return float(magnitudes.min())
 
 
 def _main() -> None:

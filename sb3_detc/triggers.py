@@ -4,12 +4,15 @@ A trigger maps a batch of joint observations (dict of arrays shaped (B, N, ...))
 options (B, N) in {0, 1}. :func:`evaluate_trigger` runs a trigger with a given control law
 (e.g. :func:`lqr_on_held_states` on the linear system) and reports a :class:`TriggerPoint`
 (savings and control cost); :func:`sweep_send_on_delta` gives the cost-versus-savings curve.
+:class:`FixedControl` does the converse: it fixes the control law, so that MAPPOC learns
+only when to communicate.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import gymnasium as gym
 import numpy as np
@@ -205,6 +208,46 @@ def lqr_on_held_states(system_or_env: LinearSystem | gym.Env) -> Control:
         return controller.on_views(held, obs["local"])
 
     return control
+
+
+class FixedControl(gym.Wrapper):
+    """A joint env whose controls come from a fixed control law; the options pass through.
+
+    Every step, the control law gets the observation before the step's decisions and the
+    step's options (same-step delivery) and its controls replace the agent's. MAPPOC then
+    learns only when to communicate for that controller (its control policy's output has
+    no effect), e.g. with :func:`lqr_on_held_states`, the model-based event-triggered
+    setting in which send-on-delta is the classic trigger.
+
+    :param env: a joint env (:class:`~sb3_detc.envs.wrappers.JointEnv`, possibly wrapped)
+    :param control: the control law ``control(obs, comm) -> controls (N, m)``, or None for
+        :func:`lqr_on_held_states` of the env's linear system
+    """
+
+    def __init__(self, env: gym.Env, control: Control | None = None) -> None:
+        super().__init__(env)
+        self.control = lqr_on_held_states(env) if control is None else control
+        self._obs: dict[str, np.ndarray] | None = None
+
+    def reset(self, **kwargs: Any) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+        """Reset the env and remember the observation for the control law.
+
+        :param kwargs: passed to the env's ``reset`` (``seed``, ``options``)
+        """
+        self._obs, info = self.env.reset(**kwargs)
+        return self._obs, info
+
+    def step(self, action: dict[str, np.ndarray]) -> tuple[dict[str, np.ndarray], float, bool, bool, dict[str, Any]]:
+        """Step with the action's options and the control law's controls.
+
+        :param action: joint action; its ``control`` entry is ignored
+        """
+        if self._obs is None:
+            raise RuntimeError("FixedControl: call reset() before step().")
+        comm = np.asarray(action["comm"])
+        control = np.asarray(self.control(self._obs, comm), dtype=self.action_space["control"].dtype)
+        self._obs, reward, terminated, truncated, info = self.env.step({"comm": comm, "control": control})
+        return self._obs, reward, terminated, truncated, info
 
 
 def sweep_send_on_delta(

@@ -748,3 +748,22 @@ def test_team_reward_trains_every_agent_on_the_mean_reward() -> None:
     assert not np.allclose(raw[..., 0], raw[..., 1])  # the agents' own rewards differ
     expected = 0.5 * np.repeat(raw.mean(-1, keepdims=True), 3, axis=-1)
     np.testing.assert_allclose(model.rollout_buffer.rewards, expected, rtol=1e-5)
+
+
+@pytest.mark.parametrize("share", [False, True])
+@pytest.mark.parametrize("p", [0.1, 0.5, 0.8])
+def test_broadcast_prob_init_sets_the_untrained_broadcast_rate(share: bool, p: float) -> None:
+    kwargs = dict(net_arch=[8], broadcast_prob_init=p, share_parameters=share)
+    model = MAPPOC("MlpHybridPolicy", "sb3_detc/LinearETC-v0", n_steps=8, seed=0, policy_kwargs=kwargs)
+    obs = model.env.reset()
+    batch = {key: th.as_tensor(np.repeat(value, 20000, axis=0)) for key, value in obs.items()}
+    with th.no_grad():
+        rate = model.policy(batch).comm.float().mean(0).numpy()
+    # The output weights are small (gain 0.01), so the bias sets the rate up to a small spread.
+    np.testing.assert_allclose(rate, p, atol=0.02)
+
+
+@pytest.mark.parametrize("p", [0.0, 1.0, -0.2])
+def test_broadcast_prob_init_outside_the_open_interval_is_rejected(p: float) -> None:
+    with pytest.raises(ValueError, match="broadcast_prob_init"):
+        MAPPOC("MlpHybridPolicy", "sb3_detc/LinearETC-v0", n_steps=8, policy_kwargs=dict(broadcast_prob_init=p))

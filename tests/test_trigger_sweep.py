@@ -9,8 +9,10 @@ import pytest
 import sb3_detc  # noqa: F401  (registers the env ids)
 from sb3_detc.envs.linear import LinearSystem, LQRController
 from sb3_detc.triggers import (
+    FixedControl,
     PeriodicTrigger,
     RandomTrigger,
+    SendOnDelta,
     TriggerPoint,
     evaluate_trigger,
     lqr_on_held_states,
@@ -116,3 +118,34 @@ def test_evaluate_trigger_rejects_bad_arguments(env):
         evaluate_trigger(env, PeriodicTrigger(1), control, n_episodes=0)
     with pytest.raises(ValueError, match="joint sb3_detc env"):
         evaluate_trigger(gymnasium.make("CartPole-v1"), PeriodicTrigger(1), control)
+
+
+def test_fixed_control_replaces_the_controls_by_the_law(env):
+    """Stepping FixedControl with any control equals evaluate_trigger with the law itself."""
+    delta = 0.1
+    law = lqr_on_held_states(env)
+    point = evaluate_trigger(env, SendOnDelta(delta), law, n_episodes=3, seed=11)
+    fixed = FixedControl(gymnasium.make("sb3_detc/LinearETC-v0"))
+    trigger = SendOnDelta(delta)
+    rng = np.random.default_rng(0)
+    costs, broadcasts, steps = [], 0, 0
+    for episode in range(3):
+        obs, _ = fixed.reset(seed=11 + episode)
+        cost, done = 0.0, False
+        while not done:
+            comm = trigger({key: value[None] for key, value in obs.items()})[0]
+            junk = rng.normal(size=fixed.action_space["control"].shape).astype(np.float32) * 5
+            obs, _, terminated, truncated, info = fixed.step({"comm": comm, "control": junk})
+            cost -= float(np.sum(info["control_rewards"]))
+            broadcasts += int(np.sum(comm))
+            steps += comm.size
+            done = terminated or truncated
+        costs.append(cost)
+    np.testing.assert_allclose(np.mean(costs), point.cost, rtol=1e-6)
+    np.testing.assert_allclose(1 - broadcasts / steps, point.savings)
+
+
+def test_fixed_control_needs_a_reset_first():
+    fixed = FixedControl(gymnasium.make("sb3_detc/LinearETC-v0"))
+    with pytest.raises(RuntimeError, match="reset"):
+        fixed.step(fixed.action_space.sample())

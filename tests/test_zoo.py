@@ -258,3 +258,10 @@ def test_curriculum_phases_from_the_logs() -> None:
     coef = {"iteration": iterations, "curriculum/option_ent_coef": np.array([0.1, 0.1, 0.05, 0.001, 0.001, 0.001])}
     assert plot.curriculum_phases(coef) == [(3.0, "entropy decay"), (4.0, "decayed")]
     assert plot.curriculum_phases({"iteration": iterations}) == []
+
+
+def test_return_axis_turns_logarithmic_only_over_orders_of_magnitude() -> None:
+    assert plot._symlog_threshold(np.array([-150000.0, -2000.0, -50.0, np.nan])) == 50.0
+    assert plot._symlog_threshold(np.array([-30.0, -20.0, -5.0])) is None
+    assert plot._symlog_threshold(np.array([0.55, 0.6, np.nan])) is None
+    assert plot._symlog_threshold(np.array([np.nan, 0.0])) is None

@@ -169,6 +169,10 @@ class MlpHybridPolicy(BasePolicy):
     :param share_parameters: one network set for all agents with a one-hot agent id input
         (default: every agent has its own networks, as in the paper)
     :param age_scale: factor applied to ages of information (in steps) before they enter a network
+    :param broadcast_prob_init: probability of broadcasting of the untrained policies over
+        options (through the bias of their output layer; 0.5: undecided). A low value lets
+        training start where every broadcast carries information that would otherwise stay
+        stale for several steps, so its value stands out from the noise of the returns
     :param ortho_init: orthogonal initialisation (otherwise PyTorch's default init)
     :param use_sde: not supported, must be False (present for SB3 compatibility)
     :param optimizer_class: optimizer class
@@ -187,6 +191,7 @@ class MlpHybridPolicy(BasePolicy):
         learn_log_std: bool = False,
         share_parameters: bool = False,
         age_scale: float = 0.1,
+        broadcast_prob_init: float = 0.5,
         ortho_init: bool = True,
         use_sde: bool = False,
         optimizer_class: type[th.optim.Optimizer] = th.optim.Adam,
@@ -195,6 +200,8 @@ class MlpHybridPolicy(BasePolicy):
         if use_sde:
             raise ValueError("MlpHybridPolicy does not support gSDE (use_sde=True).")
         n_agents, n_control = check_joint_spaces(observation_space, action_space)
+        if not 0.0 < broadcast_prob_init < 1.0:
+            raise ValueError(f"broadcast_prob_init must be in (0, 1), got {broadcast_prob_init}.")
         if optimizer_kwargs is None:
             # The paper's epsilon; the fused Adam kernel saves about 12 % of an update step here.
             optimizer_kwargs = {"eps": 1e-5, **({"fused": True} if optimizer_class is th.optim.Adam else {})}
@@ -213,6 +220,7 @@ class MlpHybridPolicy(BasePolicy):
         self.learn_log_std = learn_log_std
         self.share_parameters = share_parameters
         self.age_scale = age_scale
+        self.broadcast_prob_init = broadcast_prob_init
         self.ortho_init = ortho_init
 
         n_local = observation_space["local"].shape[1]
@@ -265,6 +273,12 @@ class MlpHybridPolicy(BasePolicy):
                 for weight in chain.weights:
                     nn.init.normal_(weight, std=1.0 / math.sqrt(weight.shape[1]))
             self.chains.append(chain)
+        # mu's output layer: logit(broadcast) - logit(silent) = log(p / (1 - p)) at initialisation.
+        chain_idx, start, stop = self._where["mu"]
+        with th.no_grad():
+            self.chains[chain_idx].biases[-1][start:stop, 0, 1] = math.log(
+                self.broadcast_prob_init / (1.0 - self.broadcast_prob_init)
+            )
         log_std = th.full((groups, self.n_control), float(self.log_std_init))
         self.log_std = nn.Parameter(log_std, requires_grad=self.learn_log_std)
         params = [p for p in self.parameters() if p.requires_grad]
@@ -279,6 +293,7 @@ class MlpHybridPolicy(BasePolicy):
             learn_log_std=self.learn_log_std,
             share_parameters=self.share_parameters,
             age_scale=self.age_scale,
+            broadcast_prob_init=self.broadcast_prob_init,
             ortho_init=self.ortho_init,
             optimizer_class=self.optimizer_class,
             optimizer_kwargs=self.optimizer_kwargs,
