@@ -51,12 +51,13 @@ ENTROPY_SCHEDULE = {"initial": 0.1, "final": 0.001, "start": 100, "end": 200}
 EVAL_SEED = 10_000
 
 
-def run(job: tuple[float, int, str, int, int]) -> dict[str, float | int | str]:
+def run(job: tuple[float, int, str, str, int, int]) -> dict[str, float | int | str]:
     """Train one model and evaluate it at equal communication; returns one table row."""
-    comm_cost, seed, option_advantage, timesteps, eval_episodes = job
+    comm_cost, seed, option_advantage, critic, timesteps, eval_episodes = job
     th.set_num_threads(1)
     env = make_vec_env("sb3_detc/LinearETC-v0", n_envs=2, seed=seed, env_kwargs={"comm_cost": comm_cost})
-    model = MAPPOC("MlpHybridPolicy", env, seed=seed, option_advantage=option_advantage, **HYPERPARAMS)
+    settings = {**HYPERPARAMS, "policy_kwargs": {**HYPERPARAMS["policy_kwargs"], "critic": critic}}
+    model = MAPPOC("MlpHybridPolicy", env, seed=seed, option_advantage=option_advantage, **settings)
     start = time.perf_counter()
     model.learn(timesteps, callback=OptionEntropySchedule(**ENTROPY_SCHEDULE))
     train_seconds = time.perf_counter() - start
@@ -74,6 +75,7 @@ def run(job: tuple[float, int, str, int, int]) -> dict[str, float | int | str]:
         "comm_cost": comm_cost,
         "seed": seed,
         "option_advantage": option_advantage,
+        "critic": critic,
         "timesteps": timesteps,
         "train_seconds": round(train_seconds, 1),
         "savings": round(savings, 3),
@@ -88,15 +90,17 @@ def main() -> None:
     parser.add_argument("--comm-costs", type=float, nargs="+", default=[0.03])
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3])
     parser.add_argument("--option-advantages", nargs="+", default=["greedy"])
+    parser.add_argument("--critics", nargs="+", default=["option_heads"], choices=["option_heads", "afterstate"])
     parser.add_argument("--timesteps", type=int, default=300_000)
     parser.add_argument("--eval-episodes", type=int, default=60)
     parser.add_argument("--workers", type=int, default=2, help="parallel training processes")
     parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "linear_learning.json")
     args = parser.parse_args()
     jobs = [
-        (xi, seed, adv, args.timesteps, args.eval_episodes)
+        (xi, seed, adv, critic, args.timesteps, args.eval_episodes)
         for xi in args.comm_costs
         for adv in args.option_advantages
+        for critic in args.critics
         for seed in args.seeds
     ]
     with multiprocessing.get_context("spawn").Pool(args.workers) as pool:
@@ -106,11 +110,15 @@ def main() -> None:
     bound = lqr_episode_cost(LinearSystem())
     print(f"episode cost bound (optimal centralised LQR, periodic communication): {bound:.3f} per team")
     print()
-    print("| comm cost | option advantage | seed | savings | cost learned | cost random, same rate | cost periodic |")
-    print("|---|---|---|---|---|---|---|")
+    print(
+        "| comm cost | option advantage | critic | seed | savings | cost learned | cost random, same rate "
+        "| cost periodic |"
+    )
+    print("|---|---|---|---|---|---|---|---|")
     for row in rows:
         print(
-            f"| {row['comm_cost']} | {row['option_advantage']} | {row['seed']} | {row['savings']:.2f} | "
+            f"| {row['comm_cost']} | {row['option_advantage']} | {row['critic']} | {row['seed']} | "
+            f"{row['savings']:.2f} | "
             f"{row['cost_learned']:.2f} | {row['cost_random_same_rate']:.2f} | {row['cost_periodic']:.2f} |"
         )
 

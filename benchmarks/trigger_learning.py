@@ -18,7 +18,9 @@ Variants (``--variants``):
 * ``sparse``: greedy advantage, normalised rewards, gamma 0.95, initial broadcast
   probability 0.1, constant option entropy coefficient 0.01;
 * ``sparse-return``: as ``sparse`` with the sampled option advantage (lambda-return minus
-  the state value) and option entropy coefficient 0.003.
+  the state value) and option entropy coefficient 0.003;
+* ``afterstate``: as ``sparse`` with the afterstate critic (``critic="afterstate"``);
+* ``afterstate-paper``: as ``paper`` with the afterstate critic.
 """
 
 from __future__ import annotations
@@ -65,6 +67,14 @@ VARIANTS: dict[str, tuple[dict[str, Any], dict[str, float] | None]] = {
     "sparse": ({**SPARSE, "option_ent_coef": 0.01}, None),
     "sparse-return": ({**SPARSE, "option_ent_coef": 0.003, "option_advantage": "return"}, None),
 }
+VARIANTS["afterstate"] = (
+    {**VARIANTS["sparse"][0], "policy_kwargs": {**SPARSE["policy_kwargs"], "critic": "afterstate"}},
+    None,
+)
+VARIANTS["afterstate-paper"] = (
+    {**VARIANTS["paper"][0], "policy_kwargs": {"net_arch": [64, 64], "critic": "afterstate"}},
+    VARIANTS["paper"][1],
+)
 DELTAS = (0.0, 0.02, 0.05, 0.1, 0.2, 0.3, 0.5, 1.0, 2.0)
 EVAL_SEED = 10_000
 

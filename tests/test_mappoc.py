@@ -18,7 +18,7 @@ from sb3_detc.envs import linear_etc_v0
 from sb3_detc.envs.wrappers import JointEnv
 from sb3_detc.mappoc import MAPPOC, HybridRolloutBuffer, MlpHybridPolicy
 from sb3_detc.mappoc.mappoc import clipped_surrogate_loss, greedy_option_advantage
-from sb3_detc.mappoc.policies import NETS, BatchedMLP
+from sb3_detc.mappoc.policies import CRITICS, NETS, BatchedMLP
 
 ENV_ID = "sb3_detc/LinearETC-v0"
 TINY = {"net_arch": [16, 16]}
@@ -85,10 +85,11 @@ def assert_padding_is_zero(policy: MlpHybridPolicy) -> None:
 
 
 # ------------------------------------------------------------------ 1. shapes, sharing
+@pytest.mark.parametrize("critic", CRITICS)
 @pytest.mark.parametrize(("n_agents", "share"), CONFIGS)
-def test_forward_and_evaluate_shapes(n_agents: int, share: bool) -> None:
+def test_forward_and_evaluate_shapes(n_agents: int, share: bool, critic: str) -> None:
     env = linear_etc_v0.joint_env(n_agents=n_agents, max_cycles=50)
-    policy = make_policy(env, share_parameters=share)
+    policy = make_policy(env, share_parameters=share, critic=critic)
     obs = joint_obs_batch(env, steps=7)
     b, n = 7, n_agents
     with th.no_grad():
@@ -191,9 +192,10 @@ def test_shared_parameters_do_not_grow_with_agents() -> None:
     assert sum(p.numel() for p in separate.parameters()) > 4 * count[5]
 
 
-def test_agents_have_independent_networks_without_sharing() -> None:
+@pytest.mark.parametrize("critic", CRITICS)
+def test_agents_have_independent_networks_without_sharing(critic: str) -> None:
     env = linear_etc_v0.joint_env(n_agents=3)
-    policy = make_policy(env, learn_log_std=True)
+    policy = make_policy(env, learn_log_std=True, critic=critic)
     obs = joint_obs_batch(env, steps=6)
     comm = th.as_tensor(np.random.default_rng(2).integers(0, 2, (6, 3)))
     control = th.randn(6, 3, 1)
@@ -217,19 +219,20 @@ def test_agents_have_independent_networks_without_sharing() -> None:
     assert th.all(policy.log_std.grad[1:] == 0)
 
 
+@pytest.mark.parametrize("critic", CRITICS)
 @pytest.mark.parametrize("share", [False, True])
 @pytest.mark.parametrize("net_arch", [[16, 16], {"mu": [8], "q": [16, 16], "pi": [8]}])
-def test_policy_outputs_match_each_agents_extracted_networks(share: bool, net_arch: Any) -> None:
+def test_policy_outputs_match_each_agents_extracted_networks(share: bool, net_arch: Any, critic: str) -> None:
     n = 3
     env = linear_etc_v0.joint_env(n_agents=n)
-    policy = make_policy(env, share_parameters=share, net_arch=net_arch)
+    policy = make_policy(env, share_parameters=share, net_arch=net_arch, critic=critic)
     obs = joint_obs_batch(env, steps=5)
     comm = th.as_tensor(np.random.default_rng(3).integers(0, 2, (5, n)))
-    features = {
-        "mu": policy.option_features(obs),
-        "q": policy.critic_features(obs),
-        "pi": policy.control_features(obs, comm),
-    }
+    if critic == "option_heads":
+        q_features = policy.critic_features(obs)
+    else:  # both own options side by side on the agent axis' feature rows, evaluated one by one below
+        q_features = policy.afterstate_features(obs, comm)
+    features = {"mu": policy.option_features(obs), "q": q_features, "pi": policy.control_features(obs, comm)}
     with th.no_grad():
         action = policy(obs, deterministic=True, comm=comm)
         outputs = {}
@@ -237,15 +240,38 @@ def test_policy_outputs_match_each_agents_extracted_networks(share: bool, net_ar
             chain_idx, start, _ = policy._where[net]
             per_agent = []
             for i in range(n):
-                x = features[net][:, i]
+                x = features[net][..., i, :]
                 if share:
-                    x = th.cat([x, th.eye(n)[i].expand(len(x), -1)], dim=-1)
+                    x = th.cat([x, th.eye(n)[i].expand(*x.shape[:-1], -1)], dim=-1)
                 per_agent.append(policy.chains[chain_idx].extract(start + (0 if share else i))(x))
             outputs[net] = th.stack(per_agent, dim=1)
+    if critic == "afterstate":  # (B, N, options, 1) -> (B, N, options)
+        outputs["q"] = outputs["q"][..., 0]
     th.testing.assert_close(action.option_values, outputs["q"])
     th.testing.assert_close(action.control, outputs["pi"])
     log_mu = th.log_softmax(outputs["mu"], dim=-1).gather(-1, comm[..., None])[..., 0]
     th.testing.assert_close(action.log_prob_comm, log_mu)
+
+
+@pytest.mark.parametrize("n_agents", [2, 3])
+def test_afterstate_features_apply_the_network_rule_to_each_own_option(n_agents: int) -> None:
+    env = linear_etc_v0.joint_env(n_agents=n_agents)
+    policy = make_policy(env, critic="afterstate")
+    obs = joint_obs_batch(env, steps=6)
+    comm = th.as_tensor(np.random.default_rng(4).integers(0, 2, (6, n_agents)))
+    features = policy.afterstate_features(obs, comm)
+    assert features.shape == (6, 2, n_agents, policy.critic_features(obs).shape[-1])
+    for i in range(n_agents):
+        for option in (0, 1):
+            options = comm.clone()
+            options[:, i] = option
+            held, age = policy.network_after(obs, options)  # the one rule, applied to the whole team
+            expected = policy.critic_features({**obs, "held": held, "age": age})[:, i]
+            th.testing.assert_close(features[:, option, i], expected)
+    # The taken options' afterstate: one feature row per agent, whatever the own option.
+    taken = features.gather(1, comm[:, None, :, None].expand(-1, 1, -1, features.shape[-1]))[:, 0]
+    held, age = policy.network_after(obs, comm)
+    th.testing.assert_close(taken, policy.critic_features({**obs, "held": held, "age": age}))
 
 
 # -------------------------------------------------------------- 10. batched chain

@@ -22,6 +22,7 @@ class HybridRolloutSamples(NamedTuple):
     advantages: th.Tensor  # (B, N) GAE advantages
     returns: th.Tensor  # (B, N) lambda-returns, targets of Q_i(s, o_taken)
     option_advantages: th.Tensor  # (B, N) lambda-return minus V_i(s) = sum_o mu_i(o) Q_i(s, o) at collection
+    comm_price: th.Tensor  # (B, N) the learner's reward lost by the own broadcast (afterstate critic)
 
     def select(self, idx: th.Tensor) -> HybridRolloutSamples:
         """The samples ``idx`` of the batch axis."""
@@ -90,6 +91,7 @@ class HybridRolloutBuffer:
         self.advantages = np.zeros((*shape, n), dtype=np.float32)
         self.returns = np.zeros((*shape, n), dtype=np.float32)
         self.option_advantages = np.zeros((*shape, n), dtype=np.float32)
+        self.comm_price = np.zeros((*shape, n), dtype=np.float32)
         self.pos = 0
         self.full = False
 
@@ -107,6 +109,7 @@ class HybridRolloutBuffer:
         option_values: np.ndarray,
         log_prob_comm: np.ndarray,
         log_prob_control: np.ndarray,
+        comm_price: np.ndarray | None = None,
     ) -> None:
         """Store one step of all environments.
 
@@ -118,6 +121,8 @@ class HybridRolloutBuffer:
         :param option_values: ``Q_i(s, o)`` of both options (n_envs, N, 2)
         :param log_prob_comm: ``log mu_i(o_i)`` (n_envs, N)
         :param log_prob_control: ``log pi_i(u_i)`` (n_envs, N)
+        :param comm_price: what the own broadcast costs in the learner's reward units (n_envs, N),
+            for critics that add it to their option values (None: zero)
         """
         if self.full:
             raise RuntimeError("HybridRolloutBuffer is full; call reset() before adding.")
@@ -135,6 +140,7 @@ class HybridRolloutBuffer:
         self.state_values[self.pos] = p_taken * taken + (1 - p_taken) * other
         self.log_prob_comm[self.pos] = log_prob_comm
         self.log_prob_control[self.pos] = log_prob_control
+        self.comm_price[self.pos] = 0.0 if comm_price is None else comm_price
         self.pos += 1
         self.full = self.pos == self.buffer_size
 
@@ -180,6 +186,7 @@ class HybridRolloutBuffer:
                     self.advantages,
                     self.returns,
                     self.option_advantages,
+                    self.comm_price,
                 )
             ),
         )

@@ -240,9 +240,12 @@ class MAPPOC(OnPolicyAlgorithm):
         n_steps = 0
         buffer.reset()
         callback.on_rollout_start()
+        comm_cost = self._comm_costs(env)  # callbacks may change it between rollouts
         new_obs, dones = self._last_obs, self._last_episode_starts
         while n_steps < n_rollout_steps:
             obs = self._last_obs
+            price = self._comm_prices(comm_cost)
+            price_tensor = th.as_tensor(price, device=self.device)
             with th.no_grad():
                 override = None
                 if self.option_override is not None:
@@ -251,6 +254,7 @@ class MAPPOC(OnPolicyAlgorithm):
                     obs_as_tensor(obs, self.device),  # type: ignore[arg-type]
                     comm=override,
                     action_noise_std=self.action_noise_std,
+                    comm_price=price_tensor,
                 )
             comm = action.comm.cpu().numpy()
             control = action.control.cpu().numpy()
@@ -276,7 +280,8 @@ class MAPPOC(OnPolicyAlgorithm):
                     _check_finite(infos[idx]["terminal_observation"], rewards)
                     terminal_obs = self.policy.obs_to_tensor(infos[idx]["terminal_observation"])[0]
                     with th.no_grad():
-                        rewards[idx] += self.gamma * self.policy.state_values(terminal_obs)[0].cpu().numpy()
+                        value = self.policy.state_values(terminal_obs, price_tensor[idx : idx + 1])
+                    rewards[idx] += self.gamma * value[0].cpu().numpy()
 
             buffer.add(
                 obs,  # type: ignore[arg-type]
@@ -287,12 +292,16 @@ class MAPPOC(OnPolicyAlgorithm):
                 action.option_values.cpu().numpy(),
                 action.log_prob_comm.cpu().numpy(),
                 action.log_prob_control.cpu().numpy(),
+                price,
             )
             self._last_obs = new_obs  # type: ignore[assignment]
             self._last_episode_starts = dones
 
         with th.no_grad():
-            last_values = self.policy.state_values(obs_as_tensor(new_obs, self.device))  # type: ignore[arg-type]
+            last_values = self.policy.state_values(
+                obs_as_tensor(new_obs, self.device),  # type: ignore[arg-type]
+                th.as_tensor(self._comm_prices(comm_cost), device=self.device),
+            )
         buffer.compute_returns_and_advantage(last_values=last_values.cpu().numpy(), dones=dones)
         callback.update_locals(locals())
         callback.on_rollout_end()
@@ -321,7 +330,9 @@ class MAPPOC(OnPolicyAlgorithm):
         for epoch in range(self.n_epochs):
             for idx in self.rollout_buffer.minibatch_indices(self.batch_size):
                 data = samples.select(idx)
-                evaluation = self.policy.evaluate_inputs([x.select(idx) for x in inputs], data.comm, data.control)
+                evaluation = self.policy.evaluate_inputs(
+                    [x.select(idx) for x in inputs], data.comm, data.control, data.comm_price
+                )
 
                 # Control policy: PPO clipped surrogate on GAE advantages of the taken option.
                 advantages = self._normalized(data.advantages)
@@ -386,6 +397,34 @@ class MAPPOC(OnPolicyAlgorithm):
         self.logger.record("train/action_noise_std", self.action_noise_std)
         self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
         self.logger.record("rollout/broadcast_rate", float(buffer.comm.mean()))
+
+    def _comm_costs(self, env: VecEnv) -> np.ndarray:
+        """The communication cost ``xi`` of every environment, (n_envs,); zeros unless the critic needs it."""
+        if self.policy.critic == "option_heads":
+            return np.zeros(env.num_envs, dtype=np.float32)
+        try:
+            return np.asarray(env.get_attr("comm_cost"), dtype=np.float32)
+        except AttributeError as err:
+            raise ValueError(
+                "critic='afterstate' needs the environment's communication cost (attribute 'comm_cost', as the "
+                "sb3_detc envs have) to add it to its option values."
+            ) from err
+
+    def _comm_prices(self, comm_cost: np.ndarray) -> np.ndarray:
+        """What an agent's own broadcast costs in the learner's reward units, (n_envs, N).
+
+        The communication cost through the same transformation as the rewards: scaled,
+        shared by the team (``team_reward``) and divided by the running return spread
+        (``normalize_reward``; the clipping to [-10, 10] is ignored).
+
+        :param comm_cost: communication cost of every environment (n_envs,)
+        """
+        price = np.repeat(comm_cost[:, None] * self.reward_scale, self.n_agents, axis=1)
+        if self.team_reward:
+            price = price / self.n_agents
+        if self.normalize_reward and self.reward_rms is not None:
+            price = price / np.sqrt(self.reward_rms.var + 1e-8)
+        return price.astype(np.float32)
 
     def _normalized_rewards(self, rewards: np.ndarray, dones: np.ndarray) -> np.ndarray:
         """Rewards divided by the running standard deviation of the discounted returns, per agent."""

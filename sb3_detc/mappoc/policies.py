@@ -7,8 +7,10 @@ For every agent ``i`` (Sec. 3 of the method reference):
 * ``pi_i(u_i | x^_i)``: Gaussian control policy with a state-independent log standard
   deviation, evaluated on the networked observation ``x^_i`` *after* this step's
   broadcasts (same-step delivery);
-* ``Q_i(s, o)``: option-value critic with one output per option, centralised during
-  training only (it also sees the true messages of all agents).
+* ``Q_i(s, o)``: option-value critic, centralised during training only (it also sees the
+  true messages of all agents), either with one output per option (the paper) or as an
+  afterstate critic ``Q_i(s, o) = W_i(s after the options)`` that values the network state
+  the options lead to (see :class:`MlpHybridPolicy`'s ``critic``).
 
 All networks of all agents are evaluated by agent-batched layers (one batched matmul per
 layer, weights shaped (groups, in, out)); no Python loop over agents on the hot path.
@@ -31,9 +33,12 @@ from torch.nn import functional as F
 from sb3_detc.envs.wrappers import JOINT_KEYS
 from sb3_detc.network import advance_timer, hold, others_index, relative_views
 
-#: Order of the networks inside the batched chains: the first two do not depend on this
-#: step's options and run before the options are sampled, ``pi`` runs after.
+#: Order of the networks inside the batched chains: ``mu`` (and the option-heads critic) do
+#: not depend on this step's options and run before the options are sampled, ``pi`` (and the
+#: afterstate critic) run after.
 NETS = ("mu", "q", "pi")
+#: Kinds of option-value critic.
+CRITICS = ("option_heads", "afterstate")
 
 
 class BatchedMLP(nn.Module):
@@ -137,15 +142,25 @@ class HybridEvaluation(NamedTuple):
 
 
 class ChainInput(NamedTuple):
-    """Inputs of some networks of one batched chain, stacked: (groups, B, agents per group, width)."""
+    """Inputs of some networks of one batched chain, stacked: (groups, B, variants x agents per group, width).
+
+    ``variants`` > 1 evaluates every network on several inputs per sample (the afterstate
+    critic's two own options).
+    """
 
     chain: int  # index of the chain
-    nets: tuple[str, ...]  # networks of the chain these inputs feed, in chain order
+    nets: tuple[str, ...]  # consecutive networks of the chain these inputs feed, in chain order
     x: th.Tensor
+    variants: int = 1
 
     def select(self, idx: th.Tensor) -> ChainInput:
         """The same inputs for the samples ``idx`` of the batch axis."""
-        return ChainInput(self.chain, self.nets, self.x[:, idx])
+        return ChainInput(self.chain, self.nets, self.x[:, idx], self.variants)
+
+
+def _variants(features: th.Tensor) -> int:
+    """Inputs per sample of a network's features: (B, N, f) -> 1, (B, variants, N, f) -> variants."""
+    return features.shape[1] if features.dim() == 4 else 1
 
 
 def gaussian_log_prob(x: th.Tensor, mean: th.Tensor, log_std: th.Tensor) -> th.Tensor:
@@ -173,6 +188,13 @@ class MlpHybridPolicy(BasePolicy):
         options (through the bias of their output layer; 0.5: undecided). A low value lets
         training start where every broadcast carries information that would otherwise stay
         stale for several steps, so its value stands out from the noise of the returns
+    :param critic: ``"option_heads"`` (the paper: ``Q_i`` reads the state before the options
+        and has one output per option) or ``"afterstate"`` (one output ``W_i`` that reads the
+        network state *after* the options, held broadcasts and ages included;
+        ``Q_i(s, o) = W_i(after(s, o_i = o, o_-i))`` with the others' options as taken). The
+        afterstate critic learns the value of stale information from every step, whichever
+        option led to it, so both options' values come from one function and the difference
+        between them has no per-head offset
     :param ortho_init: orthogonal initialisation (otherwise PyTorch's default init)
     :param use_sde: not supported, must be False (present for SB3 compatibility)
     :param optimizer_class: optimizer class
@@ -192,6 +214,7 @@ class MlpHybridPolicy(BasePolicy):
         share_parameters: bool = False,
         age_scale: float = 0.1,
         broadcast_prob_init: float = 0.5,
+        critic: str = "option_heads",
         ortho_init: bool = True,
         use_sde: bool = False,
         optimizer_class: type[th.optim.Optimizer] = th.optim.Adam,
@@ -202,6 +225,8 @@ class MlpHybridPolicy(BasePolicy):
         n_agents, n_control = check_joint_spaces(observation_space, action_space)
         if not 0.0 < broadcast_prob_init < 1.0:
             raise ValueError(f"broadcast_prob_init must be in (0, 1), got {broadcast_prob_init}.")
+        if critic not in CRITICS:
+            raise ValueError(f"critic must be one of {CRITICS}, got {critic!r}.")
         if optimizer_kwargs is None:
             # The paper's epsilon; the fused Adam kernel saves about 12 % of an update step here.
             optimizer_kwargs = {"eps": 1e-5, **({"fused": True} if optimizer_class is th.optim.Adam else {})}
@@ -221,6 +246,7 @@ class MlpHybridPolicy(BasePolicy):
         self.share_parameters = share_parameters
         self.age_scale = age_scale
         self.broadcast_prob_init = broadcast_prob_init
+        self.critic = critic
         self.ortho_init = ortho_init
 
         n_local = observation_space["local"].shape[1]
@@ -238,7 +264,7 @@ class MlpHybridPolicy(BasePolicy):
             "q": n_local + n * (n_msg + 1) + (n - 1) * n_msg + n_id,
             "pi": n_local + (n - 1) * (n_msg + 1) + n_id,
         }
-        self.out_features = {"mu": 2, "q": 2, "pi": n_control}
+        self.out_features = {"mu": 2, "q": 2 if critic == "option_heads" else 1, "pi": n_control}
         self._build(lr_schedule)
 
     # ------------------------------------------------------------------ building
@@ -294,6 +320,7 @@ class MlpHybridPolicy(BasePolicy):
             share_parameters=self.share_parameters,
             age_scale=self.age_scale,
             broadcast_prob_init=self.broadcast_prob_init,
+            critic=self.critic,
             ortho_init=self.ortho_init,
             optimizer_class=self.optimizer_class,
             optimizer_kwargs=self.optimizer_kwargs,
@@ -331,7 +358,7 @@ class MlpHybridPolicy(BasePolicy):
         return th.cat([obs["local"], views, ages], dim=-1)
 
     def critic_features(self, obs: PyTorchObs) -> th.Tensor:
-        """Inputs of ``Q_i``: the network state before this step's options, plus the true messages.
+        """Inputs of the option-heads critic ``Q_i``: the network state before this step's options.
 
         Own local state, every agent's held broadcast (the own one included: what the
         others believe about agent ``i``) relative to the own message, every age, and the
@@ -340,10 +367,61 @@ class MlpHybridPolicy(BasePolicy):
         :param obs: joint observation (B, N, ...)
         :return: (B, N, n_local + N (n_msg + 1) + (N - 1) n_msg)
         """
-        held = relative_views(obs["held"], obs["message"], self.everyone).flatten(2)
-        ages = obs["age"][:, self.everyone, 0] * self.age_scale
+        return self._centralised_features(obs, obs["held"][:, self.everyone], obs["age"][:, self.everyone])
+
+    def afterstate_features(self, obs: PyTorchObs, comm: th.Tensor) -> th.Tensor:
+        """Inputs of the afterstate critic ``W_i`` for both own options, the others' as in ``comm``.
+
+        The features of :meth:`critic_features` after this step's broadcasts: variant ``v``
+        of agent ``i`` applies the network rule (:meth:`network_after`) to the options
+        ``comm`` with agent ``i``'s own option replaced by ``v``.
+
+        :param obs: joint observation (B, N, ...) from before the options
+        :param comm: options (B, N)
+        :return: (B, 2, N, features): ``[:, v, i]`` feeds ``W_i`` for ``o_i = v``
+        """
+        n = self.n_agents
+        own = self.agent_id.bool()  # (N receivers, N agents): the receiver's own option
+        variants = []
+        for option in (0, 1):
+            # row i: everyone's options with agent i's own replaced by `option`, (B, N, N)
+            options = th.where(own, option, comm[:, None, :].expand(-1, n, -1)).to(obs["held"].dtype)
+            held = hold(obs["held"][:, None], obs["message"][:, None], options)
+            age = advance_timer(obs["age"][:, None], options)
+            variants.append(self._centralised_features(obs, held, age))
+        return th.stack(variants, dim=1)
+
+    def _centralised_features(self, obs: PyTorchObs, held: th.Tensor, age: th.Tensor) -> th.Tensor:
+        """Critic inputs from what every agent's critic sees of everyone's held broadcasts.
+
+        :param obs: joint observation (B, N, ...)
+        :param held: row ``i`` holds all agents' held broadcasts seen by agent ``i``'s critic, (B, N, N, n_msg)
+        :param age: their ages, (B, N, N, 1)
+        :return: (B, N, n_local + N (n_msg + 1) + (N - 1) n_msg)
+        """
+        views = (held - obs["message"][:, :, None, :]).flatten(2)
         true = relative_views(obs["message"], obs["message"], self.others).flatten(2)
-        return th.cat([obs["local"], held, ages, true], dim=-1)
+        return th.cat([obs["local"], views, age[..., 0] * self.age_scale, true], dim=-1)
+
+    def option_values(self, q: th.Tensor, comm_price: th.Tensor | None = None) -> th.Tensor:
+        """Both options' values from the critic's outputs.
+
+        The afterstate critic values the network state after the options; the own
+        broadcast's cost in this step's reward is known exactly and added analytically,
+        ``Q_i(s, o) = W_i(after(s, o)) - o price_i``, so that ``W_i`` need not learn it from
+        the age input alone.
+
+        :param q: option heads (B, N, 2), or afterstate values of both own options (B, 2, N, 1)
+        :param comm_price: what a broadcast costs agent ``i`` in the learner's reward units (B, N);
+            used by the afterstate critic only (None: zero)
+        :return: ``Q_i(s, o)``, (B, N, 2)
+        """
+        if self.critic == "option_heads":
+            return q
+        values = q[..., 0].transpose(1, 2)
+        if comm_price is None:
+            return values
+        return values - th.stack([th.zeros_like(comm_price), comm_price], dim=-1)
 
     def stack_inputs(self, features: dict[str, th.Tensor]) -> list[ChainInput]:
         """Arrange per-network features for the batched chains.
@@ -352,42 +430,55 @@ class MlpHybridPolicy(BasePolicy):
         only indexes it (:meth:`ChainInput.select`) for every minibatch.
 
         :param features: inputs of some of the networks ``mu``, ``q``, ``pi``, each (B, N, features)
-        :return: one :class:`ChainInput` per chain that evaluates at least one of them
+            or, for several inputs per sample, (B, variants, N, features)
+        :return: one :class:`ChainInput` per run of consecutive networks of a chain with the
+            same number of variants
         """
         stacked = []
         for c, chain in enumerate(self.chains):
-            nets = tuple(net for net in NETS if net in features and self._where[net][0] == c)
-            if not nets:
-                continue
             width = max(chain.in_features)
-            grouped = [self._to_groups(features[net]) for net in nets]
-            x = th.cat([F.pad(g, (0, width - g.shape[-1])) for g in grouped])
-            stacked.append(ChainInput(c, nets, x))
+            run: list[str] = []
+            for net in (*(net for net in NETS if self._where[net][0] == c), None):
+                variants = _variants(features[net]) if net in features else 0
+                if run and (variants != _variants(features[run[0]])):
+                    grouped = [self._to_groups(features[name]) for name in run]
+                    x = th.cat([F.pad(g, (0, width - g.shape[-1])) for g in grouped])
+                    stacked.append(ChainInput(c, tuple(run), x, _variants(features[run[0]])))
+                    run = []
+                if variants:
+                    run.append(net)
         return stacked
 
     def apply_chains(self, stacked: list[ChainInput]) -> dict[str, th.Tensor]:
         """Evaluate the networks of all agents on stacked inputs.
 
         :param stacked: inputs from :meth:`stack_inputs` (possibly indexed by :meth:`ChainInput.select`)
-        :return: outputs of every network in ``stacked``, each (B, N, outputs)
+        :return: outputs of every network in ``stacked``, each (B, N, outputs), or
+            (B, variants, N, outputs) for inputs with variants
         """
         outputs: dict[str, th.Tensor] = {}
         for item in stacked:
-            groups, batch, per_group, width = item.x.shape
+            groups, batch, rows, width = item.x.shape
             start, stop = self._where[item.nets[0]][1], self._where[item.nets[-1]][2]
-            out = self.chains[item.chain](item.x.reshape(groups, batch * per_group, width), start, stop)
+            out = self.chains[item.chain](item.x.reshape(groups, batch * rows, width), start, stop)
             size = self._where[item.nets[0]][2] - self._where[item.nets[0]][1]
             for k, net in enumerate(item.nets):
                 block = out[k * size : (k + 1) * size, :, : self.out_features[net]]
-                outputs[net] = self._from_groups(block, batch)
+                block = self._from_groups(block, batch * item.variants)
+                outputs[net] = block if item.variants == 1 else block.unflatten(0, (batch, item.variants))
         return outputs
 
     def _to_groups(self, x: th.Tensor) -> th.Tensor:
-        """(B, N, f) -> (groups, B, agents per group, f): one group per agent, or one shared group."""
+        """(B, [variants,] N, f) -> (groups, B, variants x agents per group, f).
+
+        One group per agent, or one shared group with a one-hot agent id appended.
+        """
+        batch = x.shape[0]
+        x = x.flatten(0, -3)
         if self.share_parameters:
             ids = self.agent_id.expand(x.shape[0], -1, -1)
-            return th.cat([x, ids], dim=-1)[None]
-        return x.transpose(0, 1)[:, :, None]
+            return th.cat([x, ids], dim=-1)[None].reshape(1, batch, -1, x.shape[-1] + self.n_agents)
+        return x.transpose(0, 1).reshape(self.n_agents, batch, -1, x.shape[-1])
 
     def _from_groups(self, y: th.Tensor, batch: int) -> th.Tensor:
         """(groups, B * agents per group, outputs) -> (B, N, outputs)."""
@@ -407,10 +498,14 @@ class MlpHybridPolicy(BasePolicy):
         return self.stack_inputs(
             {
                 "mu": self.option_features(obs),
-                "q": self.critic_features(obs),
+                "q": self._q_features(obs, comm),
                 "pi": self.control_features(obs, comm),
             }
         )
+
+    def _q_features(self, obs: PyTorchObs, comm: th.Tensor) -> th.Tensor:
+        """The critic's inputs: before the options (option heads) or after them, for both own options."""
+        return self.critic_features(obs) if self.critic == "option_heads" else self.afterstate_features(obs, comm)
 
     # ------------------------------------------------------------------ acting
     def forward(
@@ -420,6 +515,7 @@ class MlpHybridPolicy(BasePolicy):
         comm: th.Tensor | None = None,
         action_noise_std: float = 0.0,
         deterministic_options: bool | None = None,
+        comm_price: th.Tensor | None = None,
     ) -> HybridAction:
         """Sample all options, deliver the broadcasts, then sample all controls (same-step delivery).
 
@@ -430,20 +526,25 @@ class MlpHybridPolicy(BasePolicy):
             to the sampled controls (curriculum); log-probabilities refer to the noisy controls
         :param deterministic_options: mode (True) or sample (False) of ``mu`` regardless of
             ``deterministic`` (None: as ``deterministic``)
+        :param comm_price: cost of a broadcast in the learner's reward units (B, N), see
+            :meth:`option_values`
         :return: the hybrid action with its log-probabilities and the option values
         """
-        out = self._run({"mu": self.option_features(obs), "q": self.critic_features(obs)})
+        before = {"mu": self.option_features(obs)}
+        if self.critic == "option_heads":
+            before["q"] = self.critic_features(obs)
+        out = self._run(before)
         logits = out["mu"]
         if deterministic_options is None:
             deterministic_options = deterministic
         if comm is None:
-            if deterministic_options:
-                comm = logits.argmax(-1)
-            else:  # two options: broadcast with probability sigmoid(logit_1 - logit_0)
-                p_broadcast = th.sigmoid(logits[..., 1] - logits[..., 0])
-                comm = (th.rand_like(p_broadcast) < p_broadcast).long()
+            comm = self._sample_options(logits, deterministic_options)
         comm = comm.long()
-        mean = self._run({"pi": self.control_features(obs, comm)})["pi"]
+        after = {"pi": self.control_features(obs, comm)}
+        if self.critic == "afterstate":
+            after["q"] = self.afterstate_features(obs, comm)
+        out.update(self._run(after))
+        mean = out["pi"]
         log_std = self.log_std.expand(self.n_agents, -1)
         control = mean
         if not deterministic:
@@ -451,39 +552,70 @@ class MlpHybridPolicy(BasePolicy):
         if action_noise_std > 0:
             control = control + th.randn_like(mean) * action_noise_std
         log_prob_comm = F.log_softmax(logits, dim=-1).gather(-1, comm[..., None])[..., 0]
-        return HybridAction(comm, control, log_prob_comm, gaussian_log_prob(control, mean, log_std), out["q"])
+        return HybridAction(
+            comm,
+            control,
+            log_prob_comm,
+            gaussian_log_prob(control, mean, log_std),
+            self.option_values(out["q"], comm_price),
+        )
 
-    def evaluate_actions(self, obs: PyTorchObs, comm: th.Tensor, control: th.Tensor) -> HybridEvaluation:
+    @staticmethod
+    def _sample_options(logits: th.Tensor, deterministic: bool) -> th.Tensor:
+        """Options from the logits of ``mu``: the mode, or a sample (B, N)."""
+        if deterministic:
+            return logits.argmax(-1)
+        # two options: broadcast with probability sigmoid(logit_1 - logit_0)
+        p_broadcast = th.sigmoid(logits[..., 1] - logits[..., 0])
+        return (th.rand_like(p_broadcast) < p_broadcast).long()
+
+    def evaluate_actions(
+        self, obs: PyTorchObs, comm: th.Tensor, control: th.Tensor, comm_price: th.Tensor | None = None
+    ) -> HybridEvaluation:
         """Evaluate stored hybrid actions with the current networks (one pass through all chains).
 
         :param obs: joint observations (B, N, ...) from before the options
         :param comm: stored options (B, N)
         :param control: stored controls (B, N, m)
+        :param comm_price: cost of a broadcast in the learner's reward units (B, N), see :meth:`option_values`
         """
-        return self.evaluate_inputs(self.training_inputs(obs, comm), comm, control)
+        return self.evaluate_inputs(self.training_inputs(obs, comm), comm, control, comm_price)
 
-    def evaluate_inputs(self, stacked: list[ChainInput], comm: th.Tensor, control: th.Tensor) -> HybridEvaluation:
+    def evaluate_inputs(
+        self, stacked: list[ChainInput], comm: th.Tensor, control: th.Tensor, comm_price: th.Tensor | None = None
+    ) -> HybridEvaluation:
         """Like :meth:`evaluate_actions`, from inputs prepared by :meth:`training_inputs`.
 
         :param stacked: stacked inputs of the same samples as ``comm`` and ``control``
         :param comm: stored options (B, N)
         :param control: stored controls (B, N, m)
+        :param comm_price: cost of a broadcast in the learner's reward units (B, N), see :meth:`option_values`
         """
         out = self.apply_chains(stacked)
         log_p = F.log_softmax(out["mu"], dim=-1)
         log_prob_comm = log_p.gather(-1, comm.long()[..., None])[..., 0]
         entropy = -(log_p.exp() * log_p).sum(-1)
         log_std = self.log_std.expand(self.n_agents, -1)
-        return HybridEvaluation(log_prob_comm, entropy, gaussian_log_prob(control, out["pi"], log_std), out["q"])
+        control_log_prob = gaussian_log_prob(control, out["pi"], log_std)
+        return HybridEvaluation(log_prob_comm, entropy, control_log_prob, self.option_values(out["q"], comm_price))
 
-    def state_values(self, obs: PyTorchObs) -> th.Tensor:
+    def state_values(self, obs: PyTorchObs, comm_price: th.Tensor | None = None) -> th.Tensor:
         """Option-value critic averaged under the policy over options, ``V_i(s) = sum_o mu_i(o) Q_i(s, o)``.
 
+        The afterstate critic takes the others' options from one sample of their policies.
+
         :param obs: joint observation (B, N, ...)
+        :param comm_price: cost of a broadcast in the learner's reward units (B, N), see :meth:`option_values`
         :return: values (B, N)
         """
-        out = self._run({"mu": self.option_features(obs), "q": self.critic_features(obs)})
-        return (F.softmax(out["mu"], dim=-1) * out["q"]).sum(-1)
+        if self.critic == "option_heads":
+            out = self._run({"mu": self.option_features(obs), "q": self.critic_features(obs)})
+            q = out["q"]
+        else:
+            out = self._run({"mu": self.option_features(obs)})
+            comm = self._sample_options(out["mu"], deterministic=False)
+            q = self.option_values(self._run({"q": self.afterstate_features(obs, comm)})["q"], comm_price)
+        return (F.softmax(out["mu"], dim=-1) * q).sum(-1)
 
     def _predict(self, observation: PyTorchObs, deterministic: bool = False) -> th.Tensor:
         """Options and controls side by side, (B, N, 1 + m); :meth:`predict` returns them as a Dict."""
