@@ -17,7 +17,7 @@ import sb3_detc  # noqa: F401  (registers the env ids)
 from sb3_detc.envs import linear_etc_v0
 from sb3_detc.envs.wrappers import JointEnv
 from sb3_detc.mappoc import MAPPOC, HybridRolloutBuffer, MlpHybridPolicy
-from sb3_detc.mappoc.mappoc import clipped_surrogate_loss, greedy_option_advantage
+from sb3_detc.mappoc.mappoc import clipped_surrogate_loss, greedy_option_advantage, option_gap_scale
 from sb3_detc.mappoc.policies import CRITICS, NETS, BatchedMLP
 
 ENV_ID = "sb3_detc/LinearETC-v0"
@@ -228,10 +228,10 @@ def test_policy_outputs_match_each_agents_extracted_networks(share: bool, net_ar
     policy = make_policy(env, share_parameters=share, net_arch=net_arch, critic=critic)
     obs = joint_obs_batch(env, steps=5)
     comm = th.as_tensor(np.random.default_rng(3).integers(0, 2, (5, n)))
-    if critic == "option_heads":
-        q_features = policy.critic_features(obs)
-    else:  # both own options side by side on the agent axis' feature rows, evaluated one by one below
+    if critic == "afterstate":  # both own options side by side on the agent axis' feature rows
         q_features = policy.afterstate_features(obs, comm)
+    else:
+        q_features = policy.critic_features(obs)
     features = {"mu": policy.option_features(obs), "q": q_features, "pi": policy.control_features(obs, comm)}
     with th.no_grad():
         action = policy(obs, deterministic=True, comm=comm)
@@ -247,6 +247,10 @@ def test_policy_outputs_match_each_agents_extracted_networks(share: bool, net_ar
             outputs[net] = th.stack(per_agent, dim=1)
     if critic == "afterstate":  # (B, N, options, 1) -> (B, N, options)
         outputs["q"] = outputs["q"][..., 0]
+    if critic == "centred":  # (V, D) -> Q(s, o) = V + (o - p) D
+        p = th.softmax(outputs["mu"], dim=-1)[..., 1:]
+        value, gap = outputs["q"][..., :1], outputs["q"][..., 1:]
+        outputs["q"] = th.cat([value - p * gap, value + (1 - p) * gap], dim=-1)
     th.testing.assert_close(action.option_values, outputs["q"])
     th.testing.assert_close(action.control, outputs["pi"])
     log_mu = th.log_softmax(outputs["mu"], dim=-1).gather(-1, comm[..., None])[..., 0]
@@ -354,6 +358,39 @@ def test_greedy_option_advantage_hand_computed() -> None:
     # No gradient flows into Q through the advantage.
     (greedy_option_advantage(q, comm, 0.1).sum() * 3.0 + q.sum()).backward()
     th.testing.assert_close(q.grad, th.ones_like(q))
+
+
+def test_option_gap_scale_makes_greedy_advantages_scale_free() -> None:
+    q = th.randn(64, 3, 2, generator=th.Generator().manual_seed(0), dtype=th.float64)
+    comm = th.randint(0, 2, (64, 3), generator=th.Generator().manual_seed(1))
+    gap = q[..., 1] - q[..., 0]
+    th.testing.assert_close(option_gap_scale(q), gap.pow(2).mean(0).sqrt() + 1e-8)
+    normalised = greedy_option_advantage(q, comm) / option_gap_scale(q)
+    for factor in (1e-2, 7.0):  # rewards in other units: the same normalised advantages
+        scaled = factor * q + 3.0
+        th.testing.assert_close(
+            greedy_option_advantage(scaled, comm) / option_gap_scale(scaled), normalised, rtol=1e-4, atol=1e-6
+        )
+
+
+@pytest.mark.parametrize("n_agents", [2, 3])
+def test_centred_critic_option_values(n_agents: int) -> None:
+    """Q(s, o) = V + (o - p)(D - price): the gap is D - price, the mean under the drawing probabilities is V."""
+    env = linear_etc_v0.joint_env(n_agents=n_agents)
+    policy = make_policy(env, critic="centred")
+    obs = joint_obs_batch(env, steps=7)
+    comm = th.as_tensor(np.random.default_rng(5).integers(0, 2, (7, n_agents)))
+    price = th.rand(7, n_agents, generator=th.Generator().manual_seed(2))
+    p = th.rand(7, n_agents, generator=th.Generator().manual_seed(3))
+    with th.no_grad():
+        value, gap = policy._run({"q": policy.critic_features(obs)})["q"].unbind(-1)
+        q = policy.evaluate_actions(obs, comm, th.zeros(7, n_agents, 1), price, p).option_values
+        state_values = policy.state_values(obs, price)
+    th.testing.assert_close(q[..., 1] - q[..., 0], gap - price)
+    th.testing.assert_close(p * q[..., 1] + (1 - p) * q[..., 0], value)
+    th.testing.assert_close(state_values, value)  # under mu's own probabilities, too
+    with pytest.raises(ValueError, match="p_broadcast"):
+        policy.option_values(th.zeros(7, n_agents, 2), price)
 
 
 def test_clipped_surrogate_loss_hand_computed() -> None:

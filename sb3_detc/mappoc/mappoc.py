@@ -68,6 +68,11 @@ class MAPPOC(OnPolicyAlgorithm):
         critic telling the two options apart)
     :param option_advantage_offset: constant added to the greedy option advantage (the
         paper's code used a 0.1 "deliberation" offset; the paper and the default use 0)
+    :param normalize_option_advantage: divide every agent's greedy option advantages by the
+        root mean square of its critic's option gap ``Q(1) - Q(0)`` over the minibatch, so
+        that ``mu`` moves towards the better option at a rate set by the learning rate and
+        the clip range, not by the (often tiny) scale of the value of a single broadcast,
+        just as the control advantages are standardised (the paper: raw advantages)
     :param reward_scale: factor applied to rewards for learning only (paper: 0.1)
     :param normalize_reward: divide every agent's (scaled) reward by a running standard
         deviation of its discounted return, clipped to [-10, 10], as SB3's ``VecNormalize``
@@ -114,6 +119,7 @@ class MAPPOC(OnPolicyAlgorithm):
         action_noise_std: float = 0.0,
         option_advantage: str = "greedy",
         option_advantage_offset: float = 0.0,
+        normalize_option_advantage: bool = False,
         reward_scale: float = 0.1,
         normalize_reward: bool = False,
         team_reward: bool = False,
@@ -177,6 +183,7 @@ class MAPPOC(OnPolicyAlgorithm):
             raise ValueError(f"option_advantage must be 'greedy' or 'return', got {option_advantage!r}.")
         self.option_advantage = option_advantage
         self.option_advantage_offset = option_advantage_offset
+        self.normalize_option_advantage = normalize_option_advantage
         self.reward_scale = reward_scale
         self.normalize_reward = normalize_reward
         self.team_reward = team_reward
@@ -330,8 +337,11 @@ class MAPPOC(OnPolicyAlgorithm):
         for epoch in range(self.n_epochs):
             for idx in self.rollout_buffer.minibatch_indices(self.batch_size):
                 data = samples.select(idx)
+                # probability of broadcasting with which the options were drawn
+                p_taken = data.old_log_prob_comm.exp()
+                p_broadcast = th.where(data.comm.bool(), p_taken, 1 - p_taken)
                 evaluation = self.policy.evaluate_inputs(
-                    [x.select(idx) for x in inputs], data.comm, data.control, data.comm_price
+                    [x.select(idx) for x in inputs], data.comm, data.control, data.comm_price, p_broadcast
                 )
 
                 # Control policy: PPO clipped surrogate on GAE advantages of the taken option.
@@ -348,7 +358,10 @@ class MAPPOC(OnPolicyAlgorithm):
 
                 # Options: PPO clipped surrogate on the greedy advantage Q(o) - max_o' Q(o'), no gradient into Q.
                 if self.option_advantage == "greedy":
-                    advantages_mu = greedy_option_advantage(q, data.comm, self.option_advantage_offset)
+                    advantages_mu = greedy_option_advantage(q, data.comm)
+                    if self.normalize_option_advantage:
+                        advantages_mu = advantages_mu / option_gap_scale(q)
+                    advantages_mu = advantages_mu + self.option_advantage_offset
                 else:
                     advantages_mu = self._normalized(data.option_advantages) + self.option_advantage_offset
                 log_ratio_mu = evaluation.log_prob_comm - data.old_log_prob_comm
@@ -401,13 +414,13 @@ class MAPPOC(OnPolicyAlgorithm):
     def _comm_costs(self, env: VecEnv) -> np.ndarray:
         """The communication cost ``xi`` of every environment, (n_envs,); zeros unless the critic needs it."""
         if self.policy.critic == "option_heads":
-            return np.zeros(env.num_envs, dtype=np.float32)
+            return np.zeros(env.num_envs, dtype=np.float32)  # the option heads learn it from the rewards
         try:
             return np.asarray(env.get_attr("comm_cost"), dtype=np.float32)
         except AttributeError as err:
             raise ValueError(
-                "critic='afterstate' needs the environment's communication cost (attribute 'comm_cost', as the "
-                "sb3_detc envs have) to add it to its option values."
+                f"critic={self.policy.critic!r} needs the environment's communication cost (attribute "
+                "'comm_cost', as the sb3_detc envs have) to add it to its option values."
             ) from err
 
     def _comm_prices(self, comm_cost: np.ndarray) -> np.ndarray:
@@ -532,6 +545,15 @@ def greedy_option_advantage(option_values: th.Tensor, comm: th.Tensor, offset: f
     """
     q = option_values.detach()
     return q.gather(-1, comm.long()[..., None])[..., 0] - q.max(-1).values + offset
+
+
+def option_gap_scale(option_values: th.Tensor) -> th.Tensor:
+    """Every agent's root mean square option gap ``Q(1) - Q(0)`` over a batch, detached, (N,).
+
+    :param option_values: ``Q_i(s, o)`` for both options, (B, N, 2)
+    """
+    gap = option_values.detach()[..., 1] - option_values.detach()[..., 0]
+    return gap.pow(2).mean(0).sqrt() + 1e-8
 
 
 def clipped_surrogate_loss(advantages: th.Tensor, ratio: th.Tensor, clip: float) -> th.Tensor:

@@ -38,7 +38,12 @@ from sb3_detc.network import advance_timer, hold, others_index, relative_views
 #: afterstate critic) run after.
 NETS = ("mu", "q", "pi")
 #: Kinds of option-value critic.
-CRITICS = ("option_heads", "afterstate")
+CRITICS = ("option_heads", "afterstate", "centred")
+
+
+def broadcast_probability(logits: th.Tensor) -> th.Tensor:
+    """Probability of broadcasting under ``mu`` from its logits (..., 2): ``sigmoid(logit_1 - logit_0)``."""
+    return th.sigmoid(logits[..., 1] - logits[..., 0])
 
 
 class BatchedMLP(nn.Module):
@@ -194,7 +199,15 @@ class MlpHybridPolicy(BasePolicy):
         ``Q_i(s, o) = W_i(after(s, o_i = o, o_-i))`` with the others' options as taken). The
         afterstate critic learns the value of stale information from every step, whichever
         option led to it, so both options' values come from one function and the difference
-        between them has no per-head offset
+        between them has no per-head offset; or ``"centred"`` (two outputs on the state before
+        the options, a state value ``V_i(s)`` and an option gap ``D_i(s)``:
+        ``Q_i(s, o) = V_i(s) + (o - p_i(s)) (D_i(s) - price_i)`` with ``p_i`` the probability
+        of broadcasting under ``mu_i`` when the step was taken). The centred critic is fitted
+        by the same squared error as the others, which then is the R-learner of causal
+        inference (Nie and Wager, 2021) for the effect of a broadcast: because the options are
+        drawn with known probabilities, ``o - p`` is uncorrelated with every function of the
+        state, so the error of ``V_i``, the large part of the value, does not leak into the
+        option gap, the small part on which ``mu`` acts
     :param ortho_init: orthogonal initialisation (otherwise PyTorch's default init)
     :param use_sde: not supported, must be False (present for SB3 compatibility)
     :param optimizer_class: optimizer class
@@ -264,7 +277,7 @@ class MlpHybridPolicy(BasePolicy):
             "q": n_local + n * (n_msg + 1) + (n - 1) * n_msg + n_id,
             "pi": n_local + (n - 1) * (n_msg + 1) + n_id,
         }
-        self.out_features = {"mu": 2, "q": 2 if critic == "option_heads" else 1, "pi": n_control}
+        self.out_features = {"mu": 2, "q": 1 if critic == "afterstate" else 2, "pi": n_control}
         self._build(lr_schedule)
 
     # ------------------------------------------------------------------ building
@@ -403,25 +416,42 @@ class MlpHybridPolicy(BasePolicy):
         true = relative_views(obs["message"], obs["message"], self.others).flatten(2)
         return th.cat([obs["local"], views, age[..., 0] * self.age_scale, true], dim=-1)
 
-    def option_values(self, q: th.Tensor, comm_price: th.Tensor | None = None) -> th.Tensor:
+    @property
+    def critic_reads_afterstate(self) -> bool:
+        """Whether the critic reads the network state after this step's options (else: before)."""
+        return self.critic == "afterstate"
+
+    def option_values(
+        self, q: th.Tensor, comm_price: th.Tensor | None = None, p_broadcast: th.Tensor | None = None
+    ) -> th.Tensor:
         """Both options' values from the critic's outputs.
 
-        The afterstate critic values the network state after the options; the own
-        broadcast's cost in this step's reward is known exactly and added analytically,
-        ``Q_i(s, o) = W_i(after(s, o)) - o price_i``, so that ``W_i`` need not learn it from
-        the age input alone.
+        The own broadcast's cost in this step's reward is known exactly; the afterstate and
+        centred critics add it analytically instead of learning it. The afterstate critic
+        values the network state after the options, ``Q_i(s, o) = W_i(after(s, o)) - o price_i``.
+        The centred critic has a state value and an option gap,
+        ``Q_i(s, o) = V_i(s) + (o - p_i) (D_i(s) - price_i)``, so that
+        ``sum_o mu_i(o) Q_i(s, o) = V_i(s)`` and ``Q_i(s, 1) - Q_i(s, 0) = D_i(s) - price_i``.
 
-        :param q: option heads (B, N, 2), or afterstate values of both own options (B, 2, N, 1)
+        :param q: option heads or centred outputs ``(V, D)`` (B, N, 2), or afterstate values of
+            both own options (B, 2, N, 1)
         :param comm_price: what a broadcast costs agent ``i`` in the learner's reward units (B, N);
-            used by the afterstate critic only (None: zero)
+            not used by the option heads (None: zero)
+        :param p_broadcast: probability of broadcasting ``p_i`` with which the options were
+            drawn (B, N); needed by the centred critic only
         :return: ``Q_i(s, o)``, (B, N, 2)
         """
         if self.critic == "option_heads":
             return q
-        values = q[..., 0].transpose(1, 2)
-        if comm_price is None:
-            return values
-        return values - th.stack([th.zeros_like(comm_price), comm_price], dim=-1)
+        price = th.zeros_like(q[:, 0, :, 0] if self.critic_reads_afterstate else q[..., 0])
+        if comm_price is not None:
+            price = comm_price
+        if self.critic == "afterstate":
+            return q[..., 0].transpose(1, 2) - th.stack([th.zeros_like(price), price], dim=-1)
+        if p_broadcast is None:
+            raise ValueError("The centred critic needs the probabilities of broadcasting (p_broadcast).")
+        value, gap = q[..., 0], q[..., 1] - price
+        return th.stack([value - p_broadcast * gap, value + (1 - p_broadcast) * gap], dim=-1)
 
     def stack_inputs(self, features: dict[str, th.Tensor]) -> list[ChainInput]:
         """Arrange per-network features for the batched chains.
@@ -504,8 +534,8 @@ class MlpHybridPolicy(BasePolicy):
         )
 
     def _q_features(self, obs: PyTorchObs, comm: th.Tensor) -> th.Tensor:
-        """The critic's inputs: before the options (option heads) or after them, for both own options."""
-        return self.critic_features(obs) if self.critic == "option_heads" else self.afterstate_features(obs, comm)
+        """The critic's inputs: before the options, or after them for both own options (afterstate)."""
+        return self.afterstate_features(obs, comm) if self.critic_reads_afterstate else self.critic_features(obs)
 
     # ------------------------------------------------------------------ acting
     def forward(
@@ -531,7 +561,7 @@ class MlpHybridPolicy(BasePolicy):
         :return: the hybrid action with its log-probabilities and the option values
         """
         before = {"mu": self.option_features(obs)}
-        if self.critic == "option_heads":
+        if not self.critic_reads_afterstate:
             before["q"] = self.critic_features(obs)
         out = self._run(before)
         logits = out["mu"]
@@ -541,7 +571,7 @@ class MlpHybridPolicy(BasePolicy):
             comm = self._sample_options(logits, deterministic_options)
         comm = comm.long()
         after = {"pi": self.control_features(obs, comm)}
-        if self.critic == "afterstate":
+        if self.critic_reads_afterstate:
             after["q"] = self.afterstate_features(obs, comm)
         out.update(self._run(after))
         mean = out["pi"]
@@ -557,7 +587,7 @@ class MlpHybridPolicy(BasePolicy):
             control,
             log_prob_comm,
             gaussian_log_prob(control, mean, log_std),
-            self.option_values(out["q"], comm_price),
+            self.option_values(out["q"], comm_price, broadcast_probability(logits)),
         )
 
     @staticmethod
@@ -565,12 +595,16 @@ class MlpHybridPolicy(BasePolicy):
         """Options from the logits of ``mu``: the mode, or a sample (B, N)."""
         if deterministic:
             return logits.argmax(-1)
-        # two options: broadcast with probability sigmoid(logit_1 - logit_0)
-        p_broadcast = th.sigmoid(logits[..., 1] - logits[..., 0])
+        p_broadcast = broadcast_probability(logits)
         return (th.rand_like(p_broadcast) < p_broadcast).long()
 
     def evaluate_actions(
-        self, obs: PyTorchObs, comm: th.Tensor, control: th.Tensor, comm_price: th.Tensor | None = None
+        self,
+        obs: PyTorchObs,
+        comm: th.Tensor,
+        control: th.Tensor,
+        comm_price: th.Tensor | None = None,
+        p_broadcast: th.Tensor | None = None,
     ) -> HybridEvaluation:
         """Evaluate stored hybrid actions with the current networks (one pass through all chains).
 
@@ -578,11 +612,18 @@ class MlpHybridPolicy(BasePolicy):
         :param comm: stored options (B, N)
         :param control: stored controls (B, N, m)
         :param comm_price: cost of a broadcast in the learner's reward units (B, N), see :meth:`option_values`
+        :param p_broadcast: probabilities of broadcasting with which ``comm`` was drawn (B, N),
+            see :meth:`option_values` (None: those of the current ``mu``)
         """
-        return self.evaluate_inputs(self.training_inputs(obs, comm), comm, control, comm_price)
+        return self.evaluate_inputs(self.training_inputs(obs, comm), comm, control, comm_price, p_broadcast)
 
     def evaluate_inputs(
-        self, stacked: list[ChainInput], comm: th.Tensor, control: th.Tensor, comm_price: th.Tensor | None = None
+        self,
+        stacked: list[ChainInput],
+        comm: th.Tensor,
+        control: th.Tensor,
+        comm_price: th.Tensor | None = None,
+        p_broadcast: th.Tensor | None = None,
     ) -> HybridEvaluation:
         """Like :meth:`evaluate_actions`, from inputs prepared by :meth:`training_inputs`.
 
@@ -590,6 +631,8 @@ class MlpHybridPolicy(BasePolicy):
         :param comm: stored options (B, N)
         :param control: stored controls (B, N, m)
         :param comm_price: cost of a broadcast in the learner's reward units (B, N), see :meth:`option_values`
+        :param p_broadcast: probabilities of broadcasting with which ``comm`` was drawn (B, N),
+            see :meth:`option_values` (None: those of the current ``mu``)
         """
         out = self.apply_chains(stacked)
         log_p = F.log_softmax(out["mu"], dim=-1)
@@ -597,7 +640,10 @@ class MlpHybridPolicy(BasePolicy):
         entropy = -(log_p.exp() * log_p).sum(-1)
         log_std = self.log_std.expand(self.n_agents, -1)
         control_log_prob = gaussian_log_prob(control, out["pi"], log_std)
-        return HybridEvaluation(log_prob_comm, entropy, control_log_prob, self.option_values(out["q"], comm_price))
+        if p_broadcast is None:
+            p_broadcast = log_p[..., 1].exp().detach()
+        option_values = self.option_values(out["q"], comm_price, p_broadcast)
+        return HybridEvaluation(log_prob_comm, entropy, control_log_prob, option_values)
 
     def state_values(self, obs: PyTorchObs, comm_price: th.Tensor | None = None) -> th.Tensor:
         """Option-value critic averaged under the policy over options, ``V_i(s) = sum_o mu_i(o) Q_i(s, o)``.
@@ -608,13 +654,13 @@ class MlpHybridPolicy(BasePolicy):
         :param comm_price: cost of a broadcast in the learner's reward units (B, N), see :meth:`option_values`
         :return: values (B, N)
         """
-        if self.critic == "option_heads":
-            out = self._run({"mu": self.option_features(obs), "q": self.critic_features(obs)})
-            q = out["q"]
-        else:
+        if self.critic_reads_afterstate:
             out = self._run({"mu": self.option_features(obs)})
             comm = self._sample_options(out["mu"], deterministic=False)
-            q = self.option_values(self._run({"q": self.afterstate_features(obs, comm)})["q"], comm_price)
+            out["q"] = self._run({"q": self.afterstate_features(obs, comm)})["q"]
+        else:
+            out = self._run({"mu": self.option_features(obs), "q": self.critic_features(obs)})
+        q = self.option_values(out["q"], comm_price, broadcast_probability(out["mu"]))
         return (F.softmax(out["mu"], dim=-1) * q).sum(-1)
 
     def _predict(self, observation: PyTorchObs, deterministic: bool = False) -> th.Tensor:

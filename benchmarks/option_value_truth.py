@@ -1,0 +1,177 @@
+"""The true value of a broadcast on the linear system, measured with common random numbers.
+
+Every agent's control is fixed to LQR on its view of held broadcasts
+(:class:`sb3_detc.triggers.FixedControl`) and options are drawn at random with a fixed
+broadcast probability. At every ``--every``-th step of a long run one agent ``j`` is picked
+and the env is copied twice: in one copy ``j`` broadcasts, in the other it stays silent,
+everything else (the others' options, the process noise, the later random options) is the
+same in both copies. The difference of the discounted team-mean control rewards over the
+next ``--horizon`` steps is then a low-variance sample of ``Q_j(s, broadcast) - Q_j(s,
+silent)`` without the communication cost, the quantity a learned trigger has to weigh
+against the price of a broadcast. The table groups the samples by how far the agent's
+trigger features moved since its last broadcast (what send-on-delta looks at).
+
+With ``--critics``, MAPPOC then trains each kind of option-value critic on the same kind of
+data (fixed control, random options with the same probability, policies over options not
+trained) and its estimate of the same difference on the same states is set beside the
+truth: how much of the value of a broadcast each critic resolves.
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import json
+import multiprocessing
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+import torch as th
+from stable_baselines3.common.env_util import make_vec_env
+
+import sb3_detc  # noqa: F401  (registers the env ids)
+from sb3_detc import MAPPOC
+from sb3_detc.triggers import FixedControl, RandomTrigger
+
+#: MAPPOC settings of the critics' training (those of ``trigger_learning.py``'s sparse variants).
+HYPERPARAMS: dict[str, Any] = {
+    "n_steps": 512,
+    "batch_size": 256,
+    "n_epochs": 10,
+    "learning_rate": 3e-4,
+    "max_grad_norm": 0.5,
+    "team_reward": True,
+    "normalize_reward": True,
+    "reward_scale": 1.0,
+    "gamma": 0.95,
+    "option_ent_coef": 0.0,
+    "train_option_policy": False,
+}
+
+
+def branch_returns(
+    env: gym.Env, comm: np.ndarray, agent: int, p: float, gamma: float, horizon: int, seed: int
+) -> float:
+    """Value of ``agent``'s broadcast now: the difference of two copies' discounted team-mean control returns.
+
+    :param env: the fixed-control joint env, at the state of the decision
+    :param comm: everyone's options of this step (N,); ``agent``'s is replaced
+    :param agent: the deciding agent
+    :param p: probability of broadcasting of the later random options
+    :param gamma: discount factor
+    :param horizon: steps to follow (fewer at the end of the episode)
+    :param seed: seed of the later random options, the same in both copies
+    """
+    n = comm.shape[0]
+    returns = []
+    for option in (1, 0):
+        branch = copy.deepcopy(env)  # copies the env's generator: the same noise in both branches
+        options = comm.copy()
+        options[agent] = option
+        later = np.random.default_rng(seed)  # the same later options in both branches
+        total, discount = 0.0, 1.0
+        for _ in range(horizon):
+            _, _, terminated, truncated, info = branch.step({"comm": options, "control": np.zeros((n, 1))})
+            total += discount * float(np.mean(info["control_rewards"]))
+            if terminated or truncated:
+                break
+            discount *= gamma
+            options = (later.random(n) < p).astype(np.int64)
+        returns.append(total)
+    return returns[0] - returns[1]
+
+
+def critic_estimates(job: tuple[str, float, float, int, int, list[tuple[dict, np.ndarray, int]]]) -> np.ndarray:
+    """Train one critic on random options and return its ``Q_j(s, 1) - Q_j(s, 0)`` on the samples.
+
+    :param job: critic kind, broadcast probability, communication cost, timesteps, seed and
+        the samples (observation before the decision, options of the step, deciding agent)
+    :return: the estimates without the communication cost, in team-mean reward (samples,)
+    """
+    critic, p, comm_cost, timesteps, seed, samples = job
+    th.set_num_threads(1)
+    env_kwargs = {"comm_cost": comm_cost}
+    env = make_vec_env("sb3_detc/LinearETC-v0", n_envs=2, seed=seed, env_kwargs=env_kwargs, wrapper_class=FixedControl)
+    policy_kwargs = {"net_arch": [64, 64], "critic": critic}
+    model = MAPPOC("MlpHybridPolicy", env, seed=seed, policy_kwargs=policy_kwargs, **HYPERPARAMS)
+    model.option_override = RandomTrigger(1.0 - p, seed=seed)
+    model.learn(timesteps)
+    obs = {key: th.as_tensor(np.stack([s[0][key] for s in samples])) for key in samples[0][0]}
+    comm = th.as_tensor(np.stack([s[1] for s in samples]))
+    agent = np.array([s[2] for s in samples])
+    control = th.zeros(*comm.shape, model.n_control)
+    with th.no_grad():
+        q = model.policy.evaluate_actions(obs, comm, control, p_broadcast=th.full(comm.shape, p)).option_values
+    gap = (q[..., 1] - q[..., 0]).numpy()[np.arange(len(agent)), agent]
+    # back from the learner's units (reward normalisation) to team-mean reward
+    return gap * np.sqrt(model.reward_rms.var[agent] + 1e-8) / model.reward_scale
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument(
+        "--broadcast-prob", type=float, default=0.5, help="probability of broadcasting of the random options"
+    )
+    parser.add_argument("--gamma", type=float, default=0.95)
+    parser.add_argument("--horizon", type=int, default=60, help="steps after the decision (at most to the episode end)")
+    parser.add_argument("--steps", type=int, default=9000, help="steps of the long run")
+    parser.add_argument("--every", type=int, default=3, help="measure at every k-th step")
+    parser.add_argument("--comm-cost", type=float, default=0.03, help="only to state the price of a broadcast")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--critics", nargs="*", default=[], choices=["option_heads", "afterstate", "centred"])
+    parser.add_argument("--timesteps", type=int, default=100_000, help="training steps of every critic")
+    parser.add_argument("--workers", type=int, default=2, help="parallel training processes")
+    parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "option_value_truth.json")
+    args = parser.parse_args()
+    rng = np.random.default_rng(args.seed)
+    env = FixedControl(gym.make("sb3_detc/LinearETC-v0"))
+    n = env.unwrapped.n_agents
+    obs, _ = env.reset(seed=args.seed)
+    samples = []  # (trigger change, age, value of the broadcast)
+    states = []  # (observation, options, agent) of every sample
+    for step in range(args.steps):
+        comm = (rng.random(n) < args.broadcast_prob).astype(np.int64)
+        if step % args.every == 0:
+            agent = int(rng.integers(n))
+            seed = int(rng.integers(1 << 30))
+            value = branch_returns(env, comm, agent, args.broadcast_prob, args.gamma, args.horizon, seed)
+            change = float(np.linalg.norm(obs["trigger"][agent] - obs["trigger_held"][agent]))
+            samples.append((change, float(obs["age"][agent, 0]), value))
+            states.append(({key: np.array(v) for key, v in obs.items()}, comm, agent))
+        obs, _, terminated, truncated, _ = env.step({"comm": comm, "control": np.zeros((n, 1))})
+        if terminated or truncated:
+            obs, _ = env.reset()
+    data = np.asarray(samples)
+    jobs = [(c, args.broadcast_prob, args.comm_cost, args.timesteps, args.seed, states) for c in args.critics]
+    with multiprocessing.get_context("spawn").Pool(args.workers) as pool:
+        estimates = dict(zip(args.critics, pool.map(critic_estimates, jobs), strict=True))
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    record = {"settings": {k: str(v) for k, v in vars(args).items()}, "samples": samples}
+    record["estimates"] = {c: e.tolist() for c, e in estimates.items()}
+    args.out.write_text(json.dumps(record))
+    price = args.comm_cost / n  # a broadcast's cost in team-mean reward
+    print(
+        f"broadcast probability {args.broadcast_prob}, gamma {args.gamma}, horizon {args.horizon}, "
+        f"{len(data)} samples; price of a broadcast in team-mean reward: {price:.4f}"
+    )
+    print()
+    header = "| trigger change | samples | value of a broadcast +- s.e. | share above the price |"
+    print(header + "".join(f" {critic}: estimate (spread) |" for critic in estimates))
+    print("|---|---:|---:|---:|" + "---:|" * len(estimates))
+    edges = np.quantile(data[:, 0], [0, 0.2, 0.4, 0.6, 0.8, 0.9, 0.95, 1.0])
+    for lo, hi in zip(edges[:-1], edges[1:], strict=True):
+        rows = (data[:, 0] >= lo) & (data[:, 0] <= hi)
+        value = data[rows, 2]
+        sem = value.std(ddof=1) / np.sqrt(len(value))
+        line = (
+            f"| {lo:.3f} to {hi:.3f} | {len(value)} | {value.mean():+.4f} +- {sem:.4f} | {np.mean(value > price):.2f} |"
+        )
+        print(line + "".join(f" {e[rows].mean():+.4f} ({e[rows].std():.4f}) |" for e in estimates.values()))
+    for critic, estimate in estimates.items():
+        print(f"{critic}: correlation with the truth over all samples {np.corrcoef(estimate, data[:, 2])[0, 1]:+.3f}")
+
+
+if __name__ == "__main__":
+    main()
