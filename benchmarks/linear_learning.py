@@ -24,6 +24,7 @@ import json
 import multiprocessing
 import time
 from pathlib import Path
+from typing import Any
 
 import gymnasium as gym
 import torch as th
@@ -33,6 +34,7 @@ from sb3_detc import MAPPOC
 from sb3_detc.callbacks import OptionEntropySchedule
 from sb3_detc.envs.linear import LinearSystem, lqr_episode_cost
 from sb3_detc.evaluation import evaluate_communication
+from sb3_detc.mappoc.policies import CRITICS
 from sb3_detc.triggers import RandomTrigger
 
 #: MAPPOC settings for the linear env (the paper's are for Multiwalker).
@@ -51,12 +53,13 @@ ENTROPY_SCHEDULE = {"initial": 0.1, "final": 0.001, "start": 100, "end": 200}
 EVAL_SEED = 10_000
 
 
-def run(job: tuple[float, int, str, str, int, int]) -> dict[str, float | int | str]:
+def run(job: tuple[float, int, str, str, int, int, dict[str, Any]]) -> dict[str, Any]:
     """Train one model and evaluate it at equal communication; returns one table row."""
-    comm_cost, seed, option_advantage, critic, timesteps, eval_episodes = job
+    comm_cost, seed, option_advantage, critic, timesteps, eval_episodes, changes = job
     th.set_num_threads(1)
     env = make_vec_env("sb3_detc/LinearETC-v0", n_envs=2, seed=seed, env_kwargs={"comm_cost": comm_cost})
-    settings = {**HYPERPARAMS, "policy_kwargs": {**HYPERPARAMS["policy_kwargs"], "critic": critic}}
+    policy_kwargs = {**HYPERPARAMS["policy_kwargs"], "critic": critic, **changes.get("policy_kwargs", {})}
+    settings = {**HYPERPARAMS, **changes, "policy_kwargs": policy_kwargs}
     model = MAPPOC("MlpHybridPolicy", env, seed=seed, option_advantage=option_advantage, **settings)
     start = time.perf_counter()
     model.learn(timesteps, callback=OptionEntropySchedule(**ENTROPY_SCHEDULE))
@@ -76,6 +79,7 @@ def run(job: tuple[float, int, str, str, int, int]) -> dict[str, float | int | s
         "seed": seed,
         "option_advantage": option_advantage,
         "critic": critic,
+        "changes": changes,
         "timesteps": timesteps,
         "train_seconds": round(train_seconds, 1),
         "savings": round(savings, 3),
@@ -90,14 +94,15 @@ def main() -> None:
     parser.add_argument("--comm-costs", type=float, nargs="+", default=[0.03])
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3])
     parser.add_argument("--option-advantages", nargs="+", default=["greedy"])
-    parser.add_argument("--critics", nargs="+", default=["option_heads"], choices=["option_heads", "afterstate"])
+    parser.add_argument("--critics", nargs="+", default=["option_heads"], choices=list(CRITICS))
+    parser.add_argument("--set", type=json.loads, default={}, help="MAPPOC settings to change (JSON)")
     parser.add_argument("--timesteps", type=int, default=300_000)
     parser.add_argument("--eval-episodes", type=int, default=60)
     parser.add_argument("--workers", type=int, default=2, help="parallel training processes")
     parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "linear_learning.json")
     args = parser.parse_args()
     jobs = [
-        (xi, seed, adv, critic, args.timesteps, args.eval_episodes)
+        (xi, seed, adv, critic, args.timesteps, args.eval_episodes, args.set)
         for xi in args.comm_costs
         for adv in args.option_advantages
         for critic in args.critics
@@ -109,6 +114,7 @@ def main() -> None:
     args.out.write_text(json.dumps(rows, indent=1))
     bound = lqr_episode_cost(LinearSystem())
     print(f"episode cost bound (optimal centralised LQR, periodic communication): {bound:.3f} per team")
+    print(f"settings changed: {args.set}")
     print()
     print(
         "| comm cost | option advantage | critic | seed | savings | cost learned | cost random, same rate "

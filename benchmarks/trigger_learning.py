@@ -20,7 +20,10 @@ Variants (``--variants``):
 * ``sparse-return``: as ``sparse`` with the sampled option advantage (lambda-return minus
   the state value) and option entropy coefficient 0.003;
 * ``afterstate``: as ``sparse`` with the afterstate critic (``critic="afterstate"``);
-* ``afterstate-paper``: as ``paper`` with the afterstate critic.
+* ``afterstate-paper``: as ``paper`` with the afterstate critic;
+* ``afterstate-normalised``: as ``afterstate`` with normalised option advantages
+  (``normalize_option_advantage=True``) and option entropy coefficient 0.03;
+* ``centred-normalised``: the same with the centred critic (``critic="centred"``).
 """
 
 from __future__ import annotations
@@ -74,6 +77,22 @@ VARIANTS["afterstate"] = (
 VARIANTS["afterstate-paper"] = (
     {**VARIANTS["paper"][0], "policy_kwargs": {"net_arch": [64, 64], "critic": "afterstate"}},
     VARIANTS["paper"][1],
+)
+VARIANTS["afterstate-normalised"] = (
+    {
+        **SPARSE,
+        "option_ent_coef": 0.03,
+        "normalize_option_advantage": True,
+        "policy_kwargs": {**SPARSE["policy_kwargs"], "critic": "afterstate"},
+    },
+    None,
+)
+VARIANTS["centred-normalised"] = (
+    {
+        **VARIANTS["afterstate-normalised"][0],
+        "policy_kwargs": {**SPARSE["policy_kwargs"], "critic": "centred"},
+    },
+    None,
 )
 DELTAS = (0.0, 0.02, 0.05, 0.1, 0.2, 0.3, 0.5, 1.0, 2.0)
 EVAL_SEED = 10_000

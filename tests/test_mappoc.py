@@ -19,6 +19,7 @@ from sb3_detc.envs.wrappers import JointEnv
 from sb3_detc.mappoc import MAPPOC, HybridRolloutBuffer, MlpHybridPolicy
 from sb3_detc.mappoc.mappoc import clipped_surrogate_loss, greedy_option_advantage, option_gap_scale
 from sb3_detc.mappoc.policies import CRITICS, NETS, BatchedMLP
+from sb3_detc.triggers import RandomTrigger
 
 ENV_ID = "sb3_detc/LinearETC-v0"
 TINY = {"net_arch": [16, 16]}
@@ -269,13 +270,17 @@ def test_afterstate_features_apply_the_network_rule_to_each_own_option(n_agents:
         for option in (0, 1):
             options = comm.clone()
             options[:, i] = option
-            held, age = policy.network_after(obs, options)  # the one rule, applied to the whole team
-            expected = policy.critic_features({**obs, "held": held, "age": age})[:, i]
+            held, _ = policy.network_after(obs, options)  # the one rule, applied to the whole team
+            expected = policy.critic_features({**obs, "held": held})[:, i]  # ages before the options
             th.testing.assert_close(features[:, option, i], expected)
     # The taken options' afterstate: one feature row per agent, whatever the own option.
     taken = features.gather(1, comm[:, None, :, None].expand(-1, 1, -1, features.shape[-1]))[:, 0]
-    held, age = policy.network_after(obs, comm)
-    th.testing.assert_close(taken, policy.critic_features({**obs, "held": held, "age": age}))
+    held, _ = policy.network_after(obs, comm)
+    th.testing.assert_close(taken, policy.critic_features({**obs, "held": held}))
+    # A broadcast of what the others already hold leaves the afterstate unchanged.
+    unchanged = {**obs, "held": obs["message"].clone()}
+    both = policy.afterstate_features(unchanged, comm)
+    th.testing.assert_close(both[:, 0], both[:, 1])
 
 
 # -------------------------------------------------------------- 10. batched chain
@@ -391,6 +396,13 @@ def test_centred_critic_option_values(n_agents: int) -> None:
     th.testing.assert_close(state_values, value)  # under mu's own probabilities, too
     with pytest.raises(ValueError, match="p_broadcast"):
         policy.option_values(th.zeros(7, n_agents, 2), price)
+
+
+def test_centred_critic_refuses_options_of_unknown_probability() -> None:
+    model = MAPPOC("MlpHybridPolicy", ENV_ID, n_steps=8, batch_size=8, policy_kwargs={**TINY, "critic": "centred"})
+    model.option_override = RandomTrigger(0.5, seed=0)
+    with pytest.raises(ValueError, match="probabilities with which the options were drawn"):
+        model.learn(8)
 
 
 def test_clipped_surrogate_loss_hand_computed() -> None:

@@ -242,6 +242,11 @@ class MAPPOC(OnPolicyAlgorithm):
         :return: True if the rollout was completed, False if a callback stopped it
         """
         assert self._last_obs is not None, "No previous observation was provided"
+        if self.option_override is not None and self.policy.critic == "centred":
+            raise ValueError(
+                "critic='centred' needs the probabilities with which the options were drawn, which an "
+                "option override does not give; use critic='option_heads' or 'afterstate' with fixed options."
+            )
         buffer: HybridRolloutBuffer = rollout_buffer  # type: ignore[assignment]
         self.policy.set_training_mode(False)
         n_steps = 0

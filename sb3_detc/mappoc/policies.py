@@ -195,8 +195,9 @@ class MlpHybridPolicy(BasePolicy):
         stale for several steps, so its value stands out from the noise of the returns
     :param critic: ``"option_heads"`` (the paper: ``Q_i`` reads the state before the options
         and has one output per option) or ``"afterstate"`` (one output ``W_i`` that reads the
-        network state *after* the options, held broadcasts and ages included;
-        ``Q_i(s, o) = W_i(after(s, o_i = o, o_-i))`` with the others' options as taken). The
+        held broadcasts *after* the options, with the ages before them;
+        ``Q_i(s, o) = W_i(after(s, o_i = o, o_-i)) - o price_i`` with the others' options as
+        taken, see :meth:`afterstate_features`). The
         afterstate critic learns the value of stale information from every step, whichever
         option led to it, so both options' values come from one function and the difference
         between them has no per-head offset; or ``"centred"`` (two outputs on the state before
@@ -385,9 +386,15 @@ class MlpHybridPolicy(BasePolicy):
     def afterstate_features(self, obs: PyTorchObs, comm: th.Tensor) -> th.Tensor:
         """Inputs of the afterstate critic ``W_i`` for both own options, the others' as in ``comm``.
 
-        The features of :meth:`critic_features` after this step's broadcasts: variant ``v``
-        of agent ``i`` applies the network rule (:meth:`network_after`) to the options
-        ``comm`` with agent ``i``'s own option replaced by ``v``.
+        The features of :meth:`critic_features` with the held broadcasts after this step's
+        broadcasts: variant ``v`` of agent ``i`` applies the hold rule (:func:`hold`, as
+        :meth:`network_after` does) to the options ``comm`` with agent ``i``'s own option
+        replaced by ``v``. The ages stay those before the options, the same for both
+        variants: a broadcast is worth the information it delivers, and an age reset that
+        differs between the options in every state, whatever the broadcast carries, would let
+        the critic credit "age 0" with the average value of broadcasting everywhere (it
+        then valued broadcasting far above what the returns showed, and ``mu`` learned to
+        broadcast at every step even when a broadcast cost more than any information).
 
         :param obs: joint observation (B, N, ...) from before the options
         :param comm: options (B, N)
@@ -395,12 +402,12 @@ class MlpHybridPolicy(BasePolicy):
         """
         n = self.n_agents
         own = self.agent_id.bool()  # (N receivers, N agents): the receiver's own option
+        age = obs["age"][:, None].expand(-1, n, -1, -1)  # every critic sees all ages before the options
         variants = []
         for option in (0, 1):
             # row i: everyone's options with agent i's own replaced by `option`, (B, N, N)
             options = th.where(own, option, comm[:, None, :].expand(-1, n, -1)).to(obs["held"].dtype)
             held = hold(obs["held"][:, None], obs["message"][:, None], options)
-            age = advance_timer(obs["age"][:, None], options)
             variants.append(self._centralised_features(obs, held, age))
         return th.stack(variants, dim=1)
 
