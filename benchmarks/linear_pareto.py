@@ -28,7 +28,14 @@ import torch
 
 import sb3_detc  # noqa: F401  (registers the env ids)
 from sb3_detc.envs.linear import lqr_episode_cost
-from sb3_detc.triggers import RandomTrigger, TriggerPoint, evaluate_trigger, lqr_on_held_states, sweep_send_on_delta
+from sb3_detc.triggers import (
+    FixedControl,
+    RandomTrigger,
+    TriggerPoint,
+    evaluate_trigger,
+    lqr_on_held_states,
+    sweep_send_on_delta,
+)
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402  (after choosing the backend)
@@ -94,6 +101,11 @@ def main() -> None:
     parser.add_argument("--episodes", type=int, default=500, help="episodes per point")
     parser.add_argument("--seed", type=int, default=0, help="seed of the first episode")
     parser.add_argument("--models", nargs="*", default=[], help="trained MAPPOC models (.zip) to add as points")
+    parser.add_argument(
+        "--fixed-control",
+        action="store_true",
+        help="the models' triggers drive LQR on held states, as the curves (models trained with FixedControl)",
+    )
     parser.add_argument("--out", type=Path, default=DEFAULT_OUT, help="where to write the PNG")
     args = parser.parse_args()
     torch.set_num_threads(1)
@@ -111,7 +123,8 @@ def main() -> None:
             for p in SKIP_PROBS
         ],
     }
-    models = [model_point(path, env, args.episodes, args.seed) for path in args.models]
+    model_env = FixedControl(env) if args.fixed_control else env
+    models = [model_point(path, model_env, args.episodes, args.seed) for path in args.models]
     plot(curves, models, bound, args.out)
 
     print(f"env: {ENV_ID} (defaults); {args.episodes} episodes per point, seeds {args.seed}..")

@@ -98,9 +98,9 @@ DELTAS = (0.0, 0.02, 0.05, 0.1, 0.2, 0.3, 0.5, 1.0, 2.0)
 EVAL_SEED = 10_000
 
 
-def run(job: tuple[str, int, float, int, int]) -> dict[str, Any]:
+def run(job: tuple[str, int, float, int, int, Path | None]) -> dict[str, Any]:
     """Train one trigger and evaluate it against random skipping and send-on-delta; one table row."""
-    variant, seed, comm_cost, timesteps, episodes = job
+    variant, seed, comm_cost, timesteps, episodes, save_dir = job
     th.set_num_threads(1)
     settings, schedule = VARIANTS[variant]
     env_kwargs = {"comm_cost": comm_cost}
@@ -109,6 +109,8 @@ def run(job: tuple[str, int, float, int, int]) -> dict[str, Any]:
     start = time.perf_counter()
     model.learn(timesteps, callback=OptionEntropySchedule(**schedule) if schedule else None)
     seconds = time.perf_counter() - start
+    if save_dir is not None:
+        model.save(save_dir / f"{variant}_xi{comm_cost:g}_seed{seed}.zip")
 
     eval_env = FixedControl(gym.make("sb3_detc/LinearETC-v0", **env_kwargs))
     bound = lqr_episode_cost(LinearSystem())
@@ -139,24 +141,36 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
-    parser.add_argument("--comm-cost", type=float, default=0.03)
+    parser.add_argument("--comm-costs", type=float, nargs="+", default=[0.03])
     parser.add_argument("--timesteps", type=int, default=150_000)
     parser.add_argument("--eval-episodes", type=int, default=100)
     parser.add_argument("--workers", type=int, default=2, help="parallel training processes")
     parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "trigger_learning.json")
+    parser.add_argument("--save-dir", type=Path, default=None, help="folder for the trained models (default: not kept)")
     args = parser.parse_args()
-    jobs = [(v, seed, args.comm_cost, args.timesteps, args.eval_episodes) for v in args.variants for seed in args.seeds]
+    if args.save_dir is not None:
+        args.save_dir.mkdir(parents=True, exist_ok=True)
+    jobs = [
+        (v, seed, xi, args.timesteps, args.eval_episodes, args.save_dir)
+        for v in args.variants
+        for xi in args.comm_costs
+        for seed in args.seeds
+    ]
     with multiprocessing.get_context("spawn").Pool(args.workers) as pool:
         rows = pool.map(run, jobs)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(rows, indent=1))
-    print(f"comm cost {args.comm_cost}, {args.timesteps} steps per run, {args.eval_episodes} evaluation episodes")
+    print(f"{args.timesteps} steps per run, {args.eval_episodes} evaluation episodes")
     print()
-    print("| variant | seed | savings | cost learned | cost random, same rate | cost send-on-delta, same savings |")
-    print("|---|---|---:|---:|---:|---:|")
+    print(
+        "| variant | comm cost | seed | savings | cost learned | cost random, same rate "
+        "| cost send-on-delta, same savings |"
+    )
+    print("|---|---|---|---:|---:|---:|---:|")
     for row in rows:
         print(
-            f"| {row['variant']} | {row['seed']} | {row['savings']:.3f} | {row['cost_learned']:.3f} | "
+            f"| {row['variant']} | {row['comm_cost']} | {row['seed']} | {row['savings']:.3f} | "
+            f"{row['cost_learned']:.3f} | "
             f"{row['cost_random_same_rate']:.3f} | {row['cost_send_on_delta_same_savings']:.3f} |"
         )
 

@@ -6,7 +6,10 @@ communication) and ``ppo_random_skip`` (random skips, the paper's baseline) with
 process each; MAPPOC shows a progress bar, the baseline's output goes to
 ``<folder>/ppo_random_skip_seed<seed>.log``). Then both final models run the same seeded
 evaluation episodes with the training communication cost: MAPPOC with options sampled from
-its policy over options, the baseline with its random trigger. The table gives the
+its policy over options, the baseline with its random trigger and once more with random
+skips at MAPPOC's mean rate (equal communication). The default environment is
+``sb3_detc/LinearETC-LQR-v0``: the controls are LQR on held broadcasts, so the comparison
+is between a learned and a random trigger for the same controller. The table gives the
 team-mean return per agent and episode (communication cost included), the control return
 (without it) and the communication savings ``1 - broadcasts / agent-steps``; the figure of
 :mod:`sb3_detc.plot` is drawn from the runs' logs.
@@ -29,11 +32,16 @@ from rl_zoo3.utils import get_callback_list, get_latest_run_id, get_saved_hyperp
 from sb3_detc.callbacks import FixedTriggerCallback
 from sb3_detc.evaluation import CommunicationReport, evaluate_communication
 from sb3_detc.mappoc import MAPPOC
+from sb3_detc.mappoc.mappoc import OptionOverride
 from sb3_detc.plot import plot_runs
+from sb3_detc.triggers import RandomTrigger
 from sb3_detc.zoo import InputError, check_env, run_cli
 
 #: The compared algorithms (rl-zoo3 names): learned communication and the random-skip baseline.
 ALGOS = ("mappoc", "ppo_random_skip")
+
+#: Row of the table: the baseline with random skips at the learned trigger's rate.
+EQUAL_RATE = "ppo_random_skip at mappoc's rate"
 
 #: Seed of the first evaluation episode (the same episodes for every model).
 EVAL_SEED = 10_000
@@ -85,7 +93,7 @@ def train_pair(env_id: str, seed: int, folder: str, timesteps: int | None) -> di
     return {algo: Path(folder) / algo / f"{name}_{get_latest_run_id(str(Path(folder) / algo), name)}" for algo in ALGOS}
 
 
-def evaluate_run(run: Path, env_id: str, episodes: int) -> CommunicationReport:
+def evaluate_run(run: Path, env_id: str, episodes: int, trigger: OptionOverride | None = None) -> CommunicationReport:
     """Evaluate a run's final model on seeded episodes, with the run's environment settings and trigger.
 
     The environment gets the run's ``env_kwargs`` (so the communication cost of training is
@@ -95,11 +103,14 @@ def evaluate_run(run: Path, env_id: str, episodes: int) -> CommunicationReport:
     :param run: the run folder
     :param env_id: environment id
     :param episodes: evaluation episodes
+    :param trigger: options to use instead of the run's (None: the run's own)
     :return: the evaluation report
     """
     name = EnvironmentName(env_id)
     config, _ = get_saved_hyperparams(str(run / name))
     triggers = [c.trigger for c in get_callback_list(dict(config)) if isinstance(c, FixedTriggerCallback)]
+    if trigger is not None:
+        triggers = [trigger]
     model = MAPPOC.load(run / f"{name}.zip", device="cpu")
     env = gym.make(env_id, **(config.get("env_kwargs") or {}))
     return evaluate_communication(
@@ -135,7 +146,7 @@ def table(reports: dict[str, list[CommunicationReport]]) -> str:
 
 def _main() -> None:
     parser = argparse.ArgumentParser(prog="python -m sb3_detc.compare", description=__doc__.splitlines()[0])
-    parser.add_argument("--env", default="sb3_detc/LinearETC-v0", help="environment id")
+    parser.add_argument("--env", default="sb3_detc/LinearETC-LQR-v0", help="environment id")
     parser.add_argument("--seeds", type=int, nargs="+", default=[0], help="seeds (one run per seed and algorithm)")
     parser.add_argument("-n", "--n-timesteps", type=int, default=None, help="training steps (default: the files')")
     parser.add_argument("-f", "--folder", default="logs", help="rl-zoo3 log folder (default: logs)")
@@ -152,6 +163,12 @@ def _main() -> None:
         for algo, run in train_pair(args.env, seed, args.folder, args.n_timesteps).items():
             runs[algo].append(run)
     reports = {algo: [evaluate_run(run, args.env, args.eval_episodes) for run in group] for algo, group in runs.items()}
+    # The baseline once more with random skips at the learned trigger's rate: equal communication.
+    savings = float(np.mean([report.savings for report in reports["mappoc"]]))
+    reports[EQUAL_RATE] = [
+        evaluate_run(run, args.env, args.eval_episodes, RandomTrigger(savings, seed=seed))
+        for run, seed in zip(runs["ppo_random_skip"], args.seeds, strict=True)
+    ]
     print()
     print(f"{args.env}, {args.eval_episodes} evaluation episodes per model, per agent and episode:")
     print()

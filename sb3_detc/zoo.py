@@ -39,6 +39,7 @@ from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.logger import CSVOutputFormat
 
 from sb3_detc.mappoc import MAPPOC
+from sb3_detc.mappoc.policies import CRITICS
 
 __all__ = [
     "ALGORITHMS",
@@ -114,7 +115,10 @@ def sample_mappoc_params(
         "max_grad_norm": trial.suggest_categorical("max_grad_norm", [0.5, 1.0, 5.0]),
         "reward_scale": trial.suggest_float("reward_scale", 1e-3, 1.0, log=True),
         "team_reward": trial.suggest_categorical("team_reward", [False, True]),
+        "normalize_option_advantage": trial.suggest_categorical("normalize_option_advantage", [False, True]),
         "net_arch": trial.suggest_categorical("net_arch", list(NET_ARCHS)),
+        # the centred critic needs mu's own options, which the random-skip baseline replaces
+        "critic": trial.suggest_categorical("critic", [c for c in CRITICS if c != "centred"]),
     }
     params["batch_size"] = min(params["batch_size"], params["n_steps"] * n_envs)
     return convert_mappoc_params(params)
@@ -124,11 +128,13 @@ def convert_mappoc_params(sampled_params: dict[str, Any]) -> dict[str, Any]:
     """Turn sampled MAPPOC parameters into keyword arguments (rl-zoo3's converter signature).
 
     :param sampled_params: the parameters of a trial, as :func:`sample_mappoc_params` names them
-    :return: keyword arguments of :class:`~sb3_detc.MAPPOC` (``net_arch`` becomes ``policy_kwargs``)
+    :return: keyword arguments of :class:`~sb3_detc.MAPPOC` (``net_arch`` and ``critic`` go into ``policy_kwargs``)
     """
     params = dict(sampled_params)
-    net_arch = NET_ARCHS[params.pop("net_arch")]
-    return {**params, "policy_kwargs": {"net_arch": net_arch, "learn_log_std": True}}
+    policy_kwargs = {"net_arch": NET_ARCHS[params.pop("net_arch")], "learn_log_std": True}
+    if "critic" in params:
+        policy_kwargs["critic"] = params.pop("critic")
+    return {**params, "policy_kwargs": policy_kwargs}
 
 
 def register() -> None:

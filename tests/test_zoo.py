@@ -17,8 +17,9 @@ from sb3_detc import MAPPOC, compare, enjoy, plot, record_video, train, zoo
 from sb3_detc.callbacks import CommMetricsCallback, CurriculumCallback, OptionEntropySchedule, RandomSkipCallback
 
 LINEAR = "sb3_detc/LinearETC-v0"
+LINEAR_LQR = "sb3_detc/LinearETC-LQR-v0"
 MULTIWALKER = "sb3_detc/MultiwalkerETC-v0"
-ENVS = (LINEAR, MULTIWALKER)
+ENVS = (LINEAR, LINEAR_LQR, MULTIWALKER)
 
 
 def cli(module: str, *args: str, cwd: Path) -> subprocess.CompletedProcess:
@@ -91,12 +92,15 @@ def test_sampled_parameters_build_a_model() -> None:
             "max_grad_norm": 0.5,
             "reward_scale": 0.01,
             "team_reward": True,
+            "normalize_option_advantage": True,
             "net_arch": "paper",
+            "critic": "afterstate",
         }
     )
     params = zoo.sample_mappoc_params(trial, 0, 1, {})
     assert params["batch_size"] == 128  # at most one rollout
     assert params["policy_kwargs"]["net_arch"] == [96, 96, 96]
+    assert params["policy_kwargs"]["critic"] == "afterstate" and params["normalize_option_advantage"]
     model = MAPPOC("MlpHybridPolicy", make_vec_env(LINEAR, n_envs=1), **params)
     assert model.n_steps == 128
 
@@ -175,7 +179,11 @@ def test_compare_table_and_figure(tmp_path: Path, capsys: pytest.CaptureFixture)
     logs = tmp_path / "logs"
     compare.main(["-n", "256", "-f", str(logs), "--eval-episodes", "2", "-o", str(tmp_path / "c.png")])
     out = capsys.readouterr().out
-    assert "| mappoc | 1 |" in out and "| ppo_random_skip | 1 |" in out
+    assert (
+        "| mappoc | 1 |" in out
+        and "| ppo_random_skip | 1 |" in out
+        and "| ppo_random_skip at mappoc's rate | 1 |" in out
+    )
     assert (tmp_path / "c.png").is_file()
 
 

@@ -1,10 +1,13 @@
 """Coupled linear agents behind the event-triggered network.
 
 ``parallel_env(**kwargs)`` returns the PettingZoo view, ``joint_env(**kwargs)`` the joint
-Gymnasium view registered as ``sb3_detc/LinearETC-v0``.
+Gymnasium view registered as ``sb3_detc/LinearETC-v0``, and ``lqr_joint_env(**kwargs)`` the
+joint view whose controls are LQR on held broadcasts, registered as ``sb3_detc/LinearETC-LQR-v0``.
 """
 
 from __future__ import annotations
+
+import gymnasium as gym
 
 from sb3_detc.envs.linear import LinearSystem
 from sb3_detc.envs.wrappers import EventTriggeredNetwork, JointEnv
@@ -26,3 +29,15 @@ def parallel_env(comm_cost: float = 0.01, trigger: str = "default", **kwargs) ->
 def joint_env(**kwargs) -> JointEnv:
     """Joint Gymnasium view (agent axis inside the arrays); keywords as :func:`parallel_env`."""
     return JointEnv(parallel_env(**kwargs))
+
+
+def lqr_joint_env(**kwargs) -> gym.Env:
+    """Joint view in which every agent's control is its row of the LQR gain on its view of held broadcasts.
+
+    Only *when* to communicate is left to learn (the classic event-triggered setting, in
+    which send-on-delta is the reference); the action's ``control`` entry is ignored (see
+    :class:`~sb3_detc.triggers.FixedControl`). Keywords as :func:`parallel_env`.
+    """
+    from sb3_detc.triggers import FixedControl  # triggers builds on the env modules
+
+    return FixedControl(joint_env(**kwargs))
