@@ -33,7 +33,7 @@ from stable_baselines3.common.env_util import make_vec_env
 
 import sb3_detc  # noqa: F401  (registers the env ids)
 from sb3_detc import MAPPOC
-from sb3_detc.triggers import FixedControl, RandomTrigger
+from sb3_detc.triggers import FixedControl
 
 #: MAPPOC settings of the critics' training (those of ``trigger_learning.py``'s sparse variants).
 HYPERPARAMS: dict[str, Any] = {
@@ -94,9 +94,10 @@ def critic_estimates(job: tuple[str, float, float, int, int, list[tuple[dict, np
     th.set_num_threads(1)
     env_kwargs = {"comm_cost": comm_cost}
     env = make_vec_env("sb3_detc/LinearETC-v0", n_envs=2, seed=seed, env_kwargs=env_kwargs, wrapper_class=FixedControl)
-    policy_kwargs = {"net_arch": [64, 64], "critic": critic}
+    # mu itself draws the random options: untrained, it broadcasts with probability p in every
+    # state (its output layer starts near zero), and the centred critic gets the exact probabilities
+    policy_kwargs = {"net_arch": [64, 64], "critic": critic, "broadcast_prob_init": p}
     model = MAPPOC("MlpHybridPolicy", env, seed=seed, policy_kwargs=policy_kwargs, **HYPERPARAMS)
-    model.option_override = RandomTrigger(1.0 - p, seed=seed)
     model.learn(timesteps)
     obs = {key: th.as_tensor(np.stack([s[0][key] for s in samples])) for key in samples[0][0]}
     comm = th.as_tensor(np.stack([s[1] for s in samples]))
