@@ -99,7 +99,7 @@ def test_learned_trigger_beats_random_skipping_at_equal_communication() -> None:
         normalize_option_advantage=True,
         policy_kwargs={"net_arch": [32, 32], "broadcast_prob_init": 0.1, "critic": "afterstate"},
     )
-    model.learn(80_000)
+    model.learn(150_000)
     eval_env = FixedControl(gym.make(ENV_ID, **env_kwargs))
     learned = evaluate_communication(model, eval_env, 40, deterministic_options=False, seed=10_000)
     random = evaluate_communication(

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import math
 from typing import Any
 
@@ -46,6 +47,11 @@ def joint_obs_batch(env: JointEnv, steps: int = 12, seed: int = 0) -> dict[str, 
         if terminated or truncated:
             obs, _ = env.reset()
     return {key: th.as_tensor(np.stack([o[key] for o in visited])) for key in visited[0]}
+
+
+def random_options(steps: int, n_agents: int, seed: int) -> th.Tensor:
+    """Options (steps, N) drawn uniformly at random."""
+    return th.as_tensor(np.random.default_rng(seed).integers(0, 2, (steps, n_agents)))
 
 
 def make_model(
@@ -198,7 +204,7 @@ def test_agents_have_independent_networks_without_sharing(critic: str) -> None:
     env = linear_etc_v0.joint_env(n_agents=3)
     policy = make_policy(env, learn_log_std=True, critic=critic)
     obs = joint_obs_batch(env, steps=6)
-    comm = th.as_tensor(np.random.default_rng(2).integers(0, 2, (6, 3)))
+    comm = random_options(6, 3, seed=2)
     control = th.randn(6, 3, 1)
     ev = policy.evaluate_actions(obs, comm, control)
     loss = (
@@ -228,7 +234,7 @@ def test_policy_outputs_match_each_agents_extracted_networks(share: bool, net_ar
     env = linear_etc_v0.joint_env(n_agents=n)
     policy = make_policy(env, share_parameters=share, net_arch=net_arch, critic=critic)
     obs = joint_obs_batch(env, steps=5)
-    comm = th.as_tensor(np.random.default_rng(3).integers(0, 2, (5, n)))
+    comm = random_options(5, n, seed=3)
     if critic == "afterstate":  # both own options side by side on the agent axis' feature rows
         q_features = policy.afterstate_features(obs, comm)
     else:
@@ -263,7 +269,7 @@ def test_afterstate_features_apply_the_network_rule_to_each_own_option(n_agents:
     env = linear_etc_v0.joint_env(n_agents=n_agents)
     policy = make_policy(env, critic="afterstate")
     obs = joint_obs_batch(env, steps=6)
-    comm = th.as_tensor(np.random.default_rng(4).integers(0, 2, (6, n_agents)))
+    comm = random_options(6, n_agents, seed=4)
     features = policy.afterstate_features(obs, comm)
     assert features.shape == (6, 2, n_agents, policy.critic_features(obs).shape[-1])
     for i in range(n_agents):
@@ -384,7 +390,7 @@ def test_centred_critic_option_values(n_agents: int) -> None:
     env = linear_etc_v0.joint_env(n_agents=n_agents)
     policy = make_policy(env, critic="centred")
     obs = joint_obs_batch(env, steps=7)
-    comm = th.as_tensor(np.random.default_rng(5).integers(0, 2, (7, n_agents)))
+    comm = random_options(7, n_agents, seed=5)
     price = th.rand(7, n_agents, generator=th.Generator().manual_seed(2))
     p = th.rand(7, n_agents, generator=th.Generator().manual_seed(3))
     with th.no_grad():
@@ -396,6 +402,24 @@ def test_centred_critic_option_values(n_agents: int) -> None:
     th.testing.assert_close(state_values, value)  # under mu's own probabilities, too
     with pytest.raises(ValueError, match="p_broadcast"):
         policy.option_values(th.zeros(7, n_agents, 2), price)
+
+
+@pytest.mark.parametrize("team_reward", [False, True])
+def test_comm_price_is_what_a_broadcast_takes_from_the_learners_reward(team_reward: bool) -> None:
+    """The price the critics add analytically equals the reward change of one broadcast, in the learner's units."""
+    env = linear_etc_v0.joint_env(comm_cost=0.4)
+    model = MAPPOC(
+        "MlpHybridPolicy", env, n_steps=8, batch_size=8, reward_scale=0.1, team_reward=team_reward, policy_kwargs=TINY
+    )
+    env.reset(seed=3)
+    control = np.zeros((3, 1), dtype=np.float32)
+    rewards = []
+    for comm in (np.array([0, 1, 0]), np.array([0, 0, 0])):  # agent 1 broadcasts or not, everything else equal
+        _, _, _, _, info = copy.deepcopy(env).step({"comm": comm, "control": control})
+        agent_rewards = model.reward_scale * np.asarray(info["agent_rewards"])
+        rewards.append(np.full(3, agent_rewards.mean()) if team_reward else agent_rewards)
+    price = model._comm_prices(np.array([0.4], dtype=np.float32))[0]
+    np.testing.assert_allclose(rewards[1][1] - rewards[0][1], price[1], rtol=1e-5)
 
 
 def test_centred_critic_refuses_options_of_unknown_probability() -> None:

@@ -339,14 +339,14 @@ class MAPPOC(OnPolicyAlgorithm):
         # The networks' inputs depend on stored observations and options only: build them once.
         inputs = self.policy.training_inputs(rollout.observations, rollout.comm)
         samples = rollout._replace(observations={})
+        # probability of broadcasting with which the options were drawn (the centred critic's p_i)
+        taken = rollout.old_log_prob_comm.exp()
+        p_broadcast = th.where(rollout.comm.bool(), taken, 1 - taken)
         for epoch in range(self.n_epochs):
             for idx in self.rollout_buffer.minibatch_indices(self.batch_size):
                 data = samples.select(idx)
-                # probability of broadcasting with which the options were drawn
-                p_taken = data.old_log_prob_comm.exp()
-                p_broadcast = th.where(data.comm.bool(), p_taken, 1 - p_taken)
                 evaluation = self.policy.evaluate_inputs(
-                    [x.select(idx) for x in inputs], data.comm, data.control, data.comm_price, p_broadcast
+                    [x.select(idx) for x in inputs], data.comm, data.control, data.comm_price, p_broadcast[idx]
                 )
 
                 # Control policy: PPO clipped surrogate on GAE advantages of the taken option.

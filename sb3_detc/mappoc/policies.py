@@ -448,13 +448,12 @@ class MlpHybridPolicy(BasePolicy):
             drawn (B, N); needed by the centred critic only
         :return: ``Q_i(s, o)``, (B, N, 2)
         """
+        price = 0.0 if comm_price is None else comm_price
         if self.critic == "option_heads":
             return q
-        price = th.zeros_like(q[:, 0, :, 0] if self.critic_reads_afterstate else q[..., 0])
-        if comm_price is not None:
-            price = comm_price
         if self.critic == "afterstate":
-            return q[..., 0].transpose(1, 2) - th.stack([th.zeros_like(price), price], dim=-1)
+            values = q[..., 0].transpose(1, 2)
+            return th.stack([values[..., 0], values[..., 1] - price], dim=-1)
         if p_broadcast is None:
             raise ValueError("The centred critic needs the probabilities of broadcasting (p_broadcast).")
         value, gap = q[..., 0], q[..., 1] - price
