@@ -6,7 +6,7 @@ processes (``SubprocVecEnv``) each:
 * **MAPPOC** on ``sb3_detc/MultiwalkerETC-v0`` with the paper's hyperparameters: 2048
   environment steps per iteration (2 envs x 1024), minibatch 32, 10 epochs, three agents
   with their own networks (policy over options, control policy and option-value critic,
-  3 x 96 tanh each);
+  3 x 96 tanh each), eager and with ``torch_compile=True``;
 * **PPO + SuperSuit**, the usual PettingZoo recipe: stock ``multiwalker_v9.parallel_env()``
   turned into a vector env of agents with ``pettingzoo_env_to_vec_env_v1`` and
   ``concat_vec_envs_v1(..., 2, num_cpus=2)``, one shared 64 x 64 policy, SB3's PPO with the
@@ -15,18 +15,24 @@ processes (``SubprocVecEnv``) each:
 
 Throughput is counted in *environment* steps (one step of all walkers): SB3's timestep
 counter counts agent steps under SuperSuit, so it is divided by the number of walkers.
-A callback splits the wall time into rollout collection and updates.
+A callback splits the wall time into rollout collection and updates. Every model first
+trains one untimed iteration (warm-up: worker start, compilation), reported separately.
+Every measurement runs in a fresh Python process (SuperSuit is imported only by PPO's:
+its module ``__getattr__`` raises ``ImportError`` for unknown names, which breaks
+``torch.compile``'s cache-key pickling once worker processes have run).
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import platform
+import subprocess
+import sys
 import time
 from typing import Any
 
 import numpy as np
-import supersuit as ss
 import torch as th
 from pettingzoo.sisl import multiwalker_v9
 from stable_baselines3 import PPO
@@ -69,12 +75,14 @@ class PhaseTimer(BaseCallback):
         return True
 
 
-def make_mappoc(seed: int) -> BaseAlgorithm:
+def make_mappoc(seed: int, torch_compile: bool) -> BaseAlgorithm:
     env = make_vec_env("sb3_detc/MultiwalkerETC-v0", n_envs=2, seed=seed, vec_env_cls=SubprocVecEnv)
-    return MAPPOC("MlpHybridPolicy", env, n_steps=1024, seed=seed)
+    return MAPPOC("MlpHybridPolicy", env, n_steps=1024, seed=seed, torch_compile=torch_compile)
 
 
 def make_ppo_supersuit(seed: int) -> BaseAlgorithm:
+    import supersuit as ss
+
     env = ss.pettingzoo_env_to_vec_env_v1(multiwalker_v9.parallel_env())
     env = ss.concat_vec_envs_v1(env, 2, num_cpus=2, base_class="stable_baselines3")
     # SuperSuit's vector env cannot be seeded through SB3 (it has no seed()): seed the learner only.
@@ -83,23 +91,39 @@ def make_ppo_supersuit(seed: int) -> BaseAlgorithm:
 
 
 def measure(name: str, model: BaseAlgorithm, iterations: int, agent_steps_per_env_step: int) -> dict[str, Any]:
-    """Train for ``iterations`` rollouts and return throughput and time split."""
+    """Train one warm-up iteration, then ``iterations`` timed ones; return throughput and time split."""
     per_iteration = model.n_steps * model.n_envs
+    start = time.perf_counter()
+    model.learn(per_iteration)
+    warm_up = time.perf_counter() - start
+    warm_up_updates = model._n_updates
     timer = PhaseTimer()
     start = time.perf_counter()
-    model.learn(per_iteration * iterations, callback=timer)
+    model.learn(per_iteration * iterations, callback=timer, reset_num_timesteps=False)
     total = time.perf_counter() - start
-    env_steps = model.num_timesteps / agent_steps_per_env_step
+    env_steps = (model.num_timesteps - per_iteration) / agent_steps_per_env_step
     model.get_env().close()
     return {
         "name": name,
+        "warm_up_s": warm_up,
         "env_steps": int(env_steps),
         "seconds": total,
         "steps_per_s": env_steps / total,
         "rollout_s": timer.rollout,
         "update_s": timer.update,
-        "gradient_steps": model._n_updates,
+        "gradient_steps": model._n_updates - warm_up_updates,
     }
+
+
+ALGORITHMS = ("MAPPOC", "MAPPOC, compiled", "PPO + SuperSuit")
+
+
+def measure_one(name: str, seed: int, iterations: int, ppo_iterations: int) -> dict[str, Any]:
+    """One measurement of ``name`` (one of :data:`ALGORITHMS`) in this process."""
+    th.set_num_threads(1)
+    if name == "PPO + SuperSuit":
+        return measure(name, make_ppo_supersuit(seed), ppo_iterations, N_WALKERS)
+    return measure(name, make_mappoc(seed, torch_compile=name == "MAPPOC, compiled"), iterations, 1)
 
 
 def main() -> None:
@@ -108,39 +132,39 @@ def main() -> None:
     parser.add_argument("--ppo-iterations", type=int, default=2, help="PPO iterations (4096 env steps each)")
     parser.add_argument("--repeats", type=int, default=2)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--one", choices=ALGORITHMS, help="measure only this algorithm, in this process (JSON)")
     args = parser.parse_args()
-    th.set_num_threads(1)
+    if args.one is not None:
+        print(json.dumps(measure_one(args.one, args.seed, args.iterations, args.ppo_iterations)))
+        return
 
-    results: dict[str, list[dict[str, Any]]] = {"MAPPOC": [], "PPO + SuperSuit": []}
+    results: dict[str, list[dict[str, Any]]] = {name: [] for name in ALGORITHMS}
     for repeat in range(args.repeats):
-        seed = args.seed + repeat
-        results["MAPPOC"].append(measure("MAPPOC", make_mappoc(seed), args.iterations, 1))
-        results["PPO + SuperSuit"].append(
-            measure("PPO + SuperSuit", make_ppo_supersuit(seed), args.ppo_iterations, N_WALKERS)
-        )
+        for name in ALGORITHMS:
+            command = [sys.executable, __file__, "--one", name, "--seed", str(args.seed + repeat)]
+            command += ["--iterations", str(args.iterations), "--ppo-iterations", str(args.ppo_iterations)]
+            output = subprocess.run(command, check=True, capture_output=True, text=True).stdout
+            results[name].append(json.loads(output.strip().splitlines()[-1]))
 
     cpu = next((line.split(":", 1)[1].strip() for line in open("/proc/cpuinfo") if "model name" in line), "?")
-    print(
-        f"machine: {cpu}, {th.get_num_threads()} torch thread(s) in the learner, python {platform.python_version()}, "
-        f"torch {th.__version__}"
-    )
+    print(f"machine: {cpu}, 1 torch thread in the learner, python {platform.python_version()}, torch {th.__version__}")
     print()
-    print("| algorithm | env steps | seconds | env steps/s | rollout s | update s | updates logged by SB3 |")
-    print("|---|---|---|---|---|---|---|")
+    print(
+        "| algorithm | warm-up s | env steps | seconds | env steps/s | rollout s | update s | updates logged by SB3 |"
+    )
+    print("|---|---|---|---|---|---|---|---|")
     medians = {}
     for name, runs in results.items():
         for run in runs:
             print(
-                f"| {name} | {run['env_steps']} | {run['seconds']:.1f} | {run['steps_per_s']:.0f} | "
-                f"{run['rollout_s']:.1f} | {run['update_s']:.1f} | {run['gradient_steps']} |"
+                f"| {name} | {run['warm_up_s']:.1f} | {run['env_steps']} | {run['seconds']:.1f} | "
+                f"{run['steps_per_s']:.0f} | {run['rollout_s']:.1f} | {run['update_s']:.1f} | {run['gradient_steps']} |"
             )
         medians[name] = float(np.median([run["steps_per_s"] for run in runs]))
-    ratio = medians["MAPPOC"] / medians["PPO + SuperSuit"]
     print()
-    print(
-        f"median env steps/s: MAPPOC {medians['MAPPOC']:.0f}, PPO + SuperSuit {medians['PPO + SuperSuit']:.0f}, "
-        f"ratio {ratio:.2f}"
-    )
+    print("median env steps/s: " + ", ".join(f"{name} {value:.0f}" for name, value in medians.items()))
+    for name in ("MAPPOC", "MAPPOC, compiled"):
+        print(f"ratio {name} / PPO + SuperSuit: {medians[name] / medians['PPO + SuperSuit']:.2f}")
 
 
 if __name__ == "__main__":

@@ -601,6 +601,47 @@ def test_save_load_round_trip(tmp_path) -> None:
     assert all(th.equal(saved[k], v) for k, v in parameters(without_env).items())
 
 
+# ------------------------------------------------------------------ 5b. torch.compile
+@pytest.mark.parametrize("critic", ["option_heads", "afterstate"])
+def test_compiled_forward_and_losses_match_eager(tmp_path, critic: str) -> None:
+    """``torch_compile=True`` computes what the eager networks and losses compute, and survives save/load."""
+    model = make_model(
+        n_agents=3, n_envs=2, torch_compile=True, normalize_option_advantage=True, policy_kwargs={"critic": critic}
+    )
+    model.learn(64)  # compiled rollouts and updates
+    assert model._act is not model.policy and model._step_losses is not model._losses
+
+    rollout = model.rollout_buffer.tensors()
+    inputs = model.policy.training_inputs(rollout.observations, rollout.comm)
+    samples = rollout._replace(observations={})
+    p_broadcast = th.full_like(rollout.old_log_prob_comm, 0.5)
+    idx = th.arange(0, 32, 3)
+    results = []
+    for losses in (model._losses, model._step_losses):
+        model.policy.optimizer.zero_grad(set_to_none=True)
+        loss, step_stats = losses(inputs, samples, p_broadcast, idx, 0.2, 0.1, 0.05, True)
+        loss.backward()
+        results.append((loss.detach(), step_stats, [p.grad for p in model.policy.parameters() if p.requires_grad]))
+    (eager_loss, eager_stats, eager_grads), (loss, step_stats, grads) = results
+    th.testing.assert_close(loss, eager_loss)
+    th.testing.assert_close(step_stats, eager_stats)
+    for grad, eager_grad in zip(grads, eager_grads, strict=True):
+        th.testing.assert_close(grad, eager_grad)
+
+    obs = {key: th.as_tensor(value) for key, value in model._last_obs.items()}
+    price = th.full((2, 3), 0.1)
+    with th.no_grad():
+        compiled = model._act(obs, deterministic=True, comm_price=price)
+        eager = model.policy(obs, deterministic=True, comm_price=price)
+    for got, expected in zip(compiled, eager, strict=True):
+        th.testing.assert_close(got, expected)
+
+    model.save(tmp_path / "compiled.zip")
+    loaded = MAPPOC.load(tmp_path / "compiled.zip", env=model.get_env())
+    assert loaded.torch_compile and loaded._step_losses is not loaded._losses
+    loaded.learn(32)
+
+
 def test_load_with_other_number_of_agents_raises(tmp_path) -> None:
     model = make_model(n_agents=2)
     path = tmp_path / "two_agents.zip"
