@@ -68,9 +68,7 @@ def make_model(
 
 
 def net_slices(model: MAPPOC, net: str) -> list[th.Tensor]:
-    chain_idx, start, stop = model.policy._where[net]
-    chain = model.policy.chains[chain_idx]
-    return [p.detach()[start:stop].clone() for p in (*chain.weights, *chain.biases)]
+    return [view.clone() for view in model.policy.net_parameters(net)]
 
 
 class Record(BaseCallback):

@@ -89,6 +89,8 @@ class MAPPOC(OnPolicyAlgorithm):
         approximate KL divergence exceeds ``1.5 * target_kl`` (None: never)
     :param share_parameters: one network set for all agents with an agent-id input
         (added to ``policy_kwargs``; default off, as in the paper)
+    :param train_control_policy: whether ``pi`` (and its log standard deviation) is trained;
+        switch it off to learn only when to communicate for a trained controller
     :param train_option_policy: whether ``mu`` is trained (baselines with fixed
         communication switch it off)
     :param torch_compile: compile the rollout's forward pass and the loss of every gradient
@@ -134,6 +136,7 @@ class MAPPOC(OnPolicyAlgorithm):
         normalize_advantage: bool = True,
         target_kl: float | None = None,
         share_parameters: bool = False,
+        train_control_policy: bool = True,
         train_option_policy: bool = True,
         torch_compile: bool = False,
         stats_window_size: int = 100,
@@ -200,6 +203,7 @@ class MAPPOC(OnPolicyAlgorithm):
         self._discounted_returns: np.ndarray | None = None
         self.normalize_advantage = normalize_advantage
         self.target_kl = target_kl
+        self.train_control_policy = train_control_policy
         self.train_option_policy = train_option_policy
         self.torch_compile = torch_compile
         self.option_override: OptionOverride | None = None
@@ -345,6 +349,11 @@ class MAPPOC(OnPolicyAlgorithm):
         clip_mu = FloatSchedule(self.clip_range_option)(progress)
         zeta = FloatSchedule(self.option_ent_coef)(progress)
         train_mu = self.train_option_policy and self.option_override is None
+        # Networks sharing a batched chain with trained ones get zero gradients, but Adam's momentum
+        # from earlier training would still move them: restore them after every step instead.
+        frozen = [net for net, trained in (("pi", self.train_control_policy), ("mu", train_mu)) if not trained]
+        frozen_views = [view for net in frozen for view in self.policy.net_parameters(net)]
+        frozen_values = [view.clone() for view in frozen_views]
 
         stats: dict[str, list[float]] = {name: [] for name in STEP_STATS}
         continue_training = True
@@ -358,7 +367,7 @@ class MAPPOC(OnPolicyAlgorithm):
         for epoch in range(self.n_epochs):
             for idx in self.rollout_buffer.minibatch_indices(self.batch_size):
                 loss, step_stats = self._step_losses(
-                    inputs, samples, p_broadcast, idx, clip_pi, clip_mu, zeta, train_mu
+                    inputs, samples, p_broadcast, idx, clip_pi, clip_mu, zeta, self.train_control_policy, train_mu
                 )
                 for name, value in zip(STEP_STATS, step_stats.tolist(), strict=True):
                     stats[name].append(value)
@@ -374,6 +383,8 @@ class MAPPOC(OnPolicyAlgorithm):
                 if self.max_grad_norm is not None:
                     th.nn.utils.clip_grad_norm_(self.policy.parameters(), self.max_grad_norm)
                 self.policy.optimizer.step()
+                for view, value in zip(frozen_views, frozen_values, strict=True):
+                    view.copy_(value)
             self._n_updates += 1
             if not continue_training:
                 break
@@ -401,6 +412,7 @@ class MAPPOC(OnPolicyAlgorithm):
         clip_pi: float,
         clip_mu: float,
         zeta: float,
+        train_pi: bool,
         train_mu: bool,
     ) -> tuple[th.Tensor, th.Tensor]:
         """The loss of one gradient step on the minibatch ``idx`` and its statistics (Sec. 3).
@@ -412,6 +424,7 @@ class MAPPOC(OnPolicyAlgorithm):
         :param clip_pi: clip range of ``pi``
         :param clip_mu: clip range of ``mu``
         :param zeta: option entropy coefficient
+        :param train_pi: whether ``pi``'s loss is part of the loss
         :param train_mu: whether ``mu``'s loss and entropy bonus are part of the loss
         :return: the loss, and the statistics named in :data:`STEP_STATS` as one tensor
         """
@@ -430,7 +443,9 @@ class MAPPOC(OnPolicyAlgorithm):
         q = evaluation.option_values
         q_taken = q.gather(-1, data.comm[..., None])[..., 0]
         q_loss = (data.returns - q_taken).pow(2).mean(0).sum()
-        loss = pi_loss + self.vf_coef * q_loss
+        loss = self.vf_coef * q_loss
+        if train_pi:
+            loss = loss + pi_loss
 
         # Options: PPO clipped surrogate on the greedy advantage Q(o) - max_o' Q(o'), no gradient into Q.
         if self.option_advantage == "greedy":

@@ -341,6 +341,17 @@ class MlpHybridPolicy(BasePolicy):
         )
         return data
 
+    def net_parameters(self, net: str) -> list[th.Tensor]:
+        """Every agent's parameters of one network: views into the batched chain (``pi`` includes ``log_std``).
+
+        :param net: one of ``"mu"``, ``"q"``, ``"pi"``
+        :return: detached views (writing into them changes the network)
+        """
+        chain_idx, start, stop = self._where[net]
+        chain = self.chains[chain_idx]
+        views = [p.detach()[start:stop] for p in (*chain.weights, *chain.biases)]
+        return [*views, self.log_std.detach()] if net == "pi" else views
+
     # ------------------------------------------------------------------ features
     def network_after(self, obs: PyTorchObs, comm: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
         """Held broadcasts and timers after this step's options (the rule of :mod:`sb3_detc.network`).
