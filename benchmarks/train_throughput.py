@@ -6,7 +6,8 @@ processes (``SubprocVecEnv``) each:
 * **MAPPOC** on ``sb3_detc/MultiwalkerETC-v0`` with the paper's hyperparameters: 2048
   environment steps per iteration (2 envs x 1024), minibatch 32, 10 epochs, three agents
   with their own networks (policy over options, control policy and option-value critic,
-  3 x 96 tanh each), eager and with ``torch_compile=True``;
+  3 x 96 tanh each), eager and with ``torch_compile=True``, and for comparison also
+  compiled with both envs in the learner's process (``DummyVecEnv``, no worker processes);
 * **PPO + SuperSuit**, the usual PettingZoo recipe: stock ``multiwalker_v9.parallel_env()``
   turned into a vector env of agents with ``pettingzoo_env_to_vec_env_v1`` and
   ``concat_vec_envs_v1(..., 2, num_cpus=2)``, one shared 64 x 64 policy, SB3's PPO with the
@@ -39,7 +40,7 @@ from stable_baselines3 import PPO
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.env_util import make_vec_env
-from stable_baselines3.common.vec_env import SubprocVecEnv
+from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
 
 from sb3_detc import MAPPOC
 
@@ -75,8 +76,9 @@ class PhaseTimer(BaseCallback):
         return True
 
 
-def make_mappoc(seed: int, torch_compile: bool) -> BaseAlgorithm:
-    env = make_vec_env("sb3_detc/MultiwalkerETC-v0", n_envs=2, seed=seed, vec_env_cls=SubprocVecEnv)
+def make_mappoc(seed: int, torch_compile: bool, workers: bool = True) -> BaseAlgorithm:
+    vec_env_cls = SubprocVecEnv if workers else DummyVecEnv
+    env = make_vec_env("sb3_detc/MultiwalkerETC-v0", n_envs=2, seed=seed, vec_env_cls=vec_env_cls)
     return MAPPOC("MlpHybridPolicy", env, n_steps=1024, seed=seed, torch_compile=torch_compile)
 
 
@@ -115,7 +117,12 @@ def measure(name: str, model: BaseAlgorithm, iterations: int, agent_steps_per_en
     }
 
 
-ALGORITHMS = ("MAPPOC", "MAPPOC, compiled", "PPO + SuperSuit")
+MAPPOC_VARIANTS = {  # name -> (torch_compile, worker processes)
+    "MAPPOC": (False, True),
+    "MAPPOC, compiled": (True, True),
+    "MAPPOC, compiled, in-process envs": (True, False),
+}
+ALGORITHMS = (*MAPPOC_VARIANTS, "PPO + SuperSuit")
 
 
 def measure_one(name: str, seed: int, iterations: int, ppo_iterations: int) -> dict[str, Any]:
@@ -123,7 +130,7 @@ def measure_one(name: str, seed: int, iterations: int, ppo_iterations: int) -> d
     th.set_num_threads(1)
     if name == "PPO + SuperSuit":
         return measure(name, make_ppo_supersuit(seed), ppo_iterations, N_WALKERS)
-    return measure(name, make_mappoc(seed, torch_compile=name == "MAPPOC, compiled"), iterations, 1)
+    return measure(name, make_mappoc(seed, *MAPPOC_VARIANTS[name]), iterations, 1)
 
 
 def main() -> None:
@@ -163,7 +170,7 @@ def main() -> None:
         medians[name] = float(np.median([run["steps_per_s"] for run in runs]))
     print()
     print("median env steps/s: " + ", ".join(f"{name} {value:.0f}" for name, value in medians.items()))
-    for name in ("MAPPOC", "MAPPOC, compiled"):
+    for name in MAPPOC_VARIANTS:
         print(f"ratio {name} / PPO + SuperSuit: {medians[name] / medians['PPO + SuperSuit']:.2f}")
 
 
