@@ -16,7 +16,9 @@ processes (``SubprocVecEnv``) each:
 
 Throughput is counted in *environment* steps (one step of all walkers): SB3's timestep
 counter counts agent steps under SuperSuit, so it is divided by the number of walkers.
-A callback splits the wall time into rollout collection and updates. Every model first
+A callback splits the wall time into rollout collection and updates. For the floor of the
+rollouts, the joint env alone is also stepped with pre-sampled random actions, with the same 2
+worker processes and in-process. Every model first
 trains one untimed iteration (warm-up: worker start, compilation), reported separately.
 Every measurement runs in a fresh Python process (SuperSuit is imported only by PPO's:
 its module ``__getattr__`` raises ``ImportError`` for unknown names, which breaks
@@ -99,6 +101,7 @@ def measure(name: str, model: BaseAlgorithm, iterations: int, agent_steps_per_en
     model.learn(per_iteration)
     warm_up = time.perf_counter() - start
     warm_up_updates = model._n_updates
+    minibatches = -(-model.n_steps * model.n_envs // model.batch_size)  # per epoch
     timer = PhaseTimer()
     start = time.perf_counter()
     model.learn(per_iteration * iterations, callback=timer, reset_num_timesteps=False)
@@ -114,7 +117,23 @@ def measure(name: str, model: BaseAlgorithm, iterations: int, agent_steps_per_en
         "rollout_s": timer.rollout,
         "update_s": timer.update,
         "gradient_steps": model._n_updates - warm_up_updates,
+        "ms_per_gradient_step": 1e3 * timer.update / ((model._n_updates - warm_up_updates) * minibatches),
     }
+
+
+def env_only(name: str, workers: bool, vec_steps: int, seed: int) -> dict[str, Any]:
+    """Environment steps per second of the joint env stepped with pre-sampled random actions (no learner)."""
+    vec_env_cls = SubprocVecEnv if workers else DummyVecEnv
+    env = make_vec_env("sb3_detc/MultiwalkerETC-v0", n_envs=2, seed=seed, vec_env_cls=vec_env_cls)
+    env.action_space.seed(seed)
+    actions = [[env.action_space.sample() for _ in range(env.num_envs)] for _ in range(vec_steps)]
+    env.reset()
+    start = time.perf_counter()
+    for action in actions:
+        env.step(action)
+    seconds = time.perf_counter() - start
+    env.close()
+    return {"name": name, "env_steps": vec_steps * 2, "seconds": seconds, "steps_per_s": vec_steps * 2 / seconds}
 
 
 MAPPOC_VARIANTS = {  # name -> (torch_compile, worker processes)
@@ -122,12 +141,15 @@ MAPPOC_VARIANTS = {  # name -> (torch_compile, worker processes)
     "MAPPOC, compiled": (True, True),
     "MAPPOC, compiled, in-process envs": (True, False),
 }
-ALGORITHMS = (*MAPPOC_VARIANTS, "PPO + SuperSuit")
+ENV_ONLY = {"joint env only, 2 worker processes": True, "joint env only, in-process": False}
+ALGORITHMS = (*MAPPOC_VARIANTS, "PPO + SuperSuit", *ENV_ONLY)
 
 
 def measure_one(name: str, seed: int, iterations: int, ppo_iterations: int) -> dict[str, Any]:
     """One measurement of ``name`` (one of :data:`ALGORITHMS`) in this process."""
     th.set_num_threads(1)
+    if name in ENV_ONLY:
+        return env_only(name, ENV_ONLY[name], 1024 * iterations, seed)
     if name == "PPO + SuperSuit":
         return measure(name, make_ppo_supersuit(seed), ppo_iterations, N_WALKERS)
     return measure(name, make_mappoc(seed, *MAPPOC_VARIANTS[name]), iterations, 1)
@@ -157,16 +179,22 @@ def main() -> None:
     print(f"machine: {cpu}, 1 torch thread in the learner, python {platform.python_version()}, torch {th.__version__}")
     print()
     print(
-        "| algorithm | warm-up s | env steps | seconds | env steps/s | rollout s | update s | updates logged by SB3 |"
+        "| algorithm | warm-up s | env steps | seconds | env steps/s | rollout s | update s | epochs "
+        "| ms per gradient step |"
     )
-    print("|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|")
     medians = {}
     for name, runs in results.items():
         for run in runs:
-            print(
-                f"| {name} | {run['warm_up_s']:.1f} | {run['env_steps']} | {run['seconds']:.1f} | "
-                f"{run['steps_per_s']:.0f} | {run['rollout_s']:.1f} | {run['update_s']:.1f} | {run['gradient_steps']} |"
-            )
+            if name in ENV_ONLY:
+                cells = f"| {run['env_steps']} | {run['seconds']:.1f} | {run['steps_per_s']:.0f} | | | | |"
+            else:
+                cells = (
+                    f"{run['warm_up_s']:.1f} | {run['env_steps']} | {run['seconds']:.1f} | {run['steps_per_s']:.0f} | "
+                    f"{run['rollout_s']:.1f} | {run['update_s']:.1f} | {run['gradient_steps']} | "
+                    f"{run['ms_per_gradient_step']:.2f} |"
+                )
+            print(f"| {name} | {cells}")
         medians[name] = float(np.median([run["steps_per_s"] for run in runs]))
     print()
     print("median env steps/s: " + ", ".join(f"{name} {value:.0f}" for name, value in medians.items()))
