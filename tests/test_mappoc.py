@@ -640,6 +640,15 @@ def test_compiled_forward_and_losses_match_eager(tmp_path, critic: str) -> None:
     loaded.learn(32)
 
 
+def test_torch_compile_without_a_cxx_compiler_is_rejected(monkeypatch: pytest.MonkeyPatch) -> None:
+    from torch._inductor import config
+
+    monkeypatch.setattr(config.cpp, "cxx", ("no-such-cxx-compiler",))
+    with pytest.raises(RuntimeError, match="C\\+\\+ compiler"):
+        make_model(torch_compile=True)
+    make_model(torch_compile=False)  # the eager networks need none
+
+
 def test_load_with_other_number_of_agents_raises(tmp_path) -> None:
     model = make_model(n_agents=2)
     path = tmp_path / "two_agents.zip"

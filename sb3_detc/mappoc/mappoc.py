@@ -232,6 +232,8 @@ class MAPPOC(OnPolicyAlgorithm):
         self._act: Callable[..., HybridAction] = self.policy
         self._step_losses: Callable[..., tuple[th.Tensor, th.Tensor]] = self._losses
         if self.torch_compile:
+            if self.device.type == "cpu":
+                _check_cxx_compiler()
             self._act = th.compile(self.policy.forward)
             self._step_losses = th.compile(self._losses)
 
@@ -643,6 +645,19 @@ def _agent_rewards(infos: list[dict[str, Any]]) -> np.ndarray:
         raise ValueError(
             "MAPPOC needs per-agent rewards in info['agent_rewards']: use a joint sb3_detc env (JointEnv)."
         ) from err
+
+
+def _check_cxx_compiler() -> None:
+    """``torch.compile`` builds C++ code for the CPU: fail at once, and clearly, without a compiler."""
+    from torch._inductor import cpp_builder, exc
+
+    try:
+        cpp_builder.get_cpp_compiler()
+    except exc.InvalidCxxCompiler as error:
+        raise RuntimeError(
+            "torch_compile=True needs a C++ compiler on the CPU (g++ or clang++ on PATH, or the CXX "
+            "environment variable); install one or use torch_compile=False."
+        ) from error
 
 
 def _check_finite(obs: dict[str, np.ndarray], rewards: np.ndarray) -> None:
