@@ -94,8 +94,8 @@ class MAPPOC(OnPolicyAlgorithm):
     :param train_option_policy: whether ``mu`` is trained (baselines with fixed
         communication switch it off)
     :param torch_compile: compile the rollout's forward pass and the loss of every gradient
-        step with ``torch.compile`` (needs a C++ compiler). On a CPU about 1.5 times the
-        gradient steps and 2.5 times the policy evaluations per second (benchmarks/README.md),
+        step with ``torch.compile`` (needs a C++ compiler). On a CPU about 1.6 times the
+        gradient steps per second and 1.5 times faster rollouts (benchmarks/README.md),
         for a one-off compilation of some tens of seconds (and a few seconds whenever a new
         variant appears, e.g. a first option override), so worth it for long runs
     :param stats_window_size: window size of the rollout logging (episodes)
