@@ -617,7 +617,7 @@ def test_compiled_forward_and_losses_match_eager(tmp_path, critic: str) -> None:
     results = []
     for losses in (model._losses, model._step_losses):
         model.policy.optimizer.zero_grad(set_to_none=True)
-        loss, step_stats = losses(inputs, samples, p_broadcast, idx, 0.2, 0.1, 0.05, True)
+        loss, step_stats = losses(inputs, samples, p_broadcast, idx, 0.2, 0.1, 0.05, True, True)
         loss.backward()
         results.append((loss.detach(), step_stats, [p.grad for p in model.policy.parameters() if p.requires_grad]))
     (eager_loss, eager_stats, eager_grads), (loss, step_stats, grads) = results
@@ -640,13 +640,14 @@ def test_compiled_forward_and_losses_match_eager(tmp_path, critic: str) -> None:
     loaded.learn(32)
 
 
-def test_torch_compile_without_a_cxx_compiler_is_rejected(monkeypatch: pytest.MonkeyPatch) -> None:
+def test_torch_compile_without_a_cxx_compiler_is_rejected() -> None:
     from torch._inductor import config
 
-    monkeypatch.setattr(config.cpp, "cxx", ("no-such-cxx-compiler",))
-    with pytest.raises(RuntimeError, match="C\\+\\+ compiler"):
-        make_model(torch_compile=True)
-    make_model(torch_compile=False)  # the eager networks need none
+    with config.patch({"cpp.cxx": ("no-such-cxx-compiler",)}):
+        with pytest.raises(RuntimeError, match="C\\+\\+ compiler"):
+            make_model(torch_compile=True)
+        make_model(torch_compile=False)  # the eager networks need none
+    make_model(torch_compile=True)  # the compiler is found again
 
 
 def test_load_with_other_number_of_agents_raises(tmp_path) -> None:
