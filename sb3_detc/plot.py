@@ -169,7 +169,16 @@ def plot_runs(groups: dict[str, Sequence[str | Path]], out: str | Path, window: 
             name = f"{name}, symmetric log scale"
         for iteration, phase in phases:
             ax.axvline(iteration, color="0.4", linestyle="--", linewidth=1)
-            ax.annotate(phase, (iteration, 1.0), xycoords=("data", "axes fraction"), rotation=90, va="top", ha="right")
+            ax.annotate(
+                phase,
+                (iteration, 1.0),
+                xycoords=("data", "axes fraction"),
+                xytext=(3, -3),
+                textcoords="offset points",
+                va="top",
+                ha="left",
+                fontsize="small",
+            )
         ax.set_xlabel("iteration")
         ax.set_ylabel(name)
         ax.grid(alpha=0.3)
