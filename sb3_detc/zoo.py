@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import difflib
+import functools
 import inspect
 import os
 import sys
@@ -179,12 +180,38 @@ class CSVLogCallback(BaseCallback):
 
 
 class ExperimentManager(rl_zoo3.exp_manager.ExperimentManager):
-    """rl-zoo3's experiment manager that also writes ``progress.csv`` into every run's log folder."""
+    """rl-zoo3's experiment manager that writes ``progress.csv`` and continues step counts.
+
+    Every run's log folder gets the logger's ``progress.csv``. rl-zoo3 restarts the step count
+    of a model loaded to continue training (``-i``) at zero, which would restart the
+    curriculum, the schedules and the checkpoint numbering; here ``-n`` steps are added to
+    where the saved model stopped.
+    """
 
     def create_callbacks(self) -> None:
         """rl-zoo3's callbacks (progress bar, checkpoints, evaluation) and a :class:`CSVLogCallback`."""
         super().create_callbacks()
         self.callbacks.append(CSVLogCallback(self.save_path))
+
+    def learn(self, model: BaseAlgorithm) -> None:
+        """Train ``model`` as rl-zoo3 does, continuing its step count if it was loaded to continue.
+
+        :param model: the model to train
+        """
+        if not self.continue_training:
+            super().learn(model)
+            return
+        # On the class, not the instance: checkpoints pickle the instance's attributes.
+        cls = type(model)
+        own = cls.__dict__.get("learn")
+        cls.learn = functools.partialmethod(cls.learn, reset_num_timesteps=False)  # type: ignore[method-assign]
+        try:
+            super().learn(model)
+        finally:
+            if own is None:
+                del cls.learn
+            else:
+                cls.learn = own  # type: ignore[method-assign]
 
 
 # ----------------------------------------------------------------------------- input checks

@@ -122,7 +122,12 @@ def test_train_continue_enjoy_plot_through_the_command_line(tmp_path: Path, caps
     more = cli("sb3_detc.train", "--algo", "mappoc", "-n", "256", "-i", str(model), *common, cwd=tmp_path)
     assert more.returncode == 0, more.stderr
     assert "Loading pretrained agent" in more.stdout
-    assert (run_folder(logs, "mappoc", LINEAR, 2) / "sb3_detc-LinearETC-v0.zip").is_file()
+    continued = run_folder(logs, "mappoc", LINEAR, 2)
+    assert (continued / "sb3_detc-LinearETC-v0.zip").is_file()
+    with (continued / "progress.csv").open() as file:
+        rows = list(csv.DictReader(file))
+    assert float(rows[0]["time/total_timesteps"]) == 2048  # counting on from the saved model's 1024 steps
+    assert MAPPOC.load(continued / "sb3_detc-LinearETC-v0.zip").num_timesteps == 2048
 
     baseline = cli("sb3_detc.train", "--algo", "ppo_random_skip", "-n", "256", *common, cwd=tmp_path)
     assert baseline.returncode == 0, baseline.stderr
