@@ -57,8 +57,25 @@ def read_progress(run: str | Path) -> dict[str, np.ndarray]:
             columns[key] = np.array([float(v) if v != "" else math.nan for v in values])
         except ValueError:
             columns[key] = np.array(values)
-    columns["iteration"] = columns.pop("time/iterations")
+    columns["iteration"] = _iterations(columns.pop("time/iterations"), columns.get("time/total_timesteps"))
     return columns
+
+
+def _iterations(logged: np.ndarray, timesteps: np.ndarray | None) -> np.ndarray:
+    """Iterations since the start of training.
+
+    SB3 counts ``time/iterations`` from 1 in every ``learn`` call, so a continued run
+    (``sb3_detc.train -i``) restarts it; the step count goes on, and the steps per iteration
+    follow from two logged rows.
+
+    :param logged: the logged ``time/iterations``
+    :param timesteps: the logged ``time/total_timesteps`` (None: not logged)
+    :return: iterations counted from the start of training
+    """
+    if timesteps is None or len(logged) < 2 or not np.all(np.isfinite(timesteps)) or logged[1] <= logged[0]:
+        return logged
+    per_iteration = (timesteps[1] - timesteps[0]) / (logged[1] - logged[0])
+    return np.rint(timesteps / per_iteration) if per_iteration > 0 else logged
 
 
 def smooth(values: np.ndarray, window: int) -> np.ndarray:

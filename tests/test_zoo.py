@@ -264,6 +264,13 @@ def test_smooth_averages_the_trailing_window_and_skips_nan() -> None:
     assert np.isnan(plot.smooth(np.array([np.nan, 1.0]), 1)[0])
 
 
+def test_iterations_of_a_continued_run_count_on(tmp_path: Path) -> None:
+    rows = ["time/iterations,time/total_timesteps,comm/savings"]
+    rows += [f"{k},{(1000 + k) * 2048},0.5" for k in (1, 2, 3)]  # continued from 1000 iterations of 2048 steps
+    (tmp_path / "progress.csv").write_text("\n".join(rows) + "\n")
+    np.testing.assert_array_equal(plot.read_progress(tmp_path)["iteration"], [1001, 1002, 1003])
+
+
 def test_curriculum_phases_from_the_logs() -> None:
     iterations = np.arange(1.0, 7.0)
     phases = {"iteration": iterations, "curriculum/phase": np.array(["I", "I", "II", "II", "III", "done"])}
