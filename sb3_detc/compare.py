@@ -93,8 +93,10 @@ def train_pair(env_id: str, seed: int, folder: str, timesteps: int | None) -> di
     return {algo: Path(folder) / algo / f"{name}_{get_latest_run_id(str(Path(folder) / algo), name)}" for algo in ALGOS}
 
 
-def evaluate_run(run: Path, env_id: str, episodes: int, trigger: OptionOverride | None = None) -> CommunicationReport:
-    """Evaluate a run's final model on seeded episodes, with the run's environment settings and trigger.
+def evaluate_run(
+    run: Path, env_id: str, episodes: int, trigger: OptionOverride | None = None, model: Path | None = None
+) -> CommunicationReport:
+    """Evaluate a run's final model or a checkpoint on seeded episodes, with the run's env settings and trigger.
 
     The environment gets the run's ``env_kwargs`` (so the communication cost of training is
     charged also for the baseline, which trained without it); a run trained with a fixed
@@ -104,17 +106,22 @@ def evaluate_run(run: Path, env_id: str, episodes: int, trigger: OptionOverride 
     :param env_id: environment id
     :param episodes: evaluation episodes
     :param trigger: options to use instead of the run's (None: the run's own)
+    :param model: the saved model to evaluate, e.g. a checkpoint ``rl_model_<steps>_steps.zip``
+        (None: the run's final model ``<run>/<env name>.zip``)
     :return: the evaluation report
+    :raises FileNotFoundError: if the model file does not exist
     """
     name = EnvironmentName(env_id)
     config, _ = get_saved_hyperparams(str(run / name))
     triggers = [c.trigger for c in get_callback_list(dict(config)) if isinstance(c, FixedTriggerCallback)]
     if trigger is not None:
         triggers = [trigger]
-    model = MAPPOC.load(run / f"{name}.zip", device="cpu")
+    path = run / f"{name}.zip" if model is None else model
+    if not path.is_file():
+        raise FileNotFoundError(f"no saved model {path}")
     env = gym.make(env_id, **(config.get("env_kwargs") or {}))
     return evaluate_communication(
-        model,
+        MAPPOC.load(path, device="cpu"),
         env,
         episodes,
         deterministic=True,
