@@ -18,7 +18,10 @@ Throughput is counted in *environment* steps (one step of all walkers): SB3's ti
 counter counts agent steps under SuperSuit, so it is divided by the number of walkers.
 A callback splits the wall time into rollout collection and updates. For the floor of the
 rollouts, the joint env alone is also stepped with pre-sampled random actions, with the same 2
-worker processes and in-process. Every model first
+worker processes and in-process. For the floor of the updates, the matrix products of one
+gradient step alone are timed: for every layer of MAPPOC's agent-batched networks, the
+forward product and the two of its backward pass on a minibatch of 32 (no activations,
+optimizer or Python around them). Every model first
 trains one untimed iteration (warm-up: worker start, compilation), reported separately.
 Every measurement runs in a fresh Python process (SuperSuit is imported only by PPO's:
 its module ``__getattr__`` raises ``ImportError`` for unknown names, which breaks
@@ -136,13 +139,44 @@ def env_only(name: str, workers: bool, vec_steps: int, seed: int) -> dict[str, A
     return {"name": name, "env_steps": vec_steps * 2, "seconds": seconds, "steps_per_s": vec_steps * 2 / seconds}
 
 
+def matmul_floor(name: str, seed: int, repeats: int = 500) -> dict[str, Any]:
+    """Seconds of the matrix products of one MAPPOC gradient step (paper settings), nothing else.
+
+    Per layer with weights ``(groups, in, out)``: ``x @ W`` forward, ``g @ W^T`` and ``x^T @ g``
+    backward, on ``(groups, 32, in)`` inputs; the best of ``repeats`` timings of all layers.
+    """
+    th.manual_seed(seed)
+    model = make_mappoc(seed, torch_compile=False, workers=False)
+    batch = model.batch_size
+    shapes = [tuple(weight.shape) for chain in model.policy.chains for weight in chain.weights]
+    model.get_env().close()
+    tensors = [(th.randn(g, batch, i), th.randn(g, i, o), th.randn(g, batch, o)) for g, i, o in shapes]
+    best = float("inf")
+    for _ in range(repeats):
+        start = time.perf_counter()
+        for x, weight, grad in tensors:
+            th.bmm(x, weight)
+            th.bmm(grad, weight.transpose(1, 2))
+            th.bmm(x.transpose(1, 2), grad)
+        best = min(best, time.perf_counter() - start)
+    flops = sum(3 * 2 * g * batch * i * o for g, i, o in shapes)
+    gradient_steps_per_env_step = model.n_epochs / batch  # every sample is in one minibatch per epoch
+    return {
+        "name": name,
+        "ms_per_gradient_step": 1e3 * best,
+        "gflops": flops / best / 1e9,
+        "gradient_steps_per_env_step": gradient_steps_per_env_step,
+    }
+
+
 MAPPOC_VARIANTS = {  # name -> (torch_compile, worker processes)
     "MAPPOC": (False, True),
     "MAPPOC, compiled": (True, True),
     "MAPPOC, compiled, in-process envs": (True, False),
 }
 ENV_ONLY = {"joint env only, 2 worker processes": True, "joint env only, in-process": False}
-ALGORITHMS = (*MAPPOC_VARIANTS, "PPO + SuperSuit", *ENV_ONLY)
+MATMUL_FLOOR = "MAPPOC gradient step, matrix products only"
+ALGORITHMS = (*MAPPOC_VARIANTS, "PPO + SuperSuit", *ENV_ONLY, MATMUL_FLOOR)
 
 
 def measure_one(name: str, seed: int, iterations: int, ppo_iterations: int) -> dict[str, Any]:
@@ -150,6 +184,8 @@ def measure_one(name: str, seed: int, iterations: int, ppo_iterations: int) -> d
     th.set_num_threads(1)
     if name in ENV_ONLY:
         return env_only(name, ENV_ONLY[name], 1024 * iterations, seed)
+    if name == MATMUL_FLOOR:
+        return matmul_floor(name, seed)
     if name == "PPO + SuperSuit":
         return measure(name, make_ppo_supersuit(seed), ppo_iterations, N_WALKERS)
     return measure(name, make_mappoc(seed, *MAPPOC_VARIANTS[name]), iterations, 1)
@@ -186,7 +222,9 @@ def main() -> None:
     medians = {}
     for name, runs in results.items():
         for run in runs:
-            if name in ENV_ONLY:
+            if name == MATMUL_FLOOR:
+                cells = f"| | | | | | | {run['ms_per_gradient_step']:.2f} ({run['gflops']:.0f} GFLOP/s) |"
+            elif name in ENV_ONLY:
                 cells = f"| {run['env_steps']} | {run['seconds']:.1f} | {run['steps_per_s']:.0f} | | | | |"
             else:
                 cells = (
@@ -195,11 +233,20 @@ def main() -> None:
                     f"{run['ms_per_gradient_step']:.2f} |"
                 )
             print(f"| {name} | {cells}")
-        medians[name] = float(np.median([run["steps_per_s"] for run in runs]))
+        if name != MATMUL_FLOOR:
+            medians[name] = float(np.median([run["steps_per_s"] for run in runs]))
     print()
     print("median env steps/s: " + ", ".join(f"{name} {value:.0f}" for name, value in medians.items()))
     for name in MAPPOC_VARIANTS:
         print(f"ratio {name} / PPO + SuperSuit: {medians[name] / medians['PPO + SuperSuit']:.2f}")
+    floor = min(results[MATMUL_FLOOR], key=lambda run: run["ms_per_gradient_step"])
+    update_s = floor["gradient_steps_per_env_step"] * floor["ms_per_gradient_step"] / 1e3
+    for name in ENV_ONLY:
+        bound = 1 / (1 / medians[name] + update_s)
+        print(
+            f"bound with the {name.removeprefix('joint env only, ')} env and only the updates' matrix products: "
+            f"{bound:.0f} env steps/s ({bound / medians['PPO + SuperSuit']:.2f} x PPO + SuperSuit)"
+        )
 
 
 if __name__ == "__main__":

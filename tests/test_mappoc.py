@@ -917,3 +917,9 @@ def test_broadcast_prob_init_sets_the_untrained_broadcast_rate(share: bool, p: f
 def test_broadcast_prob_init_outside_the_open_interval_is_rejected(p: float) -> None:
     with pytest.raises(ValueError, match="broadcast_prob_init"):
         MAPPOC("MlpHybridPolicy", "sb3_detc/LinearETC-v0", n_steps=8, policy_kwargs=dict(broadcast_prob_init=p))
+
+
+@pytest.mark.parametrize("scale", [-0.1, float("nan"), float("inf")])
+def test_negative_or_non_finite_age_scale_is_rejected(scale: float) -> None:
+    with pytest.raises(ValueError, match="age_scale"):
+        MAPPOC("MlpHybridPolicy", "sb3_detc/LinearETC-v0", n_steps=8, policy_kwargs=dict(age_scale=scale))

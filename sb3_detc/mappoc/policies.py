@@ -189,6 +189,7 @@ class MlpHybridPolicy(BasePolicy):
     :param share_parameters: one network set for all agents with a one-hot agent id input
         (default: every agent has its own networks, as in the paper)
     :param age_scale: factor applied to ages of information (in steps) before they enter a network
+        (>= 0; 0: no network sees the ages)
     :param broadcast_prob_init: probability of broadcasting of the untrained policies over
         options (through the bias of their output layer; 0.5: undecided). A low value lets
         training start where every broadcast carries information that would otherwise stay
@@ -239,6 +240,8 @@ class MlpHybridPolicy(BasePolicy):
         n_agents, n_control = check_joint_spaces(observation_space, action_space)
         if not 0.0 < broadcast_prob_init < 1.0:
             raise ValueError(f"broadcast_prob_init must be in (0, 1), got {broadcast_prob_init}.")
+        if not (np.isfinite(age_scale) and age_scale >= 0):
+            raise ValueError(f"age_scale must be a finite number >= 0 (0: the networks ignore ages), got {age_scale}.")
         if critic not in CRITICS:
             raise ValueError(f"critic must be one of {CRITICS}, got {critic!r}.")
         if optimizer_kwargs is None:
