@@ -9,6 +9,8 @@ hyperparameter file, e.g. ``callback: sb3_detc.callbacks.CurriculumCallback``):
 * baselines (Sec. 6): :class:`RandomSkipCallback` (the paper's random communication
   skips), :class:`PeriodicCommCallback` (broadcast every step or every k-th step), or any
   trigger of :mod:`sb3_detc.triggers` with :class:`FixedTriggerCallback`;
+* two stages instead of the curriculum: :class:`ControlFirstCallback` (the control policy
+  under random skips first, then the policies over options for the frozen controller);
 * :class:`CommMetricsCallback`: communication savings, inter-event times, per-agent
   returns with and without the communication cost, package travel and fall rate, per rollout.
 
@@ -30,6 +32,7 @@ from typing import Any
 import numpy as np
 import torch as th
 from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.type_aliases import Schedule
 
 from sb3_detc.triggers import PeriodicTrigger, RandomTrigger
 
@@ -38,6 +41,7 @@ __all__ = [
     "set_comm_cost",
     "ActionNoiseSchedule",
     "CommMetricsCallback",
+    "ControlFirstCallback",
     "CurriculumCallback",
     "FixedTriggerCallback",
     "OptionEntropySchedule",
@@ -406,6 +410,73 @@ class CurriculumCallback(BaseCallback):
     def _on_training_end(self) -> None:
         for schedule in self.schedules:
             schedule.on_training_end()
+
+
+class ControlFirstCallback(_Schedule):
+    """Two stages: the control policy under random skips, then the policies over options for it.
+
+    * stage 1 (positions before ``switch``): options are drawn by
+      :class:`~sb3_detc.triggers.RandomTrigger` with ``skip_prob`` (``model.option_override``),
+      ``pi`` and the critic learn, ``mu`` does not;
+    * stage 2 (from ``switch`` on): the options come from ``mu`` again, ``mu`` and the critic
+      learn, ``pi`` stays as stage 1 left it (``model.train_control_policy = False``), with
+      ``trigger_learning_rate`` if given.
+
+    Why: a trigger can only be learned for a controller that already controls, and while
+    ``pi`` still changes, the value of a broadcast changes with it. Random options in stage 1
+    show the critic both options in every kind of state, so stage 2 starts from option values
+    that are right for the controller it keeps. The communication cost stays charged in both
+    stages (in stage 1 it does not depend on anything ``pi`` does). The stage is a function of
+    the position only, so a continued run resumes in the right stage; it is logged as
+    ``curriculum/stage``.
+
+    :param switch: first position of stage 2 (iterations or timesteps, as ``unit``; > 0)
+    :param skip_prob: probability of staying silent in stage 1 (in [0, 1])
+    :param trigger_learning_rate: learning rate (a number or a schedule of the remaining
+        progress, as SB3's ``learning_rate``) from stage 2 on; None: the model's own
+    :param seed: seed of stage 1's random options (None: the model's seed at training start)
+    :param unit: ``"iterations"`` (rollouts) or ``"timesteps"`` (environment steps)
+    :param verbose: verbosity level
+    :raises ValueError: on a ``switch`` that is not positive and finite, or a ``skip_prob`` outside [0, 1]
+    """
+
+    def __init__(
+        self,
+        switch: float,
+        skip_prob: float = 0.5,
+        trigger_learning_rate: float | Schedule | None = None,
+        seed: int | None = None,
+        unit: str = "iterations",
+        verbose: int = 0,
+    ) -> None:
+        super().__init__(unit, verbose)
+        if not _check_value("switch", switch) > 0:
+            raise ValueError(f"switch must be > 0 (stage 1 must last), got {switch!r}.")
+        self.switch = float(switch)
+        self.trigger = RandomTrigger(skip_prob, seed)
+        self.skip_prob = self.trigger.skip_prob
+        self.seed = seed
+        self.trigger_learning_rate = trigger_learning_rate
+
+    def value(self, t: float) -> float:
+        """Stage at position ``t``: 1 or 2."""
+        return 1.0 if t < self.switch else 2.0
+
+    def _on_training_start(self) -> None:
+        if self.seed is None and getattr(self.model, "seed", None) is not None:
+            self.trigger = RandomTrigger(self.skip_prob, self.model.seed)
+            self.seed = self.model.seed
+
+    def apply(self, t: float) -> None:
+        """Put the model into the stage of position ``t`` and log the stage."""
+        stage = int(self.value(t))
+        self.model.option_override = self.trigger if stage == 1 else None
+        self.model.train_option_policy = stage == 2
+        self.model.train_control_policy = stage == 1
+        if stage == 2 and self.trigger_learning_rate is not None:
+            self.model.learning_rate = self.trigger_learning_rate
+            self.model._setup_lr_schedule()
+        self.logger.record("curriculum/stage", stage)
 
 
 # ----------------------------------------------------------------------------- baselines

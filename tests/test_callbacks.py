@@ -19,6 +19,7 @@ from sb3_detc.callbacks import (
     PAPER_STEPS_PER_ITERATION,
     ActionNoiseSchedule,
     CommMetricsCallback,
+    ControlFirstCallback,
     CurriculumCallback,
     FixedTriggerCallback,
     OptionEntropySchedule,
@@ -186,6 +187,10 @@ def test_timesteps_unit_defaults_are_the_paper_iterations_times_2048() -> None:
         (lambda: CurriculumCallback(ent_start=2000), "increase"),
         (lambda: CurriculumCallback(tent_std=-0.25), "peak_std"),
         (lambda: CurriculumCallback(unit="rollouts"), "unit"),
+        (lambda: ControlFirstCallback(0), "switch"),
+        (lambda: ControlFirstCallback(-3), "switch"),
+        (lambda: ControlFirstCallback(math.inf), "switch"),
+        (lambda: ControlFirstCallback(5, skip_prob=1.5), "skip_prob"),
     ],
 )
 def test_bad_schedule_arguments_are_rejected(make: Any, match: str) -> None:
@@ -240,6 +245,65 @@ def test_noise_schedules_in_a_callback_list_combine_by_their_maximum(decay_first
     expected = [max(decay.value(h), bump.value(h)) for h in range(n_iterations)]
     np.testing.assert_allclose(record.noise, expected, atol=1e-12)
     assert any(bump.value(h) > decay.value(h) > 0 for h in range(n_iterations))  # the maximum switches
+
+
+# --------------------------------------------------------------------------- two stages
+class Stages(BaseCallback):
+    """Records per rollout the options' source, which levels train and the learning rate of the update."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.rows: list[tuple[Any, bool, bool]] = []
+        self.learning_rates: list[float] = []
+
+    def _on_rollout_start(self) -> None:
+        model = self.model
+        self.rows.append((model.option_override, model.train_option_policy, model.train_control_policy))
+
+    def _on_rollout_end(self) -> None:
+        self.learning_rates.append(self.model.lr_schedule(self.model._current_progress_remaining))
+
+    def _on_step(self) -> bool:
+        return True
+
+
+@pytest.mark.parametrize("unit", ["iterations", "timesteps"])
+def test_control_first_trains_pi_under_random_skips_then_mu_for_the_frozen_pi(unit: str) -> None:
+    n_steps, switch, n_iterations = 32, 2, 4
+    model = make_model(n_agents=3, n_steps=n_steps, batch_size=16)
+    stages = ControlFirstCallback(switch * (1 if unit == "iterations" else n_steps), 0.7, 5e-4, unit=unit)
+    record, metrics, levels = Record(), CommMetricsCallback(), Stages()
+    capture = capture_logger(model)
+    mu_before = net_slices(model, "mu")
+    model.learn(n_steps * switch, callback=[stages, metrics, record, levels])
+    mu_stage_1, pi_stage_1 = net_slices(model, "mu"), net_slices(model, "pi")
+    model.learn(n_steps * (n_iterations - switch), callback=[stages, metrics, levels], reset_num_timesteps=False)
+
+    assert [row["curriculum/stage"] for row in capture.rows] == [1, 1, 2, 2]
+    assert [(override is stages.trigger, mu, pi) for override, mu, pi in levels.rows] == [
+        (True, False, True),
+        (True, False, True),
+        (False, True, False),
+        (False, True, False),
+    ]
+    assert isinstance(stages.trigger, RandomTrigger) and stages.trigger.skip_prob == 0.7
+    assert levels.learning_rates == [1e-3, 1e-3, 5e-4, 5e-4]
+    assert model.policy.optimizer.param_groups[0]["lr"] == 5e-4
+    # Stage 1: random options at the rate asked for, mu unchanged, pi trained.
+    comm = np.array([info["comm"] for step in record.infos for info in step])
+    assert abs(comm.mean() - 0.3) < 4 * math.sqrt(0.3 * 0.7 / comm.size)
+    assert all(th.equal(a, b) for a, b in zip(mu_before, mu_stage_1, strict=True))
+    # Stage 2: mu trained, pi exactly as stage 1 left it.
+    assert all(th.equal(a, b) for a, b in zip(pi_stage_1, net_slices(model, "pi"), strict=True))
+    assert any(not th.equal(a, b) for a, b in zip(mu_stage_1, net_slices(model, "mu"), strict=True))
+
+
+def test_control_first_without_a_learning_rate_keeps_the_models() -> None:
+    model = make_model(n_steps=8)
+    levels = Stages()
+    model.learn(8 * 3, callback=[ControlFirstCallback(1), levels])
+    assert levels.learning_rates == [1e-3] * 3
+    assert [override is None for override, _, _ in levels.rows] == [False, True, True]
 
 
 # --------------------------------------------------------------------------- baselines
