@@ -28,10 +28,11 @@ from typing import Any
 
 import gymnasium as gym
 import torch as th
+from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.env_util import make_vec_env
 
 from sb3_detc import MAPPOC
-from sb3_detc.callbacks import OptionEntropySchedule
+from sb3_detc.callbacks import ControlFirstCallback, OptionEntropySchedule
 from sb3_detc.envs.linear import LinearSystem, lqr_episode_cost
 from sb3_detc.evaluation import evaluate_communication
 from sb3_detc.mappoc.policies import CRITICS
@@ -53,16 +54,24 @@ ENTROPY_SCHEDULE = {"initial": 0.1, "final": 0.001, "start": 100, "end": 200}
 EVAL_SEED = 10_000
 
 
-def run(job: tuple[float, int, str, str, int, int, dict[str, Any]]) -> dict[str, Any]:
-    """Train one model and evaluate it at equal communication; returns one table row."""
-    comm_cost, seed, option_advantage, critic, timesteps, eval_episodes, changes = job
+def run(job: tuple[float, int, str, str, int, int, dict[str, Any], dict[str, Any] | None]) -> dict[str, Any]:
+    """Train one model and evaluate it at equal communication; returns one table row.
+
+    The last entry of ``job``: None for the option entropy schedule, or the arguments of
+    :class:`~sb3_detc.callbacks.ControlFirstCallback` for two stages.
+    """
+    comm_cost, seed, option_advantage, critic, timesteps, eval_episodes, changes, control_first = job
     th.set_num_threads(1)
     env = make_vec_env("sb3_detc/LinearETC-v0", n_envs=2, seed=seed, env_kwargs={"comm_cost": comm_cost})
     policy_kwargs = {**HYPERPARAMS["policy_kwargs"], "critic": critic, **changes.get("policy_kwargs", {})}
     settings = {**HYPERPARAMS, **changes, "policy_kwargs": policy_kwargs}
     model = MAPPOC("MlpHybridPolicy", env, seed=seed, option_advantage=option_advantage, **settings)
     start = time.perf_counter()
-    model.learn(timesteps, callback=OptionEntropySchedule(**ENTROPY_SCHEDULE))
+    if control_first is None:
+        callback: BaseCallback = OptionEntropySchedule(**ENTROPY_SCHEDULE)
+    else:
+        callback = ControlFirstCallback(**control_first)
+    model.learn(timesteps, callback=callback)
     train_seconds = time.perf_counter() - start
     eval_env = gym.make("sb3_detc/LinearETC-v0", comm_cost=comm_cost)
     bound = lqr_episode_cost(LinearSystem()) / eval_env.unwrapped.n_agents  # per agent, like the returns
@@ -80,6 +89,7 @@ def run(job: tuple[float, int, str, str, int, int, dict[str, Any]]) -> dict[str,
         "option_advantage": option_advantage,
         "critic": critic,
         "changes": changes,
+        "control_first": control_first,
         "timesteps": timesteps,
         "train_seconds": round(train_seconds, 1),
         "savings": round(savings, 3),
@@ -96,13 +106,20 @@ def main() -> None:
     parser.add_argument("--option-advantages", nargs="+", default=["greedy"])
     parser.add_argument("--critics", nargs="+", default=["option_heads"], choices=list(CRITICS))
     parser.add_argument("--set", type=json.loads, default={}, help="MAPPOC settings to change (JSON)")
+    parser.add_argument(
+        "--control-first",
+        type=json.loads,
+        default=None,
+        help="two stages instead of the entropy schedule: ControlFirstCallback arguments (JSON), e.g. "
+        '\'{"switch": 293, "trigger_learning_rate": 1e-3}\'',
+    )
     parser.add_argument("--timesteps", type=int, default=300_000)
     parser.add_argument("--eval-episodes", type=int, default=60)
     parser.add_argument("--workers", type=int, default=2, help="parallel training processes")
     parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "linear_learning.json")
     args = parser.parse_args()
     jobs = [
-        (xi, seed, adv, critic, args.timesteps, args.eval_episodes, args.set)
+        (xi, seed, adv, critic, args.timesteps, args.eval_episodes, args.set, args.control_first)
         for xi in args.comm_costs
         for adv in args.option_advantages
         for critic in args.critics
@@ -115,6 +132,8 @@ def main() -> None:
     bound = lqr_episode_cost(LinearSystem())
     print(f"episode cost bound (optimal centralised LQR, periodic communication): {bound:.3f} per team")
     print(f"settings changed: {args.set}")
+    if args.control_first is not None:
+        print(f"two stages: ControlFirstCallback({args.control_first})")
     print()
     print(
         "| comm cost | option advantage | critic | seed | savings | cost learned | cost random, same rate "
