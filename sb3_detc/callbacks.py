@@ -420,7 +420,9 @@ class ControlFirstCallback(_Schedule):
       ``pi`` and the critic learn, ``mu`` does not;
     * stage 2 (from ``switch`` on): the options come from ``mu`` again, ``mu`` and the critic
       learn, ``pi`` stays as stage 1 left it (``model.train_control_policy = False``), with
-      ``trigger_learning_rate`` if given.
+      ``trigger_learning_rate`` if given, and rewards normalised if ``trigger_normalize_reward``
+      (``model.normalize_reward = True``: the scale that suits option values can spoil a
+      controller's learning, so each stage may have its own).
 
     Why: a trigger can only be learned for a controller that already controls, and while
     ``pi`` still changes, the value of a broadcast changes with it. Random options in stage 1
@@ -434,6 +436,7 @@ class ControlFirstCallback(_Schedule):
     :param skip_prob: probability of staying silent in stage 1 (in [0, 1])
     :param trigger_learning_rate: learning rate (a number or a schedule of the remaining
         progress, as SB3's ``learning_rate``) from stage 2 on; None: the model's own
+    :param trigger_normalize_reward: normalise the rewards from stage 2 on (False: the model's own setting)
     :param seed: seed of stage 1's random options (None: the model's seed at training start)
     :param unit: ``"iterations"`` (rollouts) or ``"timesteps"`` (environment steps)
     :param verbose: verbosity level
@@ -445,6 +448,7 @@ class ControlFirstCallback(_Schedule):
         switch: float,
         skip_prob: float = 0.5,
         trigger_learning_rate: float | Schedule | None = None,
+        trigger_normalize_reward: bool = False,
         seed: int | None = None,
         unit: str = "iterations",
         verbose: int = 0,
@@ -457,6 +461,7 @@ class ControlFirstCallback(_Schedule):
         self.skip_prob = self.trigger.skip_prob
         self.seed = seed
         self.trigger_learning_rate = trigger_learning_rate
+        self.trigger_normalize_reward = bool(trigger_normalize_reward)
 
     def value(self, t: float) -> float:
         """Stage at position ``t``: 1 or 2."""
@@ -476,6 +481,8 @@ class ControlFirstCallback(_Schedule):
         if stage == 2 and self.trigger_learning_rate is not None:
             self.model.learning_rate = self.trigger_learning_rate
             self.model._setup_lr_schedule()
+        if stage == 2 and self.trigger_normalize_reward:
+            self.model.normalize_reward = True
         self.logger.record("curriculum/stage", stage)
 
 

@@ -304,6 +304,19 @@ def test_control_first_without_a_learning_rate_keeps_the_models() -> None:
     model.learn(8 * 3, callback=[ControlFirstCallback(1), levels])
     assert levels.learning_rates == [1e-3] * 3
     assert [override is None for override, _, _ in levels.rows] == [False, True, True]
+    assert model.normalize_reward is False
+
+
+def test_control_first_normalises_the_rewards_of_stage_two_only() -> None:
+    model = make_model(n_steps=8, comm_cost=0.0)
+    stages = ControlFirstCallback(1, trigger_normalize_reward=True)
+    model.learn(8, callback=stages)
+    raw = model.rollout_buffer.rewards.copy()
+    assert model.normalize_reward is False and model.reward_rms is None
+    model.learn(8, callback=stages, reset_num_timesteps=False)
+    assert model.normalize_reward is True and model.reward_rms is not None
+    scale = np.abs(model.rollout_buffer.rewards).mean() / np.abs(raw).mean()
+    assert not 0.5 < scale < 2  # the linear env's raw rewards are far from unit scale
 
 
 # --------------------------------------------------------------------------- baselines
