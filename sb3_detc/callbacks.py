@@ -412,6 +412,19 @@ class CurriculumCallback(BaseCallback):
             schedule.on_training_end()
 
 
+def _seeded_random_trigger(trigger: RandomTrigger, seed: int | None, model: Any) -> tuple[RandomTrigger, int | None]:
+    """A callback's random trigger, seeded with the model's seed if the callback was given none.
+
+    :param trigger: the callback's trigger
+    :param seed: the seed the callback was given (None: none yet)
+    :param model: the model being trained
+    :return: the trigger to use and its seed
+    """
+    if seed is None and getattr(model, "seed", None) is not None:
+        return RandomTrigger(trigger.skip_prob, model.seed), model.seed
+    return trigger, seed
+
+
 class ControlFirstCallback(_Schedule):
     """Two stages: the control policy under random skips, then the policies over options for it.
 
@@ -468,9 +481,7 @@ class ControlFirstCallback(_Schedule):
         return 1.0 if t < self.switch else 2.0
 
     def _on_training_start(self) -> None:
-        if self.seed is None and getattr(self.model, "seed", None) is not None:
-            self.trigger = RandomTrigger(self.skip_prob, self.model.seed)
-            self.seed = self.model.seed
+        self.trigger, self.seed = _seeded_random_trigger(self.trigger, self.seed, self.model)
 
     def apply(self, t: float) -> None:
         """Put the model into the stage of position ``t`` and log the stage."""
@@ -557,9 +568,7 @@ class RandomSkipCallback(FixedTriggerCallback):
         self.seed = seed
 
     def _on_training_start(self) -> None:
-        if self.seed is None and getattr(self.model, "seed", None) is not None:
-            self.trigger = RandomTrigger(self.skip_prob, self.model.seed)
-            self.seed = self.model.seed
+        self.trigger, self.seed = _seeded_random_trigger(self.trigger, self.seed, self.model)
         super()._on_training_start()
 
 

@@ -308,15 +308,20 @@ def test_control_first_without_a_learning_rate_keeps_the_models() -> None:
 
 
 def test_control_first_normalises_the_rewards_of_stage_two_only() -> None:
-    model = make_model(n_steps=8, comm_cost=0.0)
-    stages = ControlFirstCallback(1, trigger_normalize_reward=True)
-    model.learn(8, callback=stages)
-    raw = model.rollout_buffer.rewards.copy()
-    assert model.normalize_reward is False and model.reward_rms is None
-    model.learn(8, callback=stages, reset_num_timesteps=False)
-    assert model.normalize_reward is True and model.reward_rms is not None
-    scale = np.abs(model.rollout_buffer.rewards).mean() / np.abs(raw).mean()
-    assert not 0.5 < scale < 2  # the linear env's raw rewards are far from unit scale
+    rewards = []
+    for normalise in (True, False):
+        model = make_model(n_steps=8, comm_cost=0.0)
+        stages = ControlFirstCallback(1, trigger_normalize_reward=normalise)
+        model.learn(8, callback=stages)
+        stage_1 = model.rollout_buffer.rewards.copy()
+        assert model.normalize_reward is False and model.reward_rms is None
+        model.learn(8, callback=stages, reset_num_timesteps=False)
+        assert model.normalize_reward is normalise and (model.reward_rms is not None) is normalise
+        rewards.append((stage_1, model.rollout_buffer.rewards.copy()))
+    (normalised_1, normalised_2), (raw_1, raw_2) = rewards
+    np.testing.assert_array_equal(normalised_1, raw_1)  # stage 1: the same rewards
+    assert not np.allclose(normalised_2, raw_2)  # stage 2: the same episodes, rescaled rewards
+    np.testing.assert_array_equal(np.sign(normalised_2), np.sign(raw_2))
 
 
 # --------------------------------------------------------------------------- baselines
