@@ -14,7 +14,7 @@ from rl_zoo3.utils import ALGOS, get_callback_list
 from stable_baselines3.common.env_util import make_vec_env
 
 from sb3_detc import MAPPOC, compare, enjoy, plot, record_video, train, zoo
-from sb3_detc.callbacks import CommMetricsCallback, CurriculumCallback, OptionEntropySchedule, RandomSkipCallback
+from sb3_detc.callbacks import CommMetricsCallback, ControlFirstCallback, CurriculumCallback, RandomSkipCallback
 
 LINEAR = "sb3_detc/LinearETC-v0"
 LINEAR_LQR = "sb3_detc/LinearETC-LQR-v0"
@@ -61,11 +61,13 @@ def test_multiwalker_entry_has_the_paper_settings() -> None:
     assert any(isinstance(c, CurriculumCallback) for c in get_callback_list(entry))
 
 
-def test_linear_entry_decays_the_option_entropy_within_the_budget() -> None:
+def test_linear_entry_trains_control_first_then_the_trigger_within_the_budget() -> None:
     entry = zoo.check_hyperparams_file(zoo.HYPERPARAMS_DIR / "mappoc.yml", "mappoc", LINEAR)
-    (schedule,) = [c for c in get_callback_list(entry) if isinstance(c, OptionEntropySchedule)]
+    (stages,) = [c for c in get_callback_list(entry) if isinstance(c, ControlFirstCallback)]
     iterations = entry["n_timesteps"] / (entry["n_steps"] * entry["n_envs"])
-    assert schedule.end < iterations
+    assert 0 < stages.switch < iterations
+    assert stages.trigger_normalize_reward and not entry.get("normalize_reward", False)
+    assert eval(entry["policy_kwargs"])["age_scale"] == 0.0
 
 
 def test_register_adds_algorithms_and_samplers() -> None:
