@@ -640,6 +640,54 @@ def test_compiled_forward_and_losses_match_eager(tmp_path, critic: str) -> None:
     loaded.learn(32)
 
 
+@pytest.mark.parametrize("max_grad_norm", [None, 0.05])
+def test_fused_gradient_step_updates_like_backward_and_the_optimizer(max_grad_norm: float | None) -> None:
+    """The compiled step (loss, gradients, clipping, Adam in one graph) leaves what the unfused one leaves."""
+    model = make_model(
+        n_agents=3,
+        n_steps=32,
+        torch_compile=True,
+        max_grad_norm=max_grad_norm,
+        policy_kwargs={"learn_log_std": True},
+    )
+    model.learn(32)  # a rollout and a first (fused) update: the optimizer has state
+    assert model._gradient_step is not None
+    start = parameters(model), copy.deepcopy(model.policy.optimizer.state_dict())
+    results = []
+    for gradient_step in (model._gradient_step, None):
+        model.policy.load_state_dict(start[0])
+        model.policy.optimizer.load_state_dict(copy.deepcopy(start[1]))
+        model._gradient_step = gradient_step
+        th.manual_seed(1)  # the same minibatches
+        model.train()
+        results.append((parameters(model), model.policy.optimizer.state_dict()["state"]))
+    (fused, fused_state), (unfused, unfused_state) = results
+    assert any(not th.equal(fused[k], start[0][k]) for k in fused)  # the step moved the parameters
+    for key in unfused:
+        th.testing.assert_close(fused[key], unfused[key], rtol=1e-5, atol=1e-6)
+    for i, state in unfused_state.items():
+        for key, value in state.items():
+            th.testing.assert_close(fused_state[i][key], value, rtol=1e-5, atol=1e-7)
+
+
+def test_fused_gradient_step_only_for_plain_adam_and_without_early_stopping() -> None:
+    """Other optimizers, Adam variants and ``target_kl`` keep the unfused step (it can stop before applying)."""
+    assert make_model(torch_compile=True, policy_kwargs={"optimizer_class": th.optim.SGD})._gradient_step is None
+    amsgrad = {"optimizer_kwargs": {"amsgrad": True}}
+    assert make_model(torch_compile=True, policy_kwargs=amsgrad)._gradient_step is None
+    model = make_model(torch_compile=True, target_kl=0.01)
+    assert model._gradient_step is not None
+
+    def fail(*args: Any) -> None:
+        raise AssertionError("the fused step cannot stop early")
+
+    model._gradient_step = fail
+    model.learn(16)  # target_kl: the unfused step
+    model.target_kl = None
+    with pytest.raises(AssertionError, match="cannot stop early"):
+        model.learn(16)
+
+
 def test_torch_compile_without_a_cxx_compiler_is_rejected() -> None:
     from torch._inductor import config
 

@@ -21,6 +21,7 @@ from stable_baselines3.common.vec_env import VecEnv
 
 from sb3_detc.envs.wrappers import EventTriggeredNetwork, JointEnv
 from sb3_detc.mappoc.buffers import HybridRolloutBuffer, HybridRolloutSamples
+from sb3_detc.mappoc.fused import adam_state, adam_update_, clip_by_total_norm, fusable_adam
 from sb3_detc.mappoc.policies import ChainInput, HybridAction, MlpHybridPolicy, check_joint_spaces
 
 SelfMAPPOC = TypeVar("SelfMAPPOC", bound="MAPPOC")
@@ -231,14 +232,21 @@ class MAPPOC(OnPolicyAlgorithm):
         self._control_low, self._control_high = control_space.low, control_space.high
         self._act: Callable[..., HybridAction] = self.policy
         self._step_losses: Callable[..., tuple[th.Tensor, th.Tensor]] = self._losses
+        self._gradient_step: Callable[..., th.Tensor] | None = None
         if self.torch_compile:
             if self.device.type == "cpu":
                 _check_cxx_compiler()
             self._act = th.compile(self.policy.forward)
             self._step_losses = th.compile(self._losses)
+            if fusable_adam(self.policy.optimizer):
+                self._loss_module = _PolicyLoss(self.policy, self._losses)
+                self._gradient_step = th.compile(self._fused_gradient_step)
 
     def _excluded_save_params(self) -> list[str]:
-        return [*super()._excluded_save_params(), "option_override", "_discounted_returns", "_act", "_step_losses"]
+        return [
+            *super()._excluded_save_params(),
+            *("option_override", "_discounted_returns", "_act", "_step_losses", "_gradient_step", "_loss_module"),
+        ]
 
     # ------------------------------------------------------------------ rollouts
     def collect_rollouts(
@@ -366,25 +374,35 @@ class MAPPOC(OnPolicyAlgorithm):
         # probability of broadcasting with which the options were drawn (the centred critic's p_i)
         taken = rollout.old_log_prob_comm.exp()
         p_broadcast = th.where(rollout.comm.bool(), taken, 1 - taken)
+        # Early stopping looks at a step's statistics before applying it: only the unfused path can.
+        fused = self._gradient_step is not None and self.target_kl is None
+        if fused:
+            optimizer = self.policy.optimizer
+            adam = (optimizer.param_groups[0]["params"], *adam_state(optimizer))
+            names = self._loss_module.names_of(adam[0])
+            lr = th.tensor(optimizer.param_groups[0]["lr"], device=self.device)
+        train_pi = self.train_control_policy
         for epoch in range(self.n_epochs):
             for idx in self.rollout_buffer.minibatch_indices(self.batch_size):
-                loss, step_stats = self._step_losses(
-                    inputs, samples, p_broadcast, idx, clip_pi, clip_mu, zeta, self.train_control_policy, train_mu
-                )
+                loss_args = (inputs, samples, p_broadcast, idx, clip_pi, clip_mu, zeta, train_pi, train_mu)
+                if fused:
+                    step_stats = self._gradient_step(adam, names, lr, loss_args)  # type: ignore[misc]
+                else:
+                    loss, step_stats = self._step_losses(*loss_args)
                 for name, value in zip(STEP_STATS, step_stats.tolist(), strict=True):
                     stats[name].append(value)
-                kl_pi = stats["kl_pi"][-1]
-                if self.target_kl is not None and kl_pi > 1.5 * self.target_kl:
-                    continue_training = False
-                    if self.verbose >= 1:
-                        print(f"Early stopping at epoch {epoch} due to reaching max kl: {kl_pi:.2f}")
-                    break
-
-                self.policy.optimizer.zero_grad(set_to_none=True)
-                loss.backward()
-                if self.max_grad_norm is not None:
-                    th.nn.utils.clip_grad_norm_(self.policy.parameters(), self.max_grad_norm)
-                self.policy.optimizer.step()
+                if not fused:
+                    kl_pi = stats["kl_pi"][-1]
+                    if self.target_kl is not None and kl_pi > 1.5 * self.target_kl:
+                        continue_training = False
+                        if self.verbose >= 1:
+                            print(f"Early stopping at epoch {epoch} due to reaching max kl: {kl_pi:.2f}")
+                        break
+                    self.policy.optimizer.zero_grad(set_to_none=True)
+                    loss.backward()
+                    if self.max_grad_norm is not None:
+                        th.nn.utils.clip_grad_norm_(self.policy.parameters(), self.max_grad_norm)
+                    self.policy.optimizer.step()
                 for view, value in zip(frozen_views, frozen_values, strict=True):
                     view.copy_(value)
             self._n_updates += 1
@@ -404,6 +422,35 @@ class MAPPOC(OnPolicyAlgorithm):
         self.logger.record("train/action_noise_std", self.action_noise_std)
         self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
         self.logger.record("rollout/broadcast_rate", float(buffer.comm.mean()))
+
+    def _fused_gradient_step(
+        self,
+        adam: tuple[list[th.Tensor], list[th.Tensor], list[th.Tensor], list[th.Tensor]],
+        names: list[str],
+        lr: th.Tensor,
+        loss_args: tuple[Any, ...],
+    ) -> th.Tensor:
+        """One gradient step as one function, compiled whole (:mod:`sb3_detc.mappoc.fused`).
+
+        Equal to :meth:`_losses`, ``backward()``, optional gradient clipping and ``optimizer.step()``.
+
+        :param adam: the optimizer's parameters and their ``step``, ``exp_avg`` and ``exp_avg_sq``
+        :param names: the names of the parameters in :class:`_PolicyLoss`
+        :param lr: learning rate (0-d tensor)
+        :param loss_args: the arguments of :meth:`_losses`
+        :return: the statistics named in :data:`STEP_STATS`
+        """
+        params, steps, exp_avgs, exp_avg_sqs = adam
+
+        def loss_of(values: tuple[th.Tensor, ...]) -> tuple[th.Tensor, th.Tensor]:
+            return th.func.functional_call(self._loss_module, dict(zip(names, values, strict=True)), loss_args)
+
+        grads, (_, step_stats) = th.func.grad_and_value(loss_of, has_aux=True)(tuple(params))
+        if self.max_grad_norm is not None:
+            grads = clip_by_total_norm(grads, self.max_grad_norm)
+        group = self.policy.optimizer.param_groups[0]
+        adam_update_(params, grads, steps, exp_avgs, exp_avg_sqs, lr, group["betas"], group["eps"])
+        return step_stats
 
     def _losses(
         self,
@@ -599,6 +646,28 @@ class MAPPOC(OnPolicyAlgorithm):
             force_reset=force_reset,
             **kwargs,
         )
+
+
+class _PolicyLoss(th.nn.Module):
+    """The loss of a gradient step as a module holding the policy, for :func:`torch.func.functional_call`.
+
+    :param policy: the policy whose parameters the loss depends on
+    :param losses: the loss function (:meth:`MAPPOC._losses`)
+    """
+
+    def __init__(self, policy: MlpHybridPolicy, losses: Callable[..., tuple[th.Tensor, th.Tensor]]) -> None:
+        super().__init__()
+        self.policy = policy
+        self._losses = losses
+
+    def names_of(self, params: list[th.Tensor]) -> list[str]:
+        """The names under which this module holds ``params``."""
+        names = {id(param): name for name, param in self.named_parameters()}
+        return [names[id(param)] for param in params]
+
+    def forward(self, *args: Any) -> tuple[th.Tensor, th.Tensor]:
+        """The loss and the statistics of :meth:`MAPPOC._losses`."""
+        return self._losses(*args)
 
 
 def greedy_option_advantage(option_values: th.Tensor, comm: th.Tensor, offset: float = 0.0) -> th.Tensor:
