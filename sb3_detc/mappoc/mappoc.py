@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import pathlib
+import pickle
 from collections.abc import Callable
 from typing import Any, ClassVar, TypeVar
 
@@ -17,7 +18,7 @@ from stable_baselines3.common.running_mean_std import RunningMeanStd
 from stable_baselines3.common.save_util import load_from_zip_file
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
 from stable_baselines3.common.utils import FloatSchedule, explained_variance, obs_as_tensor
-from stable_baselines3.common.vec_env import VecEnv
+from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecEnv
 
 from sb3_detc.envs.wrappers import EventTriggeredNetwork, JointEnv
 from sb3_detc.mappoc.buffers import HybridRolloutBuffer, HybridRolloutSamples
@@ -233,6 +234,7 @@ class MAPPOC(OnPolicyAlgorithm):
         self._act: Callable[..., HybridAction] = self.policy
         self._step_losses: Callable[..., tuple[th.Tensor, th.Tensor]] = self._losses
         self._gradient_step: Callable[..., th.Tensor] | None = None
+        self._workers_hold: tuple[MlpHybridPolicy, VecEnv] | None = None  # what the rollout workers have
         if self.torch_compile:
             if self.device.type == "cpu":
                 _check_cxx_compiler()
@@ -246,6 +248,7 @@ class MAPPOC(OnPolicyAlgorithm):
         return [
             *super()._excluded_save_params(),
             *("option_override", "_discounted_returns", "_act", "_step_losses", "_gradient_step", "_loss_module"),
+            "_workers_hold",
         ]
 
     # ------------------------------------------------------------------ rollouts
@@ -281,6 +284,8 @@ class MAPPOC(OnPolicyAlgorithm):
         n_steps = 0
         buffer.reset()
         callback.on_rollout_start()
+        if self.option_override is None and _has_rollout_workers(env):
+            return self._collect_in_workers(env, callback, buffer, n_rollout_steps)
         comm_cost = self._comm_costs(env)  # callbacks may change it between rollouts
         new_obs, dones = self._last_obs, self._last_episode_starts
         while n_steps < n_rollout_steps:
@@ -301,12 +306,7 @@ class MAPPOC(OnPolicyAlgorithm):
             control = action.control.cpu().numpy()
             clipped = np.clip(control, self._control_low, self._control_high)
             new_obs, _, dones, infos = env.step([{"comm": c, "control": u} for c, u in zip(comm, clipped, strict=True)])
-            rewards = self.reward_scale * _agent_rewards(infos)
-            _check_finite(new_obs, rewards)
-            if self.team_reward:
-                rewards = np.repeat(rewards.mean(axis=1, keepdims=True), self.n_agents, axis=1)
-            if self.normalize_reward:
-                rewards = self._normalized_rewards(rewards, dones)
+            rewards = self._step_rewards(new_obs, infos, dones)
             self.num_timesteps += env.num_envs
 
             callback.update_locals(locals())
@@ -316,13 +316,12 @@ class MAPPOC(OnPolicyAlgorithm):
             n_steps += 1
 
             # Bootstrap truncated episodes with V(s_T) = sum_o mu(o) Q(s_T, o), as SB3 does for PPO.
-            for idx, done in enumerate(dones):
-                if done and infos[idx].get("TimeLimit.truncated", False) and "terminal_observation" in infos[idx]:
-                    _check_finite(infos[idx]["terminal_observation"], rewards)
-                    terminal_obs = self.policy.obs_to_tensor(infos[idx]["terminal_observation"])[0]
-                    with th.no_grad():
-                        value = self.policy.state_values(terminal_obs, price_tensor[idx : idx + 1])
-                    rewards[idx] += self.gamma * value[0].cpu().numpy()
+            for idx, terminal_obs in _truncated(infos, dones):
+                with th.no_grad():
+                    value = self.policy.state_values(
+                        self.policy.obs_to_tensor(terminal_obs)[0], price_tensor[idx : idx + 1]
+                    )
+                rewards[idx] += self.gamma * value[0].cpu().numpy()
 
             buffer.add(
                 obs,  # type: ignore[arg-type]
@@ -344,6 +343,120 @@ class MAPPOC(OnPolicyAlgorithm):
                 th.as_tensor(self._comm_prices(comm_cost), device=self.device),
             )
         buffer.compute_returns_and_advantage(last_values=last_values.cpu().numpy(), dones=dones)
+        callback.update_locals(locals())
+        callback.on_rollout_end()
+        return True
+
+    def _step_rewards(
+        self, new_obs: dict[str, np.ndarray], infos: list[dict[str, Any]], dones: np.ndarray
+    ) -> np.ndarray:
+        """The learner's rewards of one step of all envs (n_envs, N): scaled, shared, normalised.
+
+        :param new_obs: observations after the step (checked for NaN)
+        :param infos: the step's infos, with ``agent_rewards``
+        :param dones: episode ends of the step
+        """
+        rewards = self.reward_scale * _agent_rewards(infos)
+        _check_finite(new_obs, rewards)
+        if self.team_reward:
+            rewards = np.repeat(rewards.mean(axis=1, keepdims=True), self.n_agents, axis=1)
+        if self.normalize_reward:
+            rewards = self._normalized_rewards(rewards, dones)
+        return rewards
+
+    def _collect_in_workers(
+        self, env: VecEnv, callback: BaseCallback, buffer: HybridRolloutBuffer, n_rollout_steps: int
+    ) -> bool:
+        """:meth:`collect_rollouts` with the sampling inside the envs (:mod:`sb3_detc.mappoc.workers`).
+
+        Every env samples and steps ``n_rollout_steps`` times with a copy of the current policy;
+        then the steps go through the learner in order, as in :meth:`collect_rollouts`: rewards,
+        callbacks, episode statistics, bootstrapping of truncated episodes; log-probabilities and
+        option values come from one batched evaluation of the same policy.
+        """
+        n_envs = env.num_envs
+        new_policy = self._workers_hold != (self.policy, env)
+        if new_policy:
+            for index in range(n_envs):
+                env.env_method("set_worker_index", index, indices=index)
+        state = {key: value.detach().cpu().numpy() for key, value in self.policy.state_dict().items()}
+        seeds = th.randint(2**31 - 1, (n_envs,)).tolist()
+        trajectories = env.env_method(
+            "collect_rollout",
+            pickle.dumps(self.policy) if new_policy else None,
+            state,
+            n_rollout_steps,
+            self.action_noise_std,
+            seeds,
+            self.torch_compile,
+        )
+        self._workers_hold = (self.policy, env)
+
+        def stacked(key: str) -> Any:  # (steps, n_envs, ...)
+            return np.stack([trajectory[key] for trajectory in trajectories], axis=1)
+
+        observations = _stack_dicts([trajectory["observations"] for trajectory in trajectories], axis=1)
+        last_obs = _stack_dicts([trajectory["last_obs"] for trajectory in trajectories], axis=0)
+        comm, control, all_dones = stacked("comm"), stacked("control"), stacked("dones")
+        comm_cost = self._comm_costs(env)
+        prices, all_rewards, truncated = [], [], []
+        for step in range(n_rollout_steps):
+            infos = [trajectory["infos"][step] for trajectory in trajectories]
+            dones = all_dones[step]
+            new_obs = last_obs if step == n_rollout_steps - 1 else {k: v[step + 1] for k, v in observations.items()}
+            prices.append(self._comm_prices(comm_cost))
+            rewards = self._step_rewards(new_obs, infos, dones)
+            self.num_timesteps += n_envs
+            callback.update_locals(locals())
+            if not callback.on_step():
+                return False
+            self._update_info_buffer(infos, dones)
+            truncated += [(step, idx, terminal_obs) for idx, terminal_obs in _truncated(infos, dones)]
+            all_rewards.append(rewards)
+
+        price = np.stack(prices)
+        flat = n_rollout_steps * n_envs
+        with th.no_grad():
+            evaluation = self.policy.evaluate_actions(
+                obs_as_tensor({k: v.reshape(flat, *v.shape[2:]) for k, v in observations.items()}, self.device),
+                th.as_tensor(comm.reshape(flat, -1), device=self.device),
+                th.as_tensor(control.reshape(flat, *control.shape[2:]), device=self.device),
+                th.as_tensor(price.reshape(flat, -1), device=self.device),
+            )
+            # Bootstrap truncated episodes with V(s_T) = sum_o mu(o) Q(s_T, o), as SB3 does for PPO.
+            if truncated:
+                terminal = _stack_dicts([obs for _, _, obs in truncated], axis=0)
+                at = [(step, idx) for step, idx, _ in truncated]
+                values = self.policy.state_values(
+                    obs_as_tensor(terminal, self.device), th.as_tensor(np.stack([price[s, i] for s, i in at]))
+                )
+                for (step, idx), value in zip(at, values.cpu().numpy(), strict=True):
+                    all_rewards[step][idx] += self.gamma * value
+
+        def per_step(x: th.Tensor) -> np.ndarray:
+            return x.cpu().numpy().reshape(n_rollout_steps, n_envs, *x.shape[1:])
+
+        option_values, log_prob_comm = per_step(evaluation.option_values), per_step(evaluation.log_prob_comm)
+        log_prob_control = per_step(evaluation.log_prob_control)
+        episode_starts = [self._last_episode_starts, *all_dones[:-1]]
+        for step in range(n_rollout_steps):
+            buffer.add(
+                {k: v[step] for k, v in observations.items()},
+                comm[step],
+                control[step],
+                all_rewards[step],
+                episode_starts[step],  # type: ignore[arg-type]
+                option_values[step],
+                log_prob_comm[step],
+                log_prob_control[step],
+                price[step],
+            )
+        self._last_obs, self._last_episode_starts = last_obs, all_dones[-1]  # type: ignore[assignment]
+        with th.no_grad():
+            last_values = self.policy.state_values(
+                obs_as_tensor(last_obs, self.device), th.as_tensor(self._comm_prices(comm_cost), device=self.device)
+            )
+        buffer.compute_returns_and_advantage(last_values=last_values.cpu().numpy(), dones=all_dones[-1])
         callback.update_locals(locals())
         callback.on_rollout_end()
         return True
@@ -729,8 +842,31 @@ def _check_cxx_compiler() -> None:
         ) from error
 
 
-def _check_finite(obs: dict[str, np.ndarray], rewards: np.ndarray) -> None:
-    if not np.all(np.isfinite(rewards)):
+def _has_rollout_workers(env: VecEnv) -> bool:
+    """Whether ``env`` is a plain SB3 vector env of :class:`~sb3_detc.mappoc.workers.RolloutWorker` envs.
+
+    Vector env wrappers (e.g. ``VecNormalize``) change what the policy sees: those keep the step-by-step path.
+    """
+    return isinstance(env, (DummyVecEnv, SubprocVecEnv)) and env.has_attr("collect_rollout")
+
+
+def _stack_dicts(dicts: list[dict[str, np.ndarray]], axis: int) -> dict[str, np.ndarray]:
+    """Stack same-keyed dicts of arrays key by key along a new ``axis``."""
+    return {key: np.stack([d[key] for d in dicts], axis=axis) for key in dicts[0]}
+
+
+def _truncated(infos: list[dict[str, Any]], dones: np.ndarray) -> list[tuple[int, dict[str, np.ndarray]]]:
+    """The envs whose episode was cut by a time limit in this step, with their last observations (checked)."""
+    cut = []
+    for idx, (info, done) in enumerate(zip(infos, dones, strict=True)):
+        if done and info.get("TimeLimit.truncated", False) and "terminal_observation" in info:
+            _check_finite(info["terminal_observation"])
+            cut.append((idx, info["terminal_observation"]))
+    return cut
+
+
+def _check_finite(obs: dict[str, np.ndarray], rewards: np.ndarray | None = None) -> None:
+    if rewards is not None and not np.all(np.isfinite(rewards)):
         raise ValueError(f"the environment returned non-finite rewards: {rewards.tolist()}.")
     for key, value in obs.items():
         if not np.all(np.isfinite(value)):

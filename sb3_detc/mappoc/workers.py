@@ -1,0 +1,133 @@
+"""Rollouts collected where the environments run: one message per iteration instead of two per step.
+
+With SB3's worker processes (``SubprocVecEnv``) the learner normally evaluates the policy
+and exchanges one message with every worker per step. For networks as small as the
+method's, that exchange and the waiting around it cost more than the environment step
+itself. :class:`RolloutWorker` is a Gymnasium wrapper that lets
+:class:`~sb3_detc.mappoc.mappoc.MAPPOC` send a copy of its policy to every environment
+once per iteration; each environment then samples options and controls and steps itself
+for the whole rollout, in parallel with the others, and returns the trajectory. The
+learner evaluates log-probabilities and option values of the whole rollout in one batch
+and then goes through the steps in order (rewards, callbacks, episode statistics), so
+training is exactly on-policy, as without workers.
+
+Use it as the outermost wrapper of every environment, e.g.
+``make_vec_env(env_id, n_envs=2, vec_env_cls=SubprocVecEnv, wrapper_class=RolloutWorker)``
+(or ``env_wrapper: sb3_detc.mappoc.workers.RolloutWorker`` in an rl-zoo hyperparameter file).
+"""
+
+from __future__ import annotations
+
+import pickle
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+import torch as th
+from stable_baselines3.common.utils import obs_as_tensor
+
+
+class RolloutWorker(gym.Wrapper):
+    """Collects whole rollouts of a joint sb3_detc env with a copy of MAPPOC's policy (see the module).
+
+    Steps the wrapped env exactly as SB3's vector envs do: ``info["TimeLimit.truncated"]``,
+    ``info["terminal_observation"]`` and an automatic reset at the end of every episode.
+
+    :param env: a joint env (Dict observations with an agent axis, ``comm`` x ``control`` actions)
+    """
+
+    def __init__(self, env: gym.Env) -> None:
+        super().__init__(env)
+        self._obs: dict[str, np.ndarray] | None = None
+        self._policy: Any = None
+        self._act: Any = None
+        self.worker_index = 0
+
+    def reset(self, **kwargs: Any) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+        """Reset the env and remember the observation the next rollout starts from."""
+        obs, info = self.env.reset(**kwargs)
+        self._obs = obs
+        return obs, info
+
+    def step(self, action: Any) -> tuple[dict[str, np.ndarray], float, bool, bool, dict[str, Any]]:
+        """Step the env and remember the observation."""
+        obs, reward, terminated, truncated, info = self.env.step(action)
+        self._obs = obs
+        return obs, reward, terminated, truncated, info
+
+    def set_worker_index(self, index: int) -> None:
+        """Tell this env its index in the vector env (it picks its own seed of a rollout by it).
+
+        :param index: position of this env in the vector env
+        """
+        self.worker_index = index
+
+    def collect_rollout(
+        self,
+        policy: bytes | None,
+        state_dict: dict[str, np.ndarray],
+        n_steps: int,
+        action_noise_std: float,
+        seeds: list[int],
+        torch_compile: bool = False,
+    ) -> dict[str, Any]:
+        """Sample ``n_steps`` steps with the policy, from the observation the env is in.
+
+        :param policy: the pickled policy when it is new to this env (None: the one sent before)
+        :param state_dict: the policy's current parameters, as NumPy arrays
+        :param n_steps: steps to collect
+        :param action_noise_std: extra Gaussian noise on the controls (curriculum)
+        :param seeds: one seed of the sampling per env of the vector env (this env uses its own)
+        :param torch_compile: whether to compile the policy's forward pass (once per policy)
+        :return: ``observations`` before every step (dict of (n_steps, N, ...)), ``comm``
+            (n_steps, N), ``control`` (n_steps, N, m; sampled, before clipping to the bounds),
+            ``dones`` (n_steps,), ``infos`` (one dict per step) and ``last_obs`` (the observation
+            after the last step)
+        """
+        if self._obs is None:
+            raise RuntimeError("Reset the env before collecting a rollout.")
+        if policy is not None:
+            self._policy = pickle.loads(policy)
+            self._policy.set_training_mode(False)
+            self._act = th.compile(self._policy.forward) if torch_compile else self._policy.forward
+        if self._policy is None:
+            raise RuntimeError("collect_rollout needs the policy on its first call.")
+        self._policy.load_state_dict({key: th.as_tensor(value) for key, value in state_dict.items()})
+        space = self.action_space["control"]
+        observations = {key: np.empty((n_steps, *value.shape), value.dtype) for key, value in self._obs.items()}
+        comm = np.empty((n_steps, *self.action_space["comm"].shape), np.int64)
+        control = np.empty((n_steps, *space.shape), np.float32)
+        dones = np.empty(n_steps, bool)
+        infos = []
+        threads = th.get_num_threads()
+        # One thread: batches of one sample gain nothing from more, and several workers would fight over the cores.
+        th.set_num_threads(1)
+        with th.random.fork_rng(devices=[]):  # in the learner's process (DummyVecEnv), keep its stream
+            th.manual_seed(int(seeds[self.worker_index]))
+            for t in range(n_steps):
+                for key, value in self._obs.items():
+                    observations[key][t] = value
+                with th.no_grad():
+                    action = self._act(
+                        obs_as_tensor({key: value[None] for key, value in self._obs.items()}, self._policy.device),
+                        action_noise_std=action_noise_std,
+                    )
+                comm[t], control[t] = action.comm[0].numpy(), action.control[0].numpy()
+                obs, _, terminated, truncated, info = self.step(
+                    {"comm": comm[t], "control": np.clip(control[t], space.low, space.high)}
+                )
+                dones[t] = terminated or truncated
+                info["TimeLimit.truncated"] = truncated and not terminated
+                if dones[t]:
+                    info["terminal_observation"] = obs
+                    self.reset()
+                infos.append(info)
+        th.set_num_threads(threads)
+        return {
+            "observations": observations,
+            "comm": comm,
+            "control": control,
+            "dones": dones,
+            "infos": infos,
+            "last_obs": self._obs,
+        }

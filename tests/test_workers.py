@@ -1,0 +1,93 @@
+"""Rollouts sampled inside the envs (RolloutWorker) fill the buffer as the step-by-step path does."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import pytest
+from stable_baselines3.common.env_util import make_vec_env
+from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecNormalize
+
+import sb3_detc  # noqa: F401  (registers the env ids)
+from sb3_detc.callbacks import CommMetricsCallback
+from sb3_detc.mappoc import MAPPOC
+from sb3_detc.mappoc.mappoc import _has_rollout_workers
+from sb3_detc.mappoc.workers import RolloutWorker
+
+ENV_ID = "sb3_detc/LinearETC-v0"
+#: Nearly deterministic policies: broadcast with probability 1 - 1e-6, control noise exp(-30).
+CERTAIN = {"net_arch": [16, 16], "broadcast_prob_init": 1 - 1e-6, "log_std_init": -30.0, "critic": "afterstate"}
+
+
+def make(workers: bool, vec_env_cls: type = DummyVecEnv, **kwargs: Any) -> MAPPOC:
+    env = make_vec_env(
+        ENV_ID,
+        n_envs=2,
+        seed=3,
+        env_kwargs={"n_agents": 3, "max_cycles": 20, "comm_cost": 0.05},
+        vec_env_cls=vec_env_cls,
+        wrapper_class=RolloutWorker if workers else None,
+    )
+    settings = {"n_steps": 48, "batch_size": 32, "n_epochs": 1, "policy_kwargs": CERTAIN, **kwargs}
+    return MAPPOC("MlpHybridPolicy", env, seed=0, **settings)
+
+
+@pytest.mark.parametrize("normalize_reward", [False, True])
+def test_worker_rollouts_fill_the_buffer_like_step_by_step_rollouts(normalize_reward: bool) -> None:
+    """Same observations, options, controls, rewards (with truncation bootstrap), values, returns, logs.
+
+    The control noise differs (other random streams), and with it the log-probabilities of the
+    controls, so the updates would differ: learning rate 0 keeps the policies equal.
+    """
+    settings = {"normalize_reward": normalize_reward, "team_reward": True, "learning_rate": 0.0}
+    models = [make(workers, **settings) for workers in (False, True)]
+    assert [_has_rollout_workers(model.get_env()) for model in models] == [False, True]
+    for model in models:
+        model.learn(192, callback=CommMetricsCallback())  # two rollouts; the second starts mid-episode
+    plain, worker = (model.rollout_buffer for model in models)
+    assert plain.episode_starts[1:].any()  # episodes of 20 steps ended inside the rollout
+    for key in plain.observations:
+        np.testing.assert_allclose(worker.observations[key], plain.observations[key], atol=1e-5)
+    np.testing.assert_array_equal(worker.comm, plain.comm)
+    for name in ("control", "rewards", "values", "returns", "advantages", "log_prob_comm", "comm_price"):
+        np.testing.assert_allclose(getattr(worker, name), getattr(plain, name), rtol=1e-4, atol=1e-5, err_msg=name)
+    np.testing.assert_array_equal(worker.episode_starts, plain.episode_starts)
+    a, b = models
+    assert a.num_timesteps == b.num_timesteps == 192
+    assert [info["r"] for info in a.ep_info_buffer] == pytest.approx([info["r"] for info in b.ep_info_buffer])
+    for key, value in a.logger.name_to_value.items():
+        if key.startswith("comm/"):
+            assert b.logger.name_to_value[key] == pytest.approx(value), key
+    np.testing.assert_allclose(b._last_obs["local"], a._last_obs["local"], atol=1e-5)
+
+
+def test_worker_processes_train_and_take_the_new_policy_after_loading(tmp_path) -> None:
+    """In SubprocVecEnv workers: training runs, and a loaded model sends its own policy to the workers."""
+    model = make(True, vec_env_cls=SubprocVecEnv, policy_kwargs={"net_arch": [16, 16]})
+    model.learn(96)
+    assert model._workers_hold == (model.policy, model.get_env())
+    model.save(tmp_path / "model.zip")
+    loaded = MAPPOC.load(tmp_path / "model.zip", env=model.get_env())
+    loaded.learn(48, reset_num_timesteps=False)
+    assert loaded._workers_hold is not None and loaded._workers_hold[0] is loaded.policy
+    assert loaded.num_timesteps == 2 * 96  # one more iteration of 2 x 48 steps
+    model.get_env().close()
+
+
+def test_option_overrides_and_vec_env_wrappers_keep_the_step_by_step_path() -> None:
+    """An override draws its options in the learner; a VecNormalize changes what the policy sees."""
+    model = make(True)
+    model.option_override = lambda obs: np.ones((2, 3), np.int64)
+    model.learn(48)
+    assert model._workers_hold is None and model.rollout_buffer.comm.all()
+    assert not _has_rollout_workers(VecNormalize(model.get_env()))
+
+
+def test_collect_rollout_needs_a_reset_and_a_policy() -> None:
+    env = RolloutWorker(make(True).get_env().envs[0].unwrapped)
+    with pytest.raises(RuntimeError, match="Reset the env"):
+        env.collect_rollout(None, {}, 4, 0.0, [0])
+    env.reset(seed=0)
+    with pytest.raises(RuntimeError, match="needs the policy"):
+        env.collect_rollout(None, {}, 4, 0.0, [0])
