@@ -6,8 +6,12 @@ processes (``SubprocVecEnv``) each:
 * **MAPPOC** on ``sb3_detc/MultiwalkerETC-v0`` with the paper's hyperparameters: 2048
   environment steps per iteration (2 envs x 1024), minibatch 32, 10 epochs, three agents
   with their own networks (policy over options, control policy and option-value critic,
-  3 x 96 tanh each), eager and with ``torch_compile=True``, and for comparison also
-  compiled with both envs in the learner's process (``DummyVecEnv``, no worker processes);
+  3 x 96 tanh each), eager and with ``torch_compile=True``, with SB3's workers (the learner
+  evaluates the policy and exchanges messages with the workers at every step) and with
+  :class:`~sb3_detc.mappoc.workers.RolloutWorker` envs in the same 2 worker processes (each
+  worker samples its whole rollout with a copy of the policy; one message per iteration),
+  and for comparison also compiled with both envs in the learner's process (``DummyVecEnv``,
+  no worker processes);
 * **PPO + SuperSuit**, the usual PettingZoo recipe: stock ``multiwalker_v9.parallel_env()``
   turned into a vector env of agents with ``pettingzoo_env_to_vec_env_v1`` and
   ``concat_vec_envs_v1(..., 2, num_cpus=2)``, one shared 64 x 64 policy, SB3's PPO with the
@@ -48,6 +52,7 @@ from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
 
 from sb3_detc import MAPPOC
+from sb3_detc.mappoc.workers import RolloutWorker
 
 N_WALKERS = 3
 
@@ -81,9 +86,13 @@ class PhaseTimer(BaseCallback):
         return True
 
 
-def make_mappoc(seed: int, torch_compile: bool, workers: bool = True) -> BaseAlgorithm:
-    vec_env_cls = SubprocVecEnv if workers else DummyVecEnv
-    env = make_vec_env("sb3_detc/MultiwalkerETC-v0", n_envs=2, seed=seed, vec_env_cls=vec_env_cls)
+def make_mappoc(seed: int, torch_compile: bool, envs: str) -> BaseAlgorithm:
+    """MAPPOC with the paper's settings; ``envs``: "workers", "rollout workers" or "in-process"."""
+    vec_env_cls = DummyVecEnv if envs == "in-process" else SubprocVecEnv
+    wrapper_class = RolloutWorker if envs == "rollout workers" else None
+    env = make_vec_env(
+        "sb3_detc/MultiwalkerETC-v0", n_envs=2, seed=seed, vec_env_cls=vec_env_cls, wrapper_class=wrapper_class
+    )
     return MAPPOC("MlpHybridPolicy", env, n_steps=1024, seed=seed, torch_compile=torch_compile)
 
 
@@ -169,10 +178,12 @@ def matmul_floor(name: str, seed: int, repeats: int = 500) -> dict[str, Any]:
     }
 
 
-MAPPOC_VARIANTS = {  # name -> (torch_compile, worker processes)
-    "MAPPOC": (False, True),
-    "MAPPOC, compiled": (True, True),
-    "MAPPOC, compiled, in-process envs": (True, False),
+MAPPOC_VARIANTS = {  # name -> (torch_compile, envs)
+    "MAPPOC": (False, "workers"),
+    "MAPPOC, compiled": (True, "workers"),
+    "MAPPOC, compiled, in-process envs": (True, "in-process"),
+    "MAPPOC, rollout workers": (False, "rollout workers"),
+    "MAPPOC, compiled, rollout workers": (True, "rollout workers"),
 }
 ENV_ONLY = {"joint env only, 2 worker processes": True, "joint env only, in-process": False}
 MATMUL_FLOOR = "MAPPOC gradient step, matrix products only"

@@ -306,7 +306,7 @@ class MAPPOC(OnPolicyAlgorithm):
             control = action.control.cpu().numpy()
             clipped = np.clip(control, self._control_low, self._control_high)
             new_obs, _, dones, infos = env.step([{"comm": c, "control": u} for c, u in zip(comm, clipped, strict=True)])
-            rewards = self._step_rewards(new_obs, infos, dones)
+            rewards = self._step_rewards(infos, dones, new_obs)
             self.num_timesteps += env.num_envs
 
             callback.update_locals(locals())
@@ -348,16 +348,16 @@ class MAPPOC(OnPolicyAlgorithm):
         return True
 
     def _step_rewards(
-        self, new_obs: dict[str, np.ndarray], infos: list[dict[str, Any]], dones: np.ndarray
+        self, infos: list[dict[str, Any]], dones: np.ndarray, new_obs: dict[str, np.ndarray] | None = None
     ) -> np.ndarray:
         """The learner's rewards of one step of all envs (n_envs, N): scaled, shared, normalised.
 
-        :param new_obs: observations after the step (checked for NaN)
-        :param infos: the step's infos, with ``agent_rewards``
+        :param infos: the step's infos, with ``agent_rewards`` (checked for NaN)
         :param dones: episode ends of the step
+        :param new_obs: observations after the step, to check for NaN (None: checked elsewhere)
         """
         rewards = self.reward_scale * _agent_rewards(infos)
-        _check_finite(new_obs, rewards)
+        _check_finite({} if new_obs is None else new_obs, rewards)
         if self.team_reward:
             rewards = np.repeat(rewards.mean(axis=1, keepdims=True), self.n_agents, axis=1)
         if self.normalize_reward:
@@ -398,6 +398,8 @@ class MAPPOC(OnPolicyAlgorithm):
         observations = _stack_dicts([trajectory["observations"] for trajectory in trajectories], axis=1)
         last_obs = _stack_dicts([trajectory["last_obs"] for trajectory in trajectories], axis=0)
         comm, control, all_dones = stacked("comm"), stacked("control"), stacked("dones")
+        _check_finite(observations)
+        _check_finite(last_obs)
         comm_cost = self._comm_costs(env)
         prices, all_rewards, truncated = [], [], []
         for step in range(n_rollout_steps):
@@ -405,7 +407,7 @@ class MAPPOC(OnPolicyAlgorithm):
             dones = all_dones[step]
             new_obs = last_obs if step == n_rollout_steps - 1 else {k: v[step + 1] for k, v in observations.items()}
             prices.append(self._comm_prices(comm_cost))
-            rewards = self._step_rewards(new_obs, infos, dones)
+            rewards = self._step_rewards(infos, dones)
             self.num_timesteps += n_envs
             callback.update_locals(locals())
             if not callback.on_step():

@@ -584,35 +584,69 @@ class MlpHybridPolicy(BasePolicy):
             :meth:`option_values`
         :return: the hybrid action with its log-probabilities and the option values
         """
-        before = {"mu": self.option_features(obs)}
-        if not self.critic_reads_afterstate:
-            before["q"] = self.critic_features(obs)
-        out = self._run(before)
-        logits = out["mu"]
-        if deterministic_options is None:
-            deterministic_options = deterministic
-        if comm is None:
-            comm = self._sample_options(logits, deterministic_options)
-        comm = comm.long()
-        after = {"pi": self.control_features(obs, comm)}
-        if self.critic_reads_afterstate:
-            after["q"] = self.afterstate_features(obs, comm)
-        out.update(self._run(after))
-        mean = out["pi"]
+        out, comm, control = self._sample(obs, deterministic, comm, action_noise_std, deterministic_options, True)
         log_std = self.log_std.expand(self.n_agents, -1)
-        control = mean
-        if not deterministic:
-            control = mean + th.randn_like(mean) * log_std.exp()
-        if action_noise_std > 0:
-            control = control + th.randn_like(mean) * action_noise_std
-        log_prob_comm = F.log_softmax(logits, dim=-1).gather(-1, comm[..., None])[..., 0]
+        log_prob_comm = F.log_softmax(out["mu"], dim=-1).gather(-1, comm[..., None])[..., 0]
         return HybridAction(
             comm,
             control,
             log_prob_comm,
-            gaussian_log_prob(control, mean, log_std),
-            self.option_values(out["q"], comm_price, broadcast_probability(logits)),
+            gaussian_log_prob(control, out["pi"], log_std),
+            self.option_values(out["q"], comm_price, broadcast_probability(out["mu"])),
         )
+
+    def sample_actions(self, obs: PyTorchObs, action_noise_std: float = 0.0) -> tuple[th.Tensor, th.Tensor]:
+        """The options and controls :meth:`forward` samples, without evaluating the critic.
+
+        What a :class:`~sb3_detc.mappoc.workers.RolloutWorker` needs: it draws the same random
+        numbers as :meth:`forward`; the learner evaluates probabilities and values later.
+
+        :param obs: joint observation (B, N, ...)
+        :param action_noise_std: extra Gaussian noise on the controls (see :meth:`forward`)
+        :return: options (B, N) and controls (B, N, m)
+        """
+        _, comm, control = self._sample(obs, False, None, action_noise_std, None, False)
+        return comm, control
+
+    def _sample(
+        self,
+        obs: PyTorchObs,
+        deterministic: bool,
+        comm: th.Tensor | None,
+        action_noise_std: float,
+        deterministic_options: bool | None,
+        with_critic: bool,
+    ) -> tuple[dict[str, th.Tensor], th.Tensor, th.Tensor]:
+        """Options, then the broadcasts delivered, then controls; with the networks' outputs.
+
+        :param obs: joint observation (B, N, ...)
+        :param deterministic: mode of ``mu`` and mean of ``pi`` instead of samples
+        :param comm: options to use instead of sampling them (None: sample)
+        :param action_noise_std: extra Gaussian noise on the controls
+        :param deterministic_options: mode (True) or sample (False) of ``mu`` (None: as ``deterministic``)
+        :param with_critic: whether to evaluate the critic too (output ``q``)
+        :return: the outputs of ``mu``, ``pi`` (and ``q``), the options, the controls
+        """
+        before = {"mu": self.option_features(obs)}
+        if with_critic and not self.critic_reads_afterstate:
+            before["q"] = self.critic_features(obs)
+        out = self._run(before)
+        if deterministic_options is None:
+            deterministic_options = deterministic
+        if comm is None:
+            comm = self._sample_options(out["mu"], deterministic_options)
+        comm = comm.long()
+        after = {"pi": self.control_features(obs, comm)}
+        if with_critic and self.critic_reads_afterstate:
+            after["q"] = self.afterstate_features(obs, comm)
+        out.update(self._run(after))
+        mean = out["pi"]
+        control = mean
+        if not deterministic:
+            control = mean + th.randn_like(mean) * self.log_std.expand(self.n_agents, -1).exp()
+        if action_noise_std > 0:
+            control = control + th.randn_like(mean) * action_noise_std
+        return out, comm, control
 
     @staticmethod
     def _sample_options(logits: th.Tensor, deterministic: bool) -> th.Tensor:

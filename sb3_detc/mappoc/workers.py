@@ -89,7 +89,7 @@ class RolloutWorker(gym.Wrapper):
         if policy is not None:
             self._policy = pickle.loads(policy)
             self._policy.set_training_mode(False)
-            self._act = th.compile(self._policy.forward) if torch_compile else self._policy.forward
+            self._act = th.compile(self._policy.sample_actions) if torch_compile else self._policy.sample_actions
         if self._policy is None:
             raise RuntimeError("collect_rollout needs the policy on its first call.")
         self._policy.load_state_dict({key: th.as_tensor(value) for key, value in state_dict.items()})
@@ -108,11 +108,11 @@ class RolloutWorker(gym.Wrapper):
                 for key, value in self._obs.items():
                     observations[key][t] = value
                 with th.no_grad():
-                    action = self._act(
+                    options, controls = self._act(
                         obs_as_tensor({key: value[None] for key, value in self._obs.items()}, self._policy.device),
-                        action_noise_std=action_noise_std,
+                        action_noise_std,
                     )
-                comm[t], control[t] = action.comm[0].numpy(), action.control[0].numpy()
+                comm[t], control[t] = options[0].numpy(), controls[0].numpy()
                 obs, _, terminated, truncated, info = self.step(
                     {"comm": comm[t], "control": np.clip(control[t], space.low, space.high)}
                 )
