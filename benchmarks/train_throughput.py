@@ -155,7 +155,7 @@ def matmul_floor(name: str, seed: int, repeats: int = 500) -> dict[str, Any]:
     backward, on ``(groups, 32, in)`` inputs; the best of ``repeats`` timings of all layers.
     """
     th.manual_seed(seed)
-    model = make_mappoc(seed, torch_compile=False, workers=False)
+    model = make_mappoc(seed, torch_compile=False, envs="in-process")
     batch = model.batch_size
     shapes = [tuple(weight.shape) for chain in model.policy.chains for weight in chain.weights]
     model.get_env().close()

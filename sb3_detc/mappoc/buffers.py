@@ -124,24 +124,58 @@ class HybridRolloutBuffer:
         :param comm_price: what the own broadcast costs in the learner's reward units (n_envs, N),
             for critics that add it to their option values (None: zero)
         """
-        if self.full:
+        self.extend(
+            {key: value[None] for key, value in obs.items()},
+            *(np.asarray(x)[None] for x in (comm, control, rewards, episode_start, option_values)),
+            np.asarray(log_prob_comm)[None],
+            np.asarray(log_prob_control)[None],
+            None if comm_price is None else np.asarray(comm_price)[None],
+        )
+
+    def extend(
+        self,
+        obs: dict[str, np.ndarray],
+        comm: np.ndarray,
+        control: np.ndarray,
+        rewards: np.ndarray,
+        episode_start: np.ndarray,
+        option_values: np.ndarray,
+        log_prob_comm: np.ndarray,
+        log_prob_control: np.ndarray,
+        comm_price: np.ndarray | None = None,
+    ) -> None:
+        """Store several consecutive steps of all environments: :meth:`add` with a leading step axis (T, ...).
+
+        :param obs: joint observations before the options, (T, n_envs, N, ...) per key
+        :param comm: options (T, n_envs, N)
+        :param control: controls (T, n_envs, N, m)
+        :param rewards: per-agent rewards (T, n_envs, N)
+        :param episode_start: whether ``obs`` starts an episode (T, n_envs)
+        :param option_values: ``Q_i(s, o)`` of both options (T, n_envs, N, 2)
+        :param log_prob_comm: ``log mu_i(o_i)`` (T, n_envs, N)
+        :param log_prob_control: ``log pi_i(u_i)`` (T, n_envs, N)
+        :param comm_price: what the own broadcast costs (T, n_envs, N) (None: zero)
+        """
+        steps = len(comm)
+        if self.pos + steps > self.buffer_size:
             raise RuntimeError("HybridRolloutBuffer is full; call reset() before adding.")
+        at = slice(self.pos, self.pos + steps)
         for key, value in obs.items():
-            self.observations[key][self.pos] = value
-        self.comm[self.pos] = comm
-        self.control[self.pos] = control
-        self.rewards[self.pos] = rewards
-        self.episode_starts[self.pos] = episode_start
+            self.observations[key][at] = value
+        self.comm[at] = comm
+        self.control[at] = control
+        self.rewards[at] = rewards
+        self.episode_starts[at] = episode_start
         taken = np.take_along_axis(option_values, comm[..., None], axis=-1)[..., 0]
         p_taken = np.exp(log_prob_comm)
         other = option_values.sum(-1) - taken  # two options: the one not taken
-        self.option_values[self.pos] = option_values
-        self.values[self.pos] = taken
-        self.state_values[self.pos] = p_taken * taken + (1 - p_taken) * other
-        self.log_prob_comm[self.pos] = log_prob_comm
-        self.log_prob_control[self.pos] = log_prob_control
-        self.comm_price[self.pos] = 0.0 if comm_price is None else comm_price
-        self.pos += 1
+        self.option_values[at] = option_values
+        self.values[at] = taken
+        self.state_values[at] = p_taken * taken + (1 - p_taken) * other
+        self.log_prob_comm[at] = log_prob_comm
+        self.log_prob_control[at] = log_prob_control
+        self.comm_price[at] = 0.0 if comm_price is None else comm_price
+        self.pos += steps
         self.full = self.pos == self.buffer_size
 
     def compute_returns_and_advantage(self, last_values: np.ndarray, dones: np.ndarray) -> None:

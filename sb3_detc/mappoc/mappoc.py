@@ -95,11 +95,13 @@ class MAPPOC(OnPolicyAlgorithm):
         switch it off to learn only when to communicate for a trained controller
     :param train_option_policy: whether ``mu`` is trained (baselines with fixed
         communication switch it off)
-    :param torch_compile: compile the rollout's forward pass and the loss of every gradient
-        step with ``torch.compile`` (needs a C++ compiler). On a CPU about 1.6 times the
-        gradient steps per second and 1.5 times faster rollouts (benchmarks/README.md),
-        for a one-off compilation of some tens of seconds (and a few seconds whenever a new
-        variant appears, e.g. a first option override), so worth it for long runs
+    :param torch_compile: compile the rollout's forward pass and every gradient step with
+        ``torch.compile`` (needs a C++ compiler); with the default Adam optimizer and no
+        ``target_kl``, a gradient step (loss, gradients, clipping, Adam update) is one
+        compiled graph (:mod:`sb3_detc.mappoc.fused`). On a CPU about twice the gradient
+        steps per second and faster rollouts (benchmarks/README.md), for a one-off
+        compilation of some tens of seconds (and a few seconds whenever a new variant
+        appears, e.g. a first option override), so worth it for long runs
     :param stats_window_size: window size of the rollout logging (episodes)
     :param tensorboard_log: log location for TensorBoard (None: no logging)
     :param policy_kwargs: additional arguments of the policy on creation
@@ -440,19 +442,17 @@ class MAPPOC(OnPolicyAlgorithm):
 
         option_values, log_prob_comm = per_step(evaluation.option_values), per_step(evaluation.log_prob_comm)
         log_prob_control = per_step(evaluation.log_prob_control)
-        episode_starts = [self._last_episode_starts, *all_dones[:-1]]
-        for step in range(n_rollout_steps):
-            buffer.add(
-                {k: v[step] for k, v in observations.items()},
-                comm[step],
-                control[step],
-                all_rewards[step],
-                episode_starts[step],  # type: ignore[arg-type]
-                option_values[step],
-                log_prob_comm[step],
-                log_prob_control[step],
-                price[step],
-            )
+        buffer.extend(
+            observations,
+            comm,
+            control,
+            np.stack(all_rewards),
+            np.concatenate([np.asarray(self._last_episode_starts)[None], all_dones[:-1]]),
+            option_values,
+            log_prob_comm,
+            log_prob_control,
+            price,
+        )
         self._last_obs, self._last_episode_starts = last_obs, all_dones[-1]  # type: ignore[assignment]
         with th.no_grad():
             last_values = self.policy.state_values(

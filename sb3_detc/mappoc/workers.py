@@ -24,14 +24,14 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 import torch as th
-from stable_baselines3.common.utils import obs_as_tensor
 
 
 class RolloutWorker(gym.Wrapper):
     """Collects whole rollouts of a joint sb3_detc env with a copy of MAPPOC's policy (see the module).
 
     Steps the wrapped env exactly as SB3's vector envs do: ``info["TimeLimit.truncated"]``,
-    ``info["terminal_observation"]`` and an automatic reset at the end of every episode.
+    ``info["terminal_observation"]`` and an automatic reset at the end of every episode. The
+    copy of the policy runs on the CPU with one thread (batches of one sample).
 
     :param env: a joint env (Dict observations with an agent axis, ``comm`` x ``control`` actions)
     """
@@ -87,7 +87,7 @@ class RolloutWorker(gym.Wrapper):
         if self._obs is None:
             raise RuntimeError("Reset the env before collecting a rollout.")
         if policy is not None:
-            self._policy = pickle.loads(policy)
+            self._policy = pickle.loads(policy).to("cpu")
             self._policy.set_training_mode(False)
             self._act = th.compile(self._policy.sample_actions) if torch_compile else self._policy.sample_actions
         if self._policy is None:
@@ -104,13 +104,13 @@ class RolloutWorker(gym.Wrapper):
         th.set_num_threads(1)
         with th.random.fork_rng(devices=[]):  # in the learner's process (DummyVecEnv), keep its stream
             th.manual_seed(int(seeds[self.worker_index]))
+            as_tensors = {key: th.from_numpy(value) for key, value in observations.items()}  # views
             for t in range(n_steps):
                 for key, value in self._obs.items():
                     observations[key][t] = value
                 with th.no_grad():
                     options, controls = self._act(
-                        obs_as_tensor({key: value[None] for key, value in self._obs.items()}, self._policy.device),
-                        action_noise_std,
+                        {key: value[t : t + 1] for key, value in as_tensors.items()}, action_noise_std
                     )
                 comm[t], control[t] = options[0].numpy(), controls[0].numpy()
                 obs, _, terminated, truncated, info = self.step(
