@@ -6,6 +6,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecNormalize
 
@@ -91,3 +92,18 @@ def test_collect_rollout_needs_a_reset_and_a_policy() -> None:
     env.reset(seed=0)
     with pytest.raises(RuntimeError, match="needs the policy"):
         env.collect_rollout(None, {}, 4, 0.0, [0])
+
+
+def test_a_callback_can_stop_a_worker_rollout() -> None:
+    """Stopping mid-rollout ends training there; the learner's last observations are where the envs are."""
+
+    class StopAt20(BaseCallback):
+        def _on_step(self) -> bool:
+            return self.num_timesteps < 20
+
+    model = make(True)
+    model.learn(960, callback=StopAt20())
+    assert model.num_timesteps == 20  # 10 steps of 2 envs
+    for index, env in enumerate(model.get_env().envs):
+        for key, value in env._obs.items():
+            np.testing.assert_array_equal(model._last_obs[key][index], value)

@@ -249,7 +249,12 @@ class MAPPOC(OnPolicyAlgorithm):
     def _excluded_save_params(self) -> list[str]:
         return [
             *super()._excluded_save_params(),
-            *("option_override", "_discounted_returns", "_act", "_step_losses", "_gradient_step", "_loss_module"),
+            "option_override",
+            "_discounted_returns",
+            "_act",
+            "_step_losses",
+            "_gradient_step",
+            "_loss_module",
             "_workers_hold",
         ]
 
@@ -375,6 +380,13 @@ class MAPPOC(OnPolicyAlgorithm):
         then the steps go through the learner in order, as in :meth:`collect_rollouts`: rewards,
         callbacks, episode statistics, bootstrapping of truncated episodes; log-probabilities and
         option values come from one batched evaluation of the same policy.
+
+        :param env: the training environment (a ``DummyVecEnv`` or ``SubprocVecEnv`` of
+            :class:`~sb3_detc.mappoc.workers.RolloutWorker` envs)
+        :param callback: callback called at each step (and at the end of the rollout)
+        :param buffer: the buffer to fill
+        :param n_rollout_steps: number of steps to collect per environment
+        :return: True if the rollout was completed, False if a callback stopped it
         """
         n_envs = env.num_envs
         new_policy = self._workers_hold != (self.policy, env)
@@ -402,6 +414,9 @@ class MAPPOC(OnPolicyAlgorithm):
         comm, control, all_dones = stacked("comm"), stacked("control"), stacked("dones")
         _check_finite(observations)
         _check_finite(last_obs)
+        # The envs are at the rollout's end now, whether or not a callback stops on the way.
+        episode_starts = np.concatenate([np.asarray(self._last_episode_starts)[None], all_dones[:-1]])
+        self._last_obs, self._last_episode_starts = last_obs, all_dones[-1]  # type: ignore[assignment]
         comm_cost = self._comm_costs(env)
         prices, all_rewards, truncated = [], [], []
         for step in range(n_rollout_steps):
@@ -432,7 +447,8 @@ class MAPPOC(OnPolicyAlgorithm):
                 terminal = _stack_dicts([obs for _, _, obs in truncated], axis=0)
                 at = [(step, idx) for step, idx, _ in truncated]
                 values = self.policy.state_values(
-                    obs_as_tensor(terminal, self.device), th.as_tensor(np.stack([price[s, i] for s, i in at]))
+                    obs_as_tensor(terminal, self.device),
+                    th.as_tensor(np.stack([price[s, i] for s, i in at]), device=self.device),
                 )
                 for (step, idx), value in zip(at, values.cpu().numpy(), strict=True):
                     all_rewards[step][idx] += self.gamma * value
@@ -447,13 +463,12 @@ class MAPPOC(OnPolicyAlgorithm):
             comm,
             control,
             np.stack(all_rewards),
-            np.concatenate([np.asarray(self._last_episode_starts)[None], all_dones[:-1]]),
+            episode_starts,
             option_values,
             log_prob_comm,
             log_prob_control,
             price,
         )
-        self._last_obs, self._last_episode_starts = last_obs, all_dones[-1]  # type: ignore[assignment]
         with th.no_grad():
             last_values = self.policy.state_values(
                 obs_as_tensor(last_obs, self.device), th.as_tensor(self._comm_prices(comm_cost), device=self.device)
