@@ -15,6 +15,11 @@ Costs are the team's quadratic cost per episode (communication cost excluded), r
 to the exact expected cost of the optimal centralised finite-horizon LQR controller under
 periodic communication (:func:`sb3_detc.envs.linear.lqr_episode_cost`): 1.00 is the
 physical lower bound. Savings are ``1 - broadcasts / agent-steps``.
+
+With ``--from-zoo`` the settings and callbacks are those of the ``sb3_detc/LinearETC-v0``
+entry of ``sb3_detc/hyperparams/mappoc.yml`` (what ``python -m sb3_detc.train`` trains);
+without it, the script's own settings below, which the older tables of benchmarks/README.md
+were made with.
 """
 
 from __future__ import annotations
@@ -28,15 +33,18 @@ from typing import Any
 
 import gymnasium as gym
 import torch as th
+from rl_zoo3.utils import get_callback_list
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.env_util import make_vec_env
 
+import sb3_detc
 from sb3_detc import MAPPOC
 from sb3_detc.callbacks import ControlFirstCallback, OptionEntropySchedule
 from sb3_detc.envs.linear import LinearSystem, lqr_episode_cost
 from sb3_detc.evaluation import evaluate_communication
 from sb3_detc.mappoc.policies import CRITICS
 from sb3_detc.triggers import RandomTrigger
+from sb3_detc.zoo import check_hyperparams_file
 
 #: MAPPOC settings for the linear env (the paper's are for Multiwalker).
 HYPERPARAMS = {
@@ -52,32 +60,66 @@ HYPERPARAMS = {
 #: Option entropy: 0.1 while the control policy learns (iterations 0-100 of 1024 steps), then down to 0.001 at 200.
 ENTROPY_SCHEDULE = {"initial": 0.1, "final": 0.001, "start": 100, "end": 200}
 EVAL_SEED = 10_000
+ENV_ID = "sb3_detc/LinearETC-v0"
+#: Keys of a zoo entry that are not MAPPOC arguments.
+ZOO_ONLY = ("n_timesteps", "policy", "n_envs", "env_kwargs", "callback")
 
 
-def run(job: tuple[float, int, str, str, int, int, dict[str, Any], dict[str, Any] | None]) -> dict[str, Any]:
+def zoo_recipe() -> dict[str, Any]:
+    """The linear entry of the package's ``mappoc.yml``: MAPPOC settings, envs, steps, callbacks.
+
+    :return: ``settings`` (MAPPOC arguments, ``policy_kwargs`` as a dict), ``n_envs``,
+        ``env_kwargs``, ``n_timesteps`` and ``callback`` (the entry's callback list)
+    """
+    path = Path(sb3_detc.__file__).parent / "hyperparams" / "mappoc.yml"
+    entry = dict(check_hyperparams_file(path, "mappoc", ENV_ID))
+    settings = {key: value for key, value in entry.items() if key not in ZOO_ONLY}
+    if isinstance(settings.get("policy_kwargs"), str):  # rl-zoo3 writes them as "dict(...)"
+        settings["policy_kwargs"] = eval(settings["policy_kwargs"])  # the package's own file
+    return {
+        "settings": settings,
+        "n_envs": entry.get("n_envs", 1),
+        "env_kwargs": entry.get("env_kwargs", {}),
+        "n_timesteps": int(entry["n_timesteps"]),
+        "callback": entry.get("callback", []),
+    }
+
+
+def run(job: dict[str, Any]) -> dict[str, Any]:
     """Train one model and evaluate it at equal communication; returns one table row.
 
-    The last entry of ``job``: None for the option entropy schedule, or the arguments of
-    :class:`~sb3_detc.callbacks.ControlFirstCallback` for two stages.
+    :param job: ``comm_cost``, ``seed``, ``timesteps``, ``eval_episodes``, ``changes`` (settings
+        to change) and either ``recipe`` (:func:`zoo_recipe`) or ``option_advantage``,
+        ``critic`` and ``control_first`` (None for the option entropy schedule, or the
+        arguments of :class:`~sb3_detc.callbacks.ControlFirstCallback` for two stages)
     """
-    comm_cost, seed, option_advantage, critic, timesteps, eval_episodes, changes, control_first = job
+    comm_cost, seed, changes, recipe = job["comm_cost"], job["seed"], job["changes"], job.get("recipe")
     th.set_num_threads(1)
-    env = make_vec_env("sb3_detc/LinearETC-v0", n_envs=2, seed=seed, env_kwargs={"comm_cost": comm_cost})
-    policy_kwargs = {**HYPERPARAMS["policy_kwargs"], "critic": critic, **changes.get("policy_kwargs", {})}
-    settings = {**HYPERPARAMS, **changes, "policy_kwargs": policy_kwargs}
-    model = MAPPOC("MlpHybridPolicy", env, seed=seed, option_advantage=option_advantage, **settings)
-    start = time.perf_counter()
-    if control_first is None:
-        callback: BaseCallback = OptionEntropySchedule(**ENTROPY_SCHEDULE)
+    if recipe is not None:
+        base, n_envs = recipe["settings"], recipe["n_envs"]
+        env_kwargs = {**recipe["env_kwargs"], "comm_cost": comm_cost}
+        callbacks: list[BaseCallback] = get_callback_list({"callback": recipe["callback"]})
     else:
-        callback = ControlFirstCallback(**control_first)
-    model.learn(timesteps, callback=callback)
+        base = {**HYPERPARAMS, "option_advantage": job["option_advantage"]}
+        base["policy_kwargs"] = {**HYPERPARAMS["policy_kwargs"], "critic": job["critic"]}
+        n_envs, env_kwargs = 2, {"comm_cost": comm_cost}
+        control_first = job["control_first"]
+        schedule = OptionEntropySchedule(**ENTROPY_SCHEDULE)
+        callbacks = [schedule if control_first is None else ControlFirstCallback(**control_first)]
+    env = make_vec_env(ENV_ID, n_envs=n_envs, seed=seed, env_kwargs=env_kwargs)
+    policy_kwargs = {**base.get("policy_kwargs", {}), **changes.get("policy_kwargs", {})}
+    settings = {**base, **changes, "policy_kwargs": policy_kwargs}
+    model = MAPPOC("MlpHybridPolicy", env, seed=seed, **settings)
+    start = time.perf_counter()
+    model.learn(job["timesteps"], callback=callbacks)
     train_seconds = time.perf_counter() - start
-    eval_env = gym.make("sb3_detc/LinearETC-v0", comm_cost=comm_cost)
+    eval_env = gym.make(ENV_ID, **env_kwargs)
     bound = lqr_episode_cost(LinearSystem()) / eval_env.unwrapped.n_agents  # per agent, like the returns
 
     def evaluate(**kwargs) -> tuple[float, float]:
-        report = evaluate_communication(model, eval_env, eval_episodes, deterministic=True, seed=EVAL_SEED, **kwargs)
+        report = evaluate_communication(
+            model, eval_env, job["eval_episodes"], deterministic=True, seed=EVAL_SEED, **kwargs
+        )
         return -report.mean_control_return / bound, report.savings
 
     cost_learned, savings = evaluate(deterministic_options=False)
@@ -86,11 +128,12 @@ def run(job: tuple[float, int, str, str, int, int, dict[str, Any], dict[str, Any
     return {
         "comm_cost": comm_cost,
         "seed": seed,
-        "option_advantage": option_advantage,
-        "critic": critic,
+        "recipe": "zoo entry" if recipe is not None else "script",
+        "option_advantage": model.option_advantage,
+        "critic": model.policy.critic,
         "changes": changes,
-        "control_first": control_first,
-        "timesteps": timesteps,
+        "control_first": job.get("control_first"),
+        "timesteps": job["timesteps"],
         "train_seconds": round(train_seconds, 1),
         "savings": round(savings, 3),
         "cost_learned": round(cost_learned, 3),
@@ -103,26 +146,42 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--comm-costs", type=float, nargs="+", default=[0.03])
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3])
-    parser.add_argument("--option-advantages", nargs="+", default=["greedy"])
-    parser.add_argument("--critics", nargs="+", default=["option_heads"], choices=list(CRITICS))
+    parser.add_argument("--from-zoo", action="store_true", help="settings and callbacks of the mappoc.yml entry")
+    parser.add_argument("--option-advantages", nargs="+", help="(not with --from-zoo; default: greedy)")
+    parser.add_argument(
+        "--critics", nargs="+", choices=list(CRITICS), help="(not with --from-zoo; default: option_heads)"
+    )
     parser.add_argument("--set", type=json.loads, default={}, help="MAPPOC settings to change (JSON)")
     parser.add_argument(
         "--control-first",
         type=json.loads,
         default=None,
-        help="two stages instead of the entropy schedule: ControlFirstCallback arguments (JSON), e.g. "
-        '\'{"switch": 293, "trigger_learning_rate": 1e-3}\'',
+        help="two stages instead of the entropy schedule (not with --from-zoo): ControlFirstCallback "
+        'arguments (JSON), e.g. \'{"switch": 293, "trigger_learning_rate": 1e-3}\'',
     )
-    parser.add_argument("--timesteps", type=int, default=300_000)
+    parser.add_argument("--timesteps", type=int, help="training steps (default: 300000, or the entry's)")
     parser.add_argument("--eval-episodes", type=int, default=60)
     parser.add_argument("--workers", type=int, default=2, help="parallel training processes")
     parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "linear_learning.json")
     args = parser.parse_args()
+    common = {"eval_episodes": args.eval_episodes, "changes": args.set}
+    if args.from_zoo:
+        if args.option_advantages or args.critics or args.control_first is not None:
+            parser.error("--from-zoo takes the option advantage, critic and stages from the entry (use --set)")
+        recipe = zoo_recipe()
+        common.update(recipe=recipe, timesteps=args.timesteps or recipe["n_timesteps"])
+        variants = [{}]
+    else:
+        common.update(timesteps=args.timesteps or 300_000, control_first=args.control_first)
+        variants = [
+            {"option_advantage": adv, "critic": critic}
+            for adv in args.option_advantages or ["greedy"]
+            for critic in args.critics or ["option_heads"]
+        ]
     jobs = [
-        (xi, seed, adv, critic, args.timesteps, args.eval_episodes, args.set, args.control_first)
+        {**common, **variant, "comm_cost": xi, "seed": seed}
         for xi in args.comm_costs
-        for adv in args.option_advantages
-        for critic in args.critics
+        for variant in variants
         for seed in args.seeds
     ]
     with multiprocessing.get_context("spawn").Pool(args.workers) as pool:
@@ -131,7 +190,7 @@ def main() -> None:
     args.out.write_text(json.dumps(rows, indent=1))
     bound = lqr_episode_cost(LinearSystem())
     print(f"episode cost bound (optimal centralised LQR, periodic communication): {bound:.3f} per team")
-    print(f"settings changed: {args.set}")
+    print(f"settings: {'the zoo entry of ' + ENV_ID if args.from_zoo else 'the script'}; changed: {args.set}")
     if args.control_first is not None:
         print(f"two stages: ControlFirstCallback({args.control_first})")
     print()
