@@ -40,6 +40,13 @@ class RandomTrigger:
         shape = obs["age"].shape[:-1]
         return (self.rng.random(shape) >= self.skip_prob).astype(np.int64)
 
+    def fork(self, seed: int) -> RandomTrigger:
+        """An independent copy with its own seed (one per rollout worker, see :mod:`sb3_detc.mappoc.workers`).
+
+        :param seed: seed of the copy's random generator
+        """
+        return RandomTrigger(self.skip_prob, seed)
+
 
 class PeriodicTrigger:
     """Every agent broadcasts every ``period``-th step, counted per episode; all agents at the same steps.
@@ -58,6 +65,13 @@ class PeriodicTrigger:
         if isinstance(period, bool) or not isinstance(period, (int, np.integer)) or period < 1:
             raise ValueError(f"period must be an integer >= 1, got {period!r}.")
         self.period = int(period)
+
+    def fork(self, seed: int) -> PeriodicTrigger:
+        """A copy for a rollout worker: the trigger itself, which has no state.
+
+        :param seed: unused
+        """
+        return self
 
     def __call__(self, obs: dict[str, np.ndarray]) -> np.ndarray:
         """Options for a batch of joint observations, (B, N)."""
@@ -95,6 +109,13 @@ class SendOnDelta:
     def __call__(self, obs: dict[str, np.ndarray]) -> np.ndarray:
         """Options for a batch of joint observations, (B, N)."""
         return (self.distance(obs) > self.delta).astype(np.int64)
+
+    def fork(self, seed: int) -> SendOnDelta:
+        """A copy for a rollout worker: the trigger itself, which has no state.
+
+        :param seed: unused
+        """
+        return self
 
 
 # --------------------------------------------------------------------- evaluation of triggers

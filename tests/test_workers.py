@@ -15,6 +15,7 @@ from sb3_detc.callbacks import CommMetricsCallback
 from sb3_detc.mappoc import MAPPOC
 from sb3_detc.mappoc.mappoc import _has_rollout_workers
 from sb3_detc.mappoc.workers import RolloutWorker
+from sb3_detc.triggers import PeriodicTrigger, RandomTrigger
 
 ENV_ID = "sb3_detc/LinearETC-v0"
 #: Nearly deterministic policies: broadcast with probability 1 - 1e-6, control noise exp(-30).
@@ -34,8 +35,8 @@ def make(workers: bool, vec_env_cls: type = DummyVecEnv, **kwargs: Any) -> MAPPO
     return MAPPOC("MlpHybridPolicy", env, seed=0, **settings)
 
 
-@pytest.mark.parametrize("normalize_reward", [False, True])
-def test_worker_rollouts_fill_the_buffer_like_step_by_step_rollouts(normalize_reward: bool) -> None:
+@pytest.mark.parametrize("normalize_reward, periodic", [(False, False), (True, False), (False, True)])
+def test_worker_rollouts_fill_the_buffer_like_step_by_step_rollouts(normalize_reward: bool, periodic: bool) -> None:
     """Same observations, options, controls, rewards (with truncation bootstrap), values, returns, logs.
 
     The control noise differs (other random streams), and with it the log-probabilities of the
@@ -44,6 +45,9 @@ def test_worker_rollouts_fill_the_buffer_like_step_by_step_rollouts(normalize_re
     settings = {"normalize_reward": normalize_reward, "team_reward": True, "learning_rate": 0.0}
     models = [make(workers, **settings) for workers in (False, True)]
     assert [_has_rollout_workers(model.get_env()) for model in models] == [False, True]
+    if periodic:  # an option override that the workers run themselves
+        for model in models:
+            model.option_override = PeriodicTrigger(3)
     for model in models:
         model.learn(192, callback=CommMetricsCallback())  # two rollouts; the second starts mid-episode
     plain, worker = (model.rollout_buffer for model in models)
@@ -51,6 +55,7 @@ def test_worker_rollouts_fill_the_buffer_like_step_by_step_rollouts(normalize_re
     for key in plain.observations:
         np.testing.assert_allclose(worker.observations[key], plain.observations[key], atol=1e-5)
     np.testing.assert_array_equal(worker.comm, plain.comm)
+    assert not periodic or 0.6 < 1 - worker.comm.mean() < 0.7  # broadcasts at every third step
     for name in ("control", "rewards", "values", "returns", "advantages", "log_prob_comm", "comm_price"):
         np.testing.assert_allclose(getattr(worker, name), getattr(plain, name), rtol=1e-4, atol=1e-5, err_msg=name)
     np.testing.assert_array_equal(worker.episode_starts, plain.episode_starts)
@@ -76,8 +81,22 @@ def test_worker_processes_train_and_take_the_new_policy_after_loading(tmp_path) 
     model.get_env().close()
 
 
-def test_option_overrides_and_vec_env_wrappers_keep_the_step_by_step_path() -> None:
-    """An override draws its options in the learner; a VecNormalize changes what the policy sees."""
+def test_random_skips_run_in_the_workers_with_one_fork_per_env_and_rollout() -> None:
+    """Each env skips at random with its own stream, a new one every rollout, at the trigger's rate."""
+    model = make(True, policy_kwargs={"net_arch": [16, 16]})
+    model.option_override = RandomTrigger(0.5, seed=0)
+    comms = []
+    for _ in range(2):
+        model.learn(96, reset_num_timesteps=False)
+        comms.append(model.rollout_buffer.comm.copy())
+    assert model._workers_hold is not None  # the worker path
+    assert not np.array_equal(comms[0][:, 0], comms[0][:, 1])  # the two envs
+    assert not np.array_equal(comms[0], comms[1])  # the two rollouts
+    assert 0.35 < np.mean(comms) < 0.65
+
+
+def test_other_overrides_and_vec_env_wrappers_keep_the_step_by_step_path() -> None:
+    """An override without fork() draws its options in the learner; a VecNormalize changes what the policy sees."""
     model = make(True)
     model.option_override = lambda obs: np.ones((2, 3), np.int64)
     model.learn(48)

@@ -31,6 +31,9 @@ SelfMAPPOC = TypeVar("SelfMAPPOC", bound="MAPPOC")
 STEP_STATS = ("pi_loss", "mu_loss", "q_loss", "entropy_mu", "clip_pi", "clip_mu", "kl_pi", "kl_mu")
 
 #: Signature of an option override: joint observations (n_envs, N, ...) -> options (n_envs, N).
+#: With rollout workers (:mod:`sb3_detc.mappoc.workers`) an override that has ``fork(seed)``
+#: (an independent copy, like :meth:`sb3_detc.triggers.RandomTrigger.fork`) runs in the workers,
+#: one fork per env and rollout; any other override keeps the step-by-step rollout.
 OptionOverride = Callable[[dict[str, np.ndarray]], np.ndarray]
 
 
@@ -291,7 +294,8 @@ class MAPPOC(OnPolicyAlgorithm):
         n_steps = 0
         buffer.reset()
         callback.on_rollout_start()
-        if self.option_override is None and _has_rollout_workers(env):
+        # Overrides run in the workers when they can be forked for them (the package's triggers).
+        if (self.option_override is None or hasattr(self.option_override, "fork")) and _has_rollout_workers(env):
             return self._collect_in_workers(env, callback, buffer, n_rollout_steps)
         comm_cost = self._comm_costs(env)  # callbacks may change it between rollouts
         new_obs, dones = self._last_obs, self._last_episode_starts
@@ -395,6 +399,7 @@ class MAPPOC(OnPolicyAlgorithm):
                 env.env_method("set_worker_index", index, indices=index)
         state = {key: value.detach().cpu().numpy() for key, value in self.policy.state_dict().items()}
         seeds = th.randint(2**31 - 1, (n_envs,)).tolist()
+        override = self.option_override
         trajectories = env.env_method(
             "collect_rollout",
             pickle.dumps(self.policy) if new_policy else None,
@@ -403,6 +408,7 @@ class MAPPOC(OnPolicyAlgorithm):
             self.action_noise_std,
             seeds,
             self.torch_compile,
+            None if override is None else [pickle.dumps(override.fork(seed)) for seed in seeds],  # type: ignore[attr-defined]
         )
         self._workers_hold = (self.policy, env)
 

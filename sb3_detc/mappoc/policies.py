@@ -595,7 +595,9 @@ class MlpHybridPolicy(BasePolicy):
             self.option_values(out["q"], comm_price, broadcast_probability(out["mu"])),
         )
 
-    def sample_actions(self, obs: PyTorchObs, action_noise_std: float = 0.0) -> tuple[th.Tensor, th.Tensor]:
+    def sample_actions(
+        self, obs: PyTorchObs, action_noise_std: float = 0.0, comm: th.Tensor | None = None
+    ) -> tuple[th.Tensor, th.Tensor]:
         """The options and controls :meth:`forward` samples, without evaluating the critic.
 
         What a :class:`~sb3_detc.mappoc.workers.RolloutWorker` needs: it draws the same random
@@ -603,9 +605,10 @@ class MlpHybridPolicy(BasePolicy):
 
         :param obs: joint observation (B, N, ...)
         :param action_noise_std: extra Gaussian noise on the controls (see :meth:`forward`)
+        :param comm: options to use instead of sampling them (an option override)
         :return: options (B, N) and controls (B, N, m)
         """
-        _, comm, control = self._sample(obs, False, None, action_noise_std, None, False)
+        _, comm, control = self._sample(obs, False, comm, action_noise_std, None, False)
         return comm, control
 
     def _sample(

@@ -70,6 +70,7 @@ class RolloutWorker(gym.Wrapper):
         action_noise_std: float,
         seeds: list[int],
         torch_compile: bool = False,
+        overrides: list[bytes] | None = None,
     ) -> dict[str, Any]:
         """Sample ``n_steps`` steps with the policy, from the observation the env is in.
 
@@ -79,6 +80,8 @@ class RolloutWorker(gym.Wrapper):
         :param action_noise_std: extra Gaussian noise on the controls (curriculum)
         :param seeds: one seed of the sampling per env of the vector env (this env uses its own)
         :param torch_compile: whether to compile the policy's forward pass (once per policy)
+        :param overrides: one pickled option override per env of the vector env, forked for
+            it (see ``MAPPOC.option_override``); None: options sampled from the policy
         :return: ``observations`` before every step (dict of (n_steps, N, ...)), ``comm``
             (n_steps, N), ``control`` (n_steps, N, m; sampled, before clipping to the bounds),
             ``dones`` (n_steps,), ``infos`` (one dict per step) and ``last_obs`` (the observation
@@ -101,6 +104,7 @@ class RolloutWorker(gym.Wrapper):
         control = np.empty((n_steps, *space.shape), np.float32)
         dones = np.empty(n_steps, bool)
         infos = []
+        override = None if overrides is None else pickle.loads(overrides[self.worker_index])
         threads = th.get_num_threads()
         # One thread: batches of one sample gain nothing from more, and several workers would fight over the cores.
         th.set_num_threads(1)
@@ -110,9 +114,12 @@ class RolloutWorker(gym.Wrapper):
             for t in range(n_steps):
                 for key, value in self._obs.items():
                     observations[key][t] = value
+                forced = None
+                if override is not None:
+                    forced = th.as_tensor(override({key: value[t : t + 1] for key, value in observations.items()}))
                 with th.no_grad():
                     options, controls = self._act(
-                        {key: value[t : t + 1] for key, value in as_tensors.items()}, action_noise_std
+                        {key: value[t : t + 1] for key, value in as_tensors.items()}, action_noise_std, forced
                     )
                 comm[t], control[t] = options[0].numpy(), controls[0].numpy()
                 obs, _, terminated, truncated, info = self.step(
