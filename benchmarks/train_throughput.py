@@ -209,14 +209,16 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=2)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--one", choices=ALGORITHMS, help="measure only this algorithm, in this process (JSON)")
+    parser.add_argument("--only", nargs="+", choices=ALGORITHMS, help="measure only these (default: all)")
     args = parser.parse_args()
     if args.one is not None:
         print(json.dumps(measure_one(args.one, args.seed, args.iterations, args.ppo_iterations)))
         return
 
-    results: dict[str, list[dict[str, Any]]] = {name: [] for name in ALGORITHMS}
+    names = [name for name in ALGORITHMS if args.only is None or name in args.only]
+    results: dict[str, list[dict[str, Any]]] = {name: [] for name in names}
     for repeat in range(args.repeats):
-        for name in ALGORITHMS:
+        for name in names:
             command = [sys.executable, __file__, "--one", name, "--seed", str(args.seed + repeat)]
             command += ["--iterations", str(args.iterations), "--ppo-iterations", str(args.ppo_iterations)]
             output = subprocess.run(command, check=True, capture_output=True, text=True).stdout
@@ -248,11 +250,18 @@ def main() -> None:
             medians[name] = float(np.median([run["steps_per_s"] for run in runs]))
     print()
     print("median env steps/s: " + ", ".join(f"{name} {value:.0f}" for name, value in medians.items()))
-    for name in MAPPOC_VARIANTS:
-        print(f"ratio {name} / PPO + SuperSuit: {medians[name] / medians['PPO + SuperSuit']:.2f}")
+    if "PPO + SuperSuit" not in results:
+        return
+    ppo = results["PPO + SuperSuit"]
+    for name in (name for name in MAPPOC_VARIANTS if name in results):
+        ratios = [a["steps_per_s"] / b["steps_per_s"] for a, b in zip(results[name], ppo, strict=True)]
+        ratio = medians[name] / medians["PPO + SuperSuit"]
+        print(f"ratio {name} / PPO + SuperSuit: {ratio:.2f} (per repeat: {', '.join(f'{r:.2f}' for r in ratios)})")
+    if MATMUL_FLOOR not in results:
+        return
     floor = min(results[MATMUL_FLOOR], key=lambda run: run["ms_per_gradient_step"])
     update_s = floor["gradient_steps_per_env_step"] * floor["ms_per_gradient_step"] / 1e3
-    for name in ENV_ONLY:
+    for name in (name for name in ENV_ONLY if name in results):
         bound = 1 / (1 / medians[name] + update_s)
         print(
             f"bound with the {name.removeprefix('joint env only, ')} env and only the updates' matrix products: "
