@@ -184,20 +184,23 @@ MAPPOC_VARIANTS = {  # name -> (torch_compile, envs)
     "MAPPOC, compiled, in-process envs": (True, "in-process"),
     "MAPPOC, rollout workers": (False, "rollout workers"),
     "MAPPOC, compiled, rollout workers": (True, "rollout workers"),
+    "MAPPOC, compiled, rollout workers, 2 threads": (True, "rollout workers"),
 }
+#: Variants whose learner runs 2 torch threads (the others 1): the second core is idle during updates.
+TWO_THREADS = ("MAPPOC, compiled, rollout workers, 2 threads", "PPO + SuperSuit, 2 threads")
 ENV_ONLY = {"joint env only, 2 worker processes": True, "joint env only, in-process": False}
 MATMUL_FLOOR = "MAPPOC gradient step, matrix products only"
-ALGORITHMS = (*MAPPOC_VARIANTS, "PPO + SuperSuit", *ENV_ONLY, MATMUL_FLOOR)
+ALGORITHMS = (*MAPPOC_VARIANTS, "PPO + SuperSuit", "PPO + SuperSuit, 2 threads", *ENV_ONLY, MATMUL_FLOOR)
 
 
 def measure_one(name: str, seed: int, iterations: int, ppo_iterations: int) -> dict[str, Any]:
     """One measurement of ``name`` (one of :data:`ALGORITHMS`) in this process."""
-    th.set_num_threads(1)
+    th.set_num_threads(2 if name in TWO_THREADS else 1)
     if name in ENV_ONLY:
         return env_only(name, ENV_ONLY[name], 1024 * iterations, seed)
     if name == MATMUL_FLOOR:
         return matmul_floor(name, seed)
-    if name == "PPO + SuperSuit":
+    if name.startswith("PPO + SuperSuit"):
         return measure(name, make_ppo_supersuit(seed), ppo_iterations, N_WALKERS)
     return measure(name, make_mappoc(seed, *MAPPOC_VARIANTS[name]), iterations, 1)
 
@@ -225,7 +228,8 @@ def main() -> None:
             results[name].append(json.loads(output.strip().splitlines()[-1]))
 
     cpu = next((line.split(":", 1)[1].strip() for line in open("/proc/cpuinfo") if "model name" in line), "?")
-    print(f"machine: {cpu}, 1 torch thread in the learner, python {platform.python_version()}, torch {th.__version__}")
+    threads = "1 torch thread in the learner (2 where named)"
+    print(f"machine: {cpu}, {threads}, python {platform.python_version()}, torch {th.__version__}")
     print()
     print(
         "| algorithm | warm-up s | env steps | seconds | env steps/s | rollout s | update s | epochs "
@@ -250,14 +254,12 @@ def main() -> None:
             medians[name] = float(np.median([run["steps_per_s"] for run in runs]))
     print()
     print("median env steps/s: " + ", ".join(f"{name} {value:.0f}" for name, value in medians.items()))
-    if "PPO + SuperSuit" not in results:
-        return
-    ppo = results["PPO + SuperSuit"]
-    for name in (name for name in MAPPOC_VARIANTS if name in results):
-        ratios = [a["steps_per_s"] / b["steps_per_s"] for a, b in zip(results[name], ppo, strict=True)]
-        ratio = medians[name] / medians["PPO + SuperSuit"]
-        print(f"ratio {name} / PPO + SuperSuit: {ratio:.2f} (per repeat: {', '.join(f'{r:.2f}' for r in ratios)})")
-    if MATMUL_FLOOR not in results:
+    for reference in (name for name in ("PPO + SuperSuit", "PPO + SuperSuit, 2 threads") if name in results):
+        for name in (name for name in MAPPOC_VARIANTS if name in results):
+            pairs = zip(results[name], results[reference], strict=True)
+            per_repeat = ", ".join(f"{a['steps_per_s'] / b['steps_per_s']:.2f}" for a, b in pairs)
+            print(f"ratio {name} / {reference}: {medians[name] / medians[reference]:.2f} (per repeat: {per_repeat})")
+    if MATMUL_FLOOR not in results or "PPO + SuperSuit" not in results:
         return
     floor = min(results[MATMUL_FLOOR], key=lambda run: run["ms_per_gradient_step"])
     update_s = floor["gradient_steps_per_env_step"] * floor["ms_per_gradient_step"] / 1e3
