@@ -108,30 +108,32 @@ class RolloutWorker(gym.Wrapper):
         threads = th.get_num_threads()
         # One thread: batches of one sample gain nothing from more, and several workers would fight over the cores.
         th.set_num_threads(1)
-        with th.random.fork_rng(devices=[]):  # in the learner's process (DummyVecEnv), keep its stream
-            th.manual_seed(int(seeds[self.worker_index]))
-            as_tensors = {key: th.from_numpy(value) for key, value in observations.items()}  # views
-            for t in range(n_steps):
-                for key, value in self._obs.items():
-                    observations[key][t] = value
-                forced = None
-                if override is not None:
-                    forced = th.as_tensor(override({key: value[t : t + 1] for key, value in observations.items()}))
-                with th.no_grad():
-                    options, controls = self._act(
-                        {key: value[t : t + 1] for key, value in as_tensors.items()}, action_noise_std, forced
+        try:
+            with th.random.fork_rng(devices=[]):  # in the learner's process (DummyVecEnv), keep its stream
+                th.manual_seed(int(seeds[self.worker_index]))
+                as_tensors = {key: th.from_numpy(value) for key, value in observations.items()}  # views
+                for t in range(n_steps):
+                    for key, value in self._obs.items():
+                        observations[key][t] = value
+                    forced = None
+                    if override is not None:
+                        forced = th.as_tensor(override({key: value[t : t + 1] for key, value in observations.items()}))
+                    with th.no_grad():
+                        options, controls = self._act(
+                            {key: value[t : t + 1] for key, value in as_tensors.items()}, action_noise_std, forced
+                        )
+                    comm[t], control[t] = options[0].numpy(), controls[0].numpy()
+                    obs, _, terminated, truncated, info = self.step(
+                        {"comm": comm[t], "control": np.clip(control[t], space.low, space.high)}
                     )
-                comm[t], control[t] = options[0].numpy(), controls[0].numpy()
-                obs, _, terminated, truncated, info = self.step(
-                    {"comm": comm[t], "control": np.clip(control[t], space.low, space.high)}
-                )
-                dones[t] = terminated or truncated
-                info["TimeLimit.truncated"] = truncated and not terminated
-                if dones[t]:
-                    info["terminal_observation"] = obs
-                    self.reset()
-                infos.append(info)
-        th.set_num_threads(threads)
+                    dones[t] = terminated or truncated
+                    info["TimeLimit.truncated"] = truncated and not terminated
+                    if dones[t]:
+                        info["terminal_observation"] = obs
+                        self.reset()
+                    infos.append(info)
+        finally:
+            th.set_num_threads(threads)
         return {
             "observations": observations,
             "comm": comm,
