@@ -2,8 +2,8 @@
 
 With ``torch_compile=True`` and the default optimizer, :class:`~sb3_detc.mappoc.mappoc.MAPPOC`
 computes the gradients with :func:`torch.func.grad_and_value` inside the compiled function
-and applies :class:`torch.optim.Adam`'s update to the parameters and to the optimizer's own
-state tensors (``step``, ``exp_avg``, ``exp_avg_sq``), so that ``optimizer.state_dict()``,
+and applies :class:`torch.optim.Adam`'s update (its functional form) to the parameters and to
+the optimizer's own state tensors (``step``, ``exp_avg``, ``exp_avg_sq``), so that ``optimizer.state_dict()``,
 saving and loading, and a later switch back to ``optimizer.step()`` see exactly what
 ``optimizer.step()`` would have left. For networks this small, most of a gradient step is
 the cost of launching kernels and running autograd and the optimizer from Python; in one
@@ -15,6 +15,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import torch as th
+from torch.optim.adam import adam
 
 
 def fusable_adam(optimizer: th.optim.Optimizer) -> bool:
@@ -62,14 +63,14 @@ def adam_state(optimizer: th.optim.Optimizer) -> tuple[list[th.Tensor], list[th.
 def clip_by_total_norm(grads: Sequence[th.Tensor], max_norm: float) -> list[th.Tensor]:
     """Scale gradients so that their joint L2 norm is at most ``max_norm``.
 
-    The scaling of :func:`torch.nn.utils.clip_grad_norm_`: ``min(1, max_norm / (norm + 1e-6))``.
+    The scaling of :func:`torch.nn.utils.clip_grad_norm_`, ``min(1, max_norm / (norm + 1e-6))``,
+    for gradients that are not stored in ``.grad``.
 
     :param grads: gradients of all parameters
     :param max_norm: largest joint norm
     :return: the scaled gradients
     """
-    norm = th.linalg.vector_norm(th.stack([th.linalg.vector_norm(g) for g in grads]))
-    scale = th.clamp(max_norm / (norm + 1e-6), max=1.0)
+    scale = th.clamp(max_norm / (th.nn.utils.get_total_norm(grads) + 1e-6), max=1.0)
     return [g * scale for g in grads]
 
 
@@ -83,10 +84,10 @@ def adam_update_(
     betas: tuple[float, float],
     eps: float,
 ) -> None:
-    """One Adam step in place (Kingma and Ba, Algorithm 1, as ``torch.optim.Adam`` computes it).
+    """One step of :class:`torch.optim.Adam` in place, through its functional form (``torch.optim.adam.adam``).
 
-    ``m <- b1 m + (1 - b1) g``, ``v <- b2 v + (1 - b2) g^2``,
-    ``p <- p - lr / (1 - b1^t) * m / (sqrt(v) / sqrt(1 - b2^t) + eps)``.
+    ``capturable=True`` keeps the step counters and the bias corrections as tensors, so that
+    the step compiles into the same graph as the gradients.
 
     :param params: parameters (updated in place, without autograd)
     :param grads: their gradients
@@ -97,13 +98,21 @@ def adam_update_(
     :param betas: decay rates of the moments
     :param eps: term added to the denominator
     """
-    beta1, beta2 = betas
     with th.no_grad():
-        for param, grad, step, exp_avg, exp_avg_sq in zip(params, grads, steps, exp_avgs, exp_avg_sqs, strict=True):
-            step.add_(1)
-            exp_avg.lerp_(grad, 1 - beta1)
-            exp_avg_sq.mul_(beta2).addcmul_(grad, grad, value=1 - beta2)
-            bias_correction1 = 1 - beta1**step
-            bias_correction2_sqrt = (1 - beta2**step).sqrt()
-            denom = exp_avg_sq.sqrt() / bias_correction2_sqrt + eps
-            param.sub_(lr / bias_correction1 * exp_avg / denom)
+        adam(
+            list(params),
+            list(grads),
+            list(exp_avgs),
+            list(exp_avg_sqs),
+            [],
+            list(steps),
+            foreach=False,
+            capturable=True,
+            amsgrad=False,
+            beta1=betas[0],
+            beta2=betas[1],
+            lr=lr,
+            weight_decay=0.0,
+            eps=eps,
+            maximize=False,
+        )
