@@ -1,7 +1,9 @@
-"""Evaluation of communication and control: returns with and without the communication cost, savings."""
+"""Evaluation of communication and control: returns with and without the communication cost, savings, per episode."""
 
 from __future__ import annotations
 
+import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import gymnasium as gym
@@ -11,6 +13,7 @@ from stable_baselines3.common.utils import obs_as_tensor
 
 from sb3_detc.envs.wrappers import JointEnv
 from sb3_detc.mappoc.mappoc import MAPPOC, OptionOverride
+from sb3_detc.mappoc.policies import MlpHybridPolicy
 
 
 @dataclass
@@ -35,6 +38,99 @@ class CommunicationReport:
     episodes: int
 
 
+@dataclass
+class Episodes:
+    """Per-episode results of a policy, one entry per episode (arrays of length ``episodes``).
+
+    :param returns: team-mean return, communication cost included
+    :param control_returns: team-mean return without the communication cost
+    :param lengths: steps
+    :param broadcasts: broadcasts of every agent (episodes, N)
+    :param terminated: whether the episode terminated (rather than being truncated)
+    :param failed: whether it ended by a failure (``info["failed"]``, Multiwalker: a fall or a
+        dropped package; False where the env does not report it)
+    :param package_travel: final minus initial ``info["package_x"]`` (NaN where the env does not report it)
+    """
+
+    returns: np.ndarray
+    control_returns: np.ndarray
+    lengths: np.ndarray
+    broadcasts: np.ndarray
+    terminated: np.ndarray
+    failed: np.ndarray
+    package_travel: np.ndarray
+
+    @property
+    def savings(self) -> float:
+        """Communication savings over all episodes, ``1 - broadcasts / agent-steps``."""
+        return float(1.0 - self.broadcasts.sum() / (self.lengths.sum() * self.broadcasts.shape[1]))
+
+
+def evaluate_episodes(
+    policy: MlpHybridPolicy,
+    env: gym.Env | str,
+    seeds: Sequence[int | None],
+    deterministic: bool = True,
+    deterministic_options: bool | None = None,
+    option_override: OptionOverride | None = None,
+) -> Episodes:
+    """Run a policy for whole episodes, one per seed, and record each.
+
+    :param policy: the policy (of a trained model, ``model.policy``, or loaded on its own)
+    :param env: a joint env (not vectorised) or its registered id
+    :param seeds: the seed of every episode's reset (None: continue the env's generator)
+    :param deterministic: mode of ``mu`` and mean of ``pi`` instead of samples
+    :param deterministic_options: mode (True) or samples (False) of ``mu`` whatever
+        ``deterministic`` says (None: as ``deterministic``)
+    :param option_override: options to use instead of ``mu``'s (e.g. a
+        :class:`~sb3_detc.triggers.RandomTrigger`), with the policy's control policy
+    :return: the episodes' results
+    """
+    if isinstance(env, str):
+        env = gym.make(env)
+    if not isinstance(env.unwrapped, JointEnv):
+        raise ValueError(f"evaluation needs a joint sb3_detc env, got {env}.")
+    if len(seeds) < 1:
+        raise ValueError("evaluation needs at least one episode.")
+    policy.set_training_mode(False)
+    low, high = env.action_space["control"].low, env.action_space["control"].high
+    n_agents = env.action_space["comm"].shape[0]
+    records: dict[str, list] = {field: [] for field in Episodes.__dataclass_fields__}
+    for seed in seeds:
+        obs, info = env.reset(seed=seed)
+        start_x = info.get("package_x", math.nan)
+        done, total, control_total, steps = False, 0.0, 0.0, 0
+        broadcasts = np.zeros(n_agents, np.int64)
+        while not done:
+            batch = {key: value[None] for key, value in obs.items()}
+            with th.no_grad():
+                comm = None
+                if option_override is not None:
+                    comm = th.as_tensor(option_override(batch), device=policy.device)
+                action = policy(
+                    obs_as_tensor(batch, policy.device),
+                    deterministic=deterministic,
+                    comm=comm,
+                    deterministic_options=deterministic_options,
+                )
+            options = action.comm[0].cpu().numpy()
+            control = np.clip(action.control[0].cpu().numpy(), low, high)
+            obs, reward, terminated, truncated, info = env.step({"comm": options, "control": control})
+            total += reward
+            control_total += float(np.mean(info["control_rewards"]))
+            broadcasts += options
+            steps += 1
+            done = terminated or truncated
+        records["returns"].append(total)
+        records["control_returns"].append(control_total)
+        records["lengths"].append(steps)
+        records["broadcasts"].append(broadcasts)
+        records["terminated"].append(bool(terminated))
+        records["failed"].append(bool(info.get("failed", False)))
+        records["package_travel"].append(info.get("package_x", math.nan) - start_x)
+    return Episodes(**{field: np.asarray(values) for field, values in records.items()})
+
+
 def evaluate_communication(
     model: MAPPOC,
     env: gym.Env | str,
@@ -57,46 +153,21 @@ def evaluate_communication(
     :param seed: seed of the first episode (the following ones continue its generator)
     :return: the averages
     """
-    if isinstance(env, str):
-        env = gym.make(env)
-    if not isinstance(env.unwrapped, JointEnv):
-        raise ValueError(f"evaluate_communication needs a joint sb3_detc env, got {env}.")
     if n_eval_episodes < 1:
         raise ValueError(f"n_eval_episodes must be >= 1, got {n_eval_episodes}.")
-    policy = model.policy
-    policy.set_training_mode(False)
-    low, high = env.action_space["control"].low, env.action_space["control"].high
-    returns, control_returns, broadcasts, steps = [], [], 0, 0
-    for episode in range(n_eval_episodes):
-        obs, _ = env.reset(seed=seed if episode == 0 else None)
-        done, total, control_total = False, 0.0, 0.0
-        while not done:
-            batch = {key: value[None] for key, value in obs.items()}
-            with th.no_grad():
-                comm = None
-                if option_override is not None:
-                    comm = th.as_tensor(option_override(batch), device=policy.device)
-                action = policy(
-                    obs_as_tensor(batch, policy.device),
-                    deterministic=deterministic,
-                    comm=comm,
-                    deterministic_options=deterministic_options,
-                )
-            options = action.comm[0].cpu().numpy()
-            control = np.clip(action.control[0].cpu().numpy(), low, high)
-            obs, reward, terminated, truncated, info = env.step({"comm": options, "control": control})
-            total += reward
-            control_total += float(np.mean(info["control_rewards"]))
-            broadcasts = broadcasts + options
-            steps += 1
-            done = terminated or truncated
-        returns.append(total)
-        control_returns.append(control_total)
-    agent_rate = np.asarray(broadcasts, dtype=float) / steps
+    episodes = evaluate_episodes(
+        model.policy,
+        env,
+        [seed] + [None] * (n_eval_episodes - 1),
+        deterministic=deterministic,
+        deterministic_options=deterministic_options,
+        option_override=option_override,
+    )
+    agent_rate = episodes.broadcasts.sum(axis=0) / episodes.lengths.sum()
     return CommunicationReport(
-        mean_return=float(np.mean(returns)),
-        mean_control_return=float(np.mean(control_returns)),
-        std_control_return=float(np.std(control_returns)),
+        mean_return=float(np.mean(episodes.returns)),
+        mean_control_return=float(np.mean(episodes.control_returns)),
+        std_control_return=float(np.std(episodes.control_returns)),
         broadcast_rate=float(agent_rate.mean()),
         savings=float(1 - agent_rate.mean()),
         agent_savings=1 - agent_rate,

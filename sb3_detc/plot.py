@@ -144,42 +144,55 @@ def find_runs(folder: str | Path, algo: str, env_id: str) -> list[Path]:
     return [path for _, path in sorted(runs)]
 
 
-def plot_runs(groups: dict[str, Sequence[str | Path]], out: str | Path, window: int = 50, title: str = "") -> Path:
+def plot_runs(
+    groups: dict[str, Sequence[str | Path]],
+    out: str | Path,
+    window: int = 50,
+    title: str = "",
+    panels: Sequence[tuple[str, str]] = PANELS,
+) -> Path:
     """Draw the figure for groups of runs (label -> run folders) into a PNG file.
+
+    Runs of one group may have different lengths (e.g. one still training): the mean and
+    the band at an iteration are over the runs that reached it.
 
     :param groups: one entry per curve: its label and its runs (seeds)
     :param out: the PNG file
     :param window: iterations of the moving average
     :param title: the figure's title
+    :param panels: the logged values to draw, one panel each: (column, axis label)
     :return: the written file
     :raises InputError: if a group has no runs or a run lacks the plotted values
     """
-    fig, axes = plt.subplots(1, len(PANELS), figsize=(11, 4))
+    fig, axes = plt.subplots(1, len(panels), figsize=(5.5 * len(panels), 4), squeeze=False)
+    axes = axes[0]
     phases: list[tuple[float, str]] = []
-    drawn: list[list[np.ndarray]] = [[] for _ in PANELS]
+    drawn: list[list[np.ndarray]] = [[] for _ in panels]
     for label, runs in groups.items():
         if not runs:
             raise InputError(f"no runs with a progress.csv for {label}")
         progress = [read_progress(run) for run in runs]
         phases = phases or curriculum_phases(progress[0])
-        length = min(len(p["iteration"]) for p in progress)
-        iterations = progress[0]["iteration"][:length]
-        for ax, (column, _) in zip(axes, PANELS, strict=True):
+        longest = max(progress, key=lambda p: len(p["iteration"]))
+        length = len(longest["iteration"])
+        iterations = longest["iteration"]
+        for ax, (column, _) in zip(axes, panels, strict=True):
             curves = []
             for run, p in zip(runs, progress, strict=True):
                 if column not in p or p[column].dtype.kind != "f":
                     raise InputError(f"{run}: {column} not logged: add sb3_detc.callbacks.CommMetricsCallback")
-                curves.append(smooth(p[column][:length], window))
+                curve = smooth(p[column], window)
+                curves.append(np.concatenate([curve, np.full(length - len(curve), math.nan)]))
             curves = np.array(curves)
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", RuntimeWarning)  # iterations where no run has a value
                 mean = np.nanmean(curves, axis=0)
                 low, high = np.nanmin(curves, axis=0), np.nanmax(curves, axis=0)
-            drawn[PANELS.index((column, _))].append(mean)
+            drawn[list(panels).index((column, _))].append(mean)
             (line,) = ax.plot(iterations, mean, label=f"{label} ({len(runs)} run{'s' * (len(runs) > 1)})")
             if len(runs) > 1:
                 ax.fill_between(iterations, low, high, color=line.get_color(), alpha=0.25, linewidth=0)
-    for ax, (_, name), curves in zip(axes, PANELS, drawn, strict=True):
+    for ax, (_, name), curves in zip(axes, panels, drawn, strict=True):
         scale = _symlog_threshold(np.concatenate(curves))
         if scale is not None:  # early returns can be orders of magnitude below the final ones
             ax.set_yscale("symlog", linthresh=scale)

@@ -271,7 +271,8 @@ class MultiwalkerSystem(CommunicatingSystem):
     ground or leaves the terrain to the left, every walker gets ``terminate_reward`` and the
     episode terminates; it also terminates (no penalty) when the package passes the end of the
     terrain, and is truncated after ``max_cycles`` steps. ``info["package_x"]`` is the package's
-    x position (m). The Box2D world lives in :attr:`physics` (:class:`EtcMultiWalkerEnv`).
+    x position (m); ``info["failed"]`` (steps only) tells whether the step ended the episode
+    by a fall or a dropped package. The Box2D world lives in :attr:`physics` (:class:`EtcMultiWalkerEnv`).
 
     :param n_walkers: number of walkers N (2 to 40)
     :param forward_reward: reward scale of package progress (one unit of travel, i.e. one
@@ -409,13 +410,12 @@ class MultiwalkerSystem(CommunicatingSystem):
         self._package_x = package_x
         self._potential = potential
         fallen = physics.fallen_walkers
-        terminated = True
-        if physics.game_over or package_x < 0 or fallen.any():
+        failed = bool(physics.game_over or package_x < 0 or fallen.any())
+        if failed:
             rewards += self.fall_reward * fallen + self.terminate_reward
-        elif package_x <= self._end_x:
-            terminated = False
+        terminated = failed or package_x > self._end_x
         truncated = not terminated and physics.frames >= self.max_cycles
-        return obs, rewards, terminated, truncated, {"package_x": package_x}
+        return obs, rewards, terminated, truncated, {"package_x": package_x, "failed": failed}
 
     def render(self, broadcast: np.ndarray | None = None) -> np.ndarray | None:
         """RGB image (400, 600, 3) uint8 of the stock drawing (no LIDAR rays); None without render mode.

@@ -181,9 +181,10 @@ class MlpHybridPolicy(BasePolicy):
     :param observation_space: joint observation space of an event-triggered env (Dict with
         keys ``local``, ``message``, ``held``, ``age``, ``trigger``, ``trigger_held``)
     :param action_space: joint action space (Dict with ``comm`` MultiDiscrete and ``control`` Box)
-    :param lr_schedule: learning rate schedule
+    :param lr_schedule: learning rate schedule (None: a constant placeholder, for a policy
+        loaded on its own with :meth:`load` to act, not to train)
     :param net_arch: hidden layer sizes, either one list for all networks or a dict with keys
-        ``mu``, ``pi`` and ``q`` (default: three layers of 96 units, as in the paper)
+        ``mu``, ``pi`` and ``q`` (None: three layers of 96 units, as in the paper)
     :param activation_fn: activation function of the hidden layers
     :param log_std_init: initial log standard deviation of the control policies (paper: -0.7)
     :param learn_log_std: whether the log standard deviation is trained (the paper keeps it constant)
@@ -216,13 +217,15 @@ class MlpHybridPolicy(BasePolicy):
     :param optimizer_class: optimizer class
     :param optimizer_kwargs: optimizer keyword arguments, excluding the learning rate
         (default ``eps=1e-5`` as in the paper's code, and PyTorch's fused Adam kernel)
+    :param normalize_images: unused (no image inputs); present for SB3 compatibility, it is
+        among the constructor parameters that SB3 saves with a policy
     """
 
     def __init__(
         self,
         observation_space: spaces.Dict,
         action_space: spaces.Dict,
-        lr_schedule: Schedule,
+        lr_schedule: Schedule | None = None,
         net_arch: list[int] | dict[str, list[int]] | None = None,
         activation_fn: type[nn.Module] = nn.Tanh,
         log_std_init: float = -0.7,
@@ -235,6 +238,7 @@ class MlpHybridPolicy(BasePolicy):
         use_sde: bool = False,
         optimizer_class: type[th.optim.Optimizer] = th.optim.Adam,
         optimizer_kwargs: dict[str, Any] | None = None,
+        normalize_images: bool = True,
     ) -> None:
         if use_sde:
             raise ValueError("MlpHybridPolicy does not support gSDE (use_sde=True).")
@@ -257,10 +261,11 @@ class MlpHybridPolicy(BasePolicy):
             optimizer_class=optimizer_class,
             optimizer_kwargs=optimizer_kwargs,
             squash_output=False,
+            normalize_images=normalize_images,
         )
         self.n_agents = n_agents
         self.n_control = n_control
-        self.net_arch = net_arch
+        self.net_arch = [96, 96, 96] if net_arch is None else net_arch
         self.activation_fn = activation_fn
         self.log_std_init = log_std_init
         self.learn_log_std = learn_log_std
@@ -290,7 +295,7 @@ class MlpHybridPolicy(BasePolicy):
 
     # ------------------------------------------------------------------ building
     def _arch(self, net: str) -> tuple[int, ...]:
-        arch = self.net_arch if self.net_arch is not None else [96, 96, 96]
+        arch = self.net_arch
         if isinstance(arch, dict):
             if set(arch) != set(NETS):
                 raise ValueError(f"net_arch as a dict needs exactly the keys {sorted(NETS)}, got {sorted(arch)}.")
@@ -299,7 +304,7 @@ class MlpHybridPolicy(BasePolicy):
             raise ValueError(f"net_arch must list positive layer sizes, got {arch!r}.")
         return tuple(arch)
 
-    def _build(self, lr_schedule: Schedule) -> None:
+    def _build(self, lr_schedule: Schedule | None) -> None:
         groups = 1 if self.share_parameters else self.n_agents
         gains = {"mu": 0.01, "q": 1.0, "pi": 0.01}
         # Networks with the same hidden architecture share one batched chain.
@@ -329,7 +334,8 @@ class MlpHybridPolicy(BasePolicy):
         log_std = th.full((groups, self.n_control), float(self.log_std_init))
         self.log_std = nn.Parameter(log_std, requires_grad=self.learn_log_std)
         params = [p for p in self.parameters() if p.requires_grad]
-        self.optimizer = self.optimizer_class(params, lr=lr_schedule(1), **self.optimizer_kwargs)
+        learning_rate = 0.0 if lr_schedule is None else lr_schedule(1)
+        self.optimizer = self.optimizer_class(params, lr=learning_rate, **self.optimizer_kwargs)
 
     def _get_constructor_parameters(self) -> dict[str, Any]:
         data = super()._get_constructor_parameters()
@@ -745,7 +751,14 @@ class MlpHybridPolicy(BasePolicy):
         :return: ``{"comm": (N,), "control": (N, m)}`` for one observation, or a list of
             such dicts, one per environment, for a batch (what a VecEnv's ``step`` takes);
             controls are clipped to the action bounds
+        :raises ValueError: for the ``(obs, info)`` tuple of a Gymnasium env's ``reset``
         """
+        if isinstance(observation, tuple) and len(observation) == 2 and isinstance(observation[1], dict):
+            raise ValueError(
+                "predict() got an (obs, info) tuple instead of an observation: you are probably mixing the "
+                "Gymnasium API (`obs, info = env.reset()`) with the SB3 VecEnv API (`obs = vec_env.reset()`); "
+                "pass `obs` alone."
+            )
         self.set_training_mode(False)
         obs_tensor, vectorized = self.obs_to_tensor(observation)
         with th.no_grad():

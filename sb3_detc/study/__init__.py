@@ -1,0 +1,1 @@
+"""Multi-seed studies on Ray Tune: ``python -m sb3_detc.study run STUDY.yml --dir DIR`` and ``report DIR``."""

@@ -1,0 +1,66 @@
+"""Multi-seed studies: ``python -m sb3_detc.study run STUDY.yml --dir DIR`` and ``python -m sb3_detc.study report DIR``.
+
+``run`` trains and evaluates every (algorithm, seed) trial of a study file as a Ray Tune
+trial (Ray started on this machine, or ``--address`` of a running cluster); running it
+again skips finished trials and resumes interrupted ones. ``report`` prints the tables
+and writes ``curves.png`` and ``summary.json`` to the study folder. Study files shipped
+with the package can be named without their path (``multiwalker_paper.yml``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+from sb3_detc.study.spec import StudyError, load_study
+from sb3_detc.zoo import run_cli
+
+#: The study files shipped with the package.
+STUDIES_DIR = Path(__file__).resolve().parent.parent / "studies"
+
+
+def _study_path(name: str) -> Path:
+    path = Path(name)
+    if not path.is_file() and (STUDIES_DIR / path.name).is_file() and path.parent == Path():
+        return STUDIES_DIR / path.name
+    return path
+
+
+def _main() -> None:
+    parser = argparse.ArgumentParser(prog="python -m sb3_detc.study", description=__doc__.splitlines()[0])
+    commands = parser.add_subparsers(dest="command", required=True)
+    run = commands.add_parser("run", help="run (or continue) every trial of a study")
+    run.add_argument("study", help=f"study file (or the name of one in {STUDIES_DIR})")
+    run.add_argument("--dir", required=True, type=Path, help="study folder (made if needed)")
+    run.add_argument("--address", default=None, help="address of a running Ray cluster, e.g. auto (default: local)")
+    report = commands.add_parser("report", help="tables, curves.png and summary.json of a study folder")
+    report.add_argument("dir", type=Path, help="study folder")
+    report.add_argument("--no-plot", action="store_true", help="do not draw curves.png")
+    args = parser.parse_args(sys.argv[1:])
+    if args.command == "run":
+        from sb3_detc.study.runner import run_study
+
+        statuses = run_study(load_study(_study_path(args.study)), args.dir, address=args.address)
+        if any(status != "done" for status in statuses.values()):
+            raise SystemExit(1)
+        print(f"[study] done: python -m sb3_detc.study report {args.dir}")
+    else:
+        from sb3_detc.study.report import report_study
+
+        if not (args.dir / "study.yml").is_file():
+            raise StudyError(f"{args.dir} is not a study folder (no study.yml)")
+        print(report_study(args.dir, plot=not args.no_plot))
+
+
+def main(argv: Sequence[str] | None = None) -> None:
+    """Run the study command line.
+
+    :param argv: the arguments (default: ``sys.argv[1:]``)
+    """
+    run_cli("python -m sb3_detc.study", _main, argv)
+
+
+if __name__ == "__main__":
+    main()

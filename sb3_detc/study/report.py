@@ -1,0 +1,253 @@
+"""The report of a study folder: statistics over seeds (rliable), tables, curves and ``summary.json``.
+
+It reads only the trials' files (``evaluation.json``, ``status.json``, ``progress.csv``), so
+anyone with a copy of the folder can make it. Per algorithm label, every metric of
+:func:`~sb3_detc.study.trial.evaluate_policy_modes` is summarised over the finished seeds by
+its mean and a 95 % stratified-bootstrap percentile interval of the mean (rliable's
+``get_interval_estimates``, 10,000 resamples, fixed random state); the interquartile mean
+and the probability that one algorithm's control return beats another's (rliable's
+``probability_of_improvement``, with its interval) compare the algorithms.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import warnings
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from rliable import library as rly
+from rliable import metrics as rly_metrics
+
+from sb3_detc.plot import plot_runs
+from sb3_detc.study.spec import StudyError, load_study
+from sb3_detc.study.trial import read_status, trial_folder
+
+__all__ = ["BOOTSTRAP_REPS", "CURVE_PANELS", "METRICS", "interval_estimates", "report_study", "summarise"]
+
+#: Resamples of the bootstrap intervals.
+BOOTSTRAP_REPS = 10_000
+
+#: Metrics of the report, in table order (those a trial lacks, e.g. package travel on the linear system, are left out).
+METRICS = (
+    "timesteps",
+    "return",
+    "control_return",
+    "savings",
+    "random_same_rate_return",
+    "random_same_rate_control_return",
+    "learned_minus_random_control_return",
+    "periodic_return",
+    "periodic_control_return",
+    "never_return",
+    "never_control_return",
+    "package_travel",
+    "random_same_rate_package_travel",
+    "periodic_package_travel",
+    "fall_rate",
+    "success",
+)
+
+#: Panels of ``curves.png``: training control return (without the communication cost, so that
+#: algorithms trained with and without it compare like with like) and savings.
+CURVE_PANELS = (
+    ("comm/ep_control_return", "control return (no communication cost)"),
+    ("comm/savings", "communication savings"),
+)
+
+
+def interval_estimates(values: dict[str, np.ndarray]) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+    """Means over seeds and their 95 % bootstrap intervals, for every label.
+
+    :param values: label -> array (seeds, metrics)
+    :return: label -> means (metrics,), label -> intervals (2, metrics) (low, high)
+    """
+    return _bootstrap(values, lambda scores: np.mean(scores, axis=0))
+
+
+def _bootstrap(values: dict[str, Any], statistic: Any) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+    """rliable's stratified-bootstrap point estimates and 95 % percentile intervals, reproducibly."""
+    with warnings.catch_warnings():
+        # arch warns that a RandomState will once have to be passed differently; rliable passes it.
+        warnings.simplefilter("ignore", FutureWarning)
+        return rly.get_interval_estimates(
+            values, statistic, reps=BOOTSTRAP_REPS, random_state=np.random.RandomState(0)
+        )
+
+
+def _trials(directory: Path) -> tuple[Any, dict[str, dict[int, dict[str, Any]]], dict[str, dict[int, str]]]:
+    spec = load_study(directory / "study.yml")
+    results: dict[str, dict[int, dict[str, Any]]] = {a.label: {} for a in spec.algorithms}
+    states: dict[str, dict[int, str]] = {a.label: {} for a in spec.algorithms}
+    for trial in spec.trials():
+        folder = trial_folder(directory, trial)
+        status = read_status(folder)
+        state = status["status"]
+        if state == "done" and (folder / "evaluation.json").is_file():
+            evaluation = json.loads((folder / "evaluation.json").read_text())
+            results[trial.algorithm.label][trial.seed] = {"timesteps": evaluation["timesteps"], **evaluation["metrics"]}
+        elif state == "failed":
+            states[trial.algorithm.label][trial.seed] = f"failed ({status.get('error', 'see error.txt')})"
+        else:
+            states[trial.algorithm.label][trial.seed] = f"{state}, {status.get('timesteps', 0)} steps"
+    return spec, results, states
+
+
+def summarise(directory: str | Path) -> dict[str, Any]:
+    """The statistics of a study folder (what ``summary.json`` holds).
+
+    :param directory: the study folder
+    :return: label -> ``seeds`` (seed -> metrics), ``mean`` and ``ci95`` (metric -> value,
+        metric -> [low, high]), ``iqm_control_return``, ``unfinished`` (seed -> state);
+        and under ``"comparisons"`` the probability of improvement of control return for
+        every ordered pair of labels with finished seeds
+    """
+    directory = Path(directory)
+    spec, results, states = _trials(directory)
+    summary: dict[str, Any] = {}
+    scores: dict[str, np.ndarray] = {}
+    for algorithm in spec.algorithms:
+        label = algorithm.label
+        seeds = results[label]
+        entry: dict[str, Any] = {"seeds": seeds, "mean": {}, "ci95": {}, "unfinished": states[label]}
+        summary[label] = entry
+        if not seeds:
+            continue
+        names = [m for m in METRICS if all(m in metrics for metrics in seeds.values())]
+        table = np.array([[float(seeds[s][m]) for m in names] for s in sorted(seeds)])
+        means, intervals = interval_estimates({label: table})
+        for k, name in enumerate(names):
+            entry["mean"][name] = float(means[label][k])
+            entry["ci95"][name] = [float(intervals[label][0, k]), float(intervals[label][1, k])]
+        control = table[:, names.index("control_return")]
+        entry["iqm_control_return"] = float(rly_metrics.aggregate_iqm(control[:, None]))
+        entry["success_count"] = int(table[:, names.index("success")].sum()) if "success" in names else None
+        scores[label] = control[:, None]
+    comparisons = []
+    for x in scores:
+        for y in scores:
+            if x == y:
+                continue
+            point, interval = _bootstrap(
+                {"pair": (scores[x], scores[y])},
+                lambda a, b: np.array([rly_metrics.probability_of_improvement(a, b)]),
+            )
+            comparisons.append(
+                {
+                    "better": x,
+                    "than": y,
+                    "probability": float(point["pair"][0]),
+                    "ci95": [float(interval["pair"][0, 0]), float(interval["pair"][1, 0])],
+                }
+            )
+    summary["comparisons"] = comparisons
+    return summary
+
+
+def _number(value: float, digits: int = 2) -> str:
+    if value is None or (isinstance(value, float) and math.isnan(value)):
+        return "n/a"
+    if abs(value) >= 1000:
+        return f"{value:,.0f}"
+    return f"{value:.{digits}f}"
+
+
+def _markdown(directory: Path, spec: Any, summary: dict[str, Any]) -> str:
+    lines = [f"# Study {directory.name}: {spec.env}", ""]
+    lines += [
+        f"Evaluation: {spec.episodes} episodes per mode, the same seeded episodes for every trial "
+        f"(seeds {spec.eval_seed} to {spec.eval_seed + spec.episodes - 1}). Mean over seeds and 95 % "
+        f"stratified-bootstrap interval (rliable, {BOOTSTRAP_REPS} resamples).",
+        "",
+    ]
+    for algorithm in spec.algorithms:
+        label = algorithm.label
+        entry = summary[label]
+        seeds = entry["seeds"]
+        lines += [f"## {label} ({algorithm.algo}): {len(seeds)} of {len(algorithm.seeds)} seeds finished", ""]
+        for seed, state in sorted(entry["unfinished"].items()):
+            lines.append(f"- seed {seed}: {state}")
+        if entry["unfinished"]:
+            lines.append("")
+        if not seeds:
+            continue
+        lines += ["| metric | mean | 95 % CI |", "|---|---|---|"]
+        for name, mean in entry["mean"].items():
+            low, high = entry["ci95"][name]
+            digits = 3 if name in ("savings", "fall_rate", "success") else 2
+            lines.append(f"| {name} | {_number(mean, digits)} | [{_number(low, digits)}, {_number(high, digits)}] |")
+        lines.append("")
+        difference = entry["mean"].get("learned_minus_random_control_return")
+        if difference is not None:
+            low, high = entry["ci95"]["learned_minus_random_control_return"]
+            lines.append(
+                f"Learned minus random options at the learned rate (control return, paired episodes): "
+                f"{_number(difference)} [{_number(low)}, {_number(high)}]."
+            )
+        if entry.get("success_count") is not None:
+            lines.append(f"Seeds succeeding: {entry['success_count']} of {len(seeds)}.")
+        lines.append(f"Interquartile mean of the control return: {_number(entry['iqm_control_return'])}.")
+        lines.append("")
+        columns = [
+            m
+            for m in (
+                "control_return",
+                "savings",
+                "random_same_rate_control_return",
+                "periodic_control_return",
+                "package_travel",
+                "fall_rate",
+                "success",
+            )
+            if m in entry["mean"]
+        ]
+        lines += ["| seed | " + " | ".join(columns) + " |", "|---" * (len(columns) + 1) + "|"]
+        for seed in sorted(seeds):
+            cells = [
+                _number(float(seeds[seed][m]), 3 if m in ("savings", "fall_rate", "success") else 2) for m in columns
+            ]
+            lines.append(f"| {seed} | " + " | ".join(cells) + " |")
+        lines.append("")
+    if summary["comparisons"]:
+        lines += [
+            "## Probability of improvement (control return)",
+            "",
+            "| algorithm | over | P(X > Y) | 95 % CI |",
+            "|---|---|---|---|",
+        ]
+        for row in summary["comparisons"]:
+            low, high = row["ci95"]
+            lines.append(f"| {row['better']} | {row['than']} | {row['probability']:.2f} | [{low:.2f}, {high:.2f}] |")
+        lines.append("")
+    return "\n".join(lines)
+
+
+def report_study(directory: str | Path, plot: bool = True) -> str:
+    """Write ``summary.json`` (and ``curves.png``) into a study folder and return the Markdown report.
+
+    :param directory: the study folder
+    :param plot: draw the training curves of every algorithm (mean and min-max band over
+        seeds, curriculum phases dashed) to ``curves.png``
+    :return: the report
+    :raises StudyError: if the folder is not a study folder
+    """
+    directory = Path(directory)
+    if not (directory / "study.yml").is_file():
+        raise StudyError(f"{directory} is not a study folder (no study.yml)")
+    spec = load_study(directory / "study.yml")
+    summary = summarise(directory)
+    (directory / "summary.json").write_text(json.dumps(summary, indent=1, default=str) + "\n")
+    text = _markdown(directory, spec, summary)
+    if plot:
+        groups = {}
+        for algorithm in spec.algorithms:
+            runs = [trial_folder(directory, t) for t in spec.trials() if t.algorithm is algorithm]
+            runs = [run for run in runs if (run / "progress.csv").is_file()]
+            if runs:
+                groups[algorithm.label] = runs
+        if groups:
+            figure = plot_runs(groups, directory / "curves.png", title=spec.env, panels=CURVE_PANELS)
+            text += f"\nCurves: {figure}\n"
+    return text

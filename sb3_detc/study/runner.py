@@ -1,0 +1,282 @@
+"""Run a study's trials on Ray Tune: locally (Ray started here) or on a Ray cluster.
+
+The study folder is the state: :func:`run_study` skips every trial whose folder says
+``done``, resumes every other one from its checkpoint (:mod:`sb3_detc.study.trial`) and
+hands the rest to Ray Tune, one Tune trial per (algorithm, seed), each asking for the cores
+its entry needs. Ray's own bookkeeping goes to ``<study dir>/.ray`` and is never read back.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import socket
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from sb3_detc.study.spec import StudyError, StudySpec, load_study
+from sb3_detc.study.trial import read_status, run_trial, trial_folder
+
+__all__ = ["StudyProgress", "prepare_folder", "run_study"]
+
+#: Seconds between two progress lines while nothing else happens.
+PROGRESS_EVERY = 60.0
+
+
+def prepare_folder(spec: StudySpec, directory: str | os.PathLike) -> Path:
+    """Create the study folder, or check that an existing one belongs to this study.
+
+    The folder keeps a copy of the study file (``study.yml``) and a ``.gitignore`` for
+    Ray's files and half-written checkpoints.
+
+    :param spec: the study
+    :param directory: the study folder
+    :return: the folder
+    :raises StudyError: if the folder holds another study's trials
+    """
+    folder = Path(directory)
+    copy = folder / "study.yml"
+    if copy.is_file():
+        if yaml.safe_load(copy.read_text()) != yaml.safe_load(spec.text):
+            raise StudyError(
+                f"{folder} holds trials of another study file (its study.yml differs from {spec.path}); "
+                "use a new --dir or the study file it was made with"
+            )
+    elif folder.exists() and any(folder.iterdir()):
+        raise StudyError(f"{folder} is not empty and has no study.yml: not a study folder")
+    folder.mkdir(parents=True, exist_ok=True)
+    if not copy.is_file():
+        copy.write_text(spec.text)
+    (folder / ".gitignore").write_text(".ray/\n*.tmp\n*.tmp.zip\n*.tmp.csv\n")
+    return folder
+
+
+def _format_duration(seconds: float) -> str:
+    if not math.isfinite(seconds):
+        return "unknown"
+    minutes = int(round(seconds / 60))
+    return f"{minutes // 60} h {minutes % 60:02d} min" if minutes >= 60 else f"{minutes} min"
+
+
+def _make_progress_callback(tune: Any) -> type:
+    class StudyProgressCallback(tune.Callback):
+        """Ray Tune callback that feeds a :class:`StudyProgress`."""
+
+        def __init__(self, progress: StudyProgress) -> None:
+            self.progress = progress
+
+        def on_trial_start(self, iteration: int, trials: list, trial: Any, **info: Any) -> None:
+            self.progress.started(trial.config["trial"])
+
+        def on_trial_result(self, iteration: int, trials: list, trial: Any, result: dict, **info: Any) -> None:
+            self.progress.result(trial.config["trial"], int(result.get("timesteps", 0)))
+
+        def on_trial_complete(self, iteration: int, trials: list, trial: Any, **info: Any) -> None:
+            self.progress.finished(trial.config["trial"], failed=False)
+
+        def on_trial_error(self, iteration: int, trials: list, trial: Any, **info: Any) -> None:
+            self.progress.finished(trial.config["trial"], failed=True)
+
+    return StudyProgressCallback
+
+
+class StudyProgress:
+    """Counts of finished, running, pending and failed trials and an estimate of the time left.
+
+    The estimate divides the steps still to train by the rate at which the running trials
+    advance together (steps per second since each started reporting).
+
+    :param budgets: trial name -> training budget of every trial still to run
+    :param done: number of trials already finished before this run
+    :param stream: where the progress lines go
+    """
+
+    def __init__(self, budgets: dict[str, int], done: int = 0, stream: Any = None) -> None:
+        self.budgets = budgets
+        self.done = done
+        self.failed = 0
+        self.stream = stream or sys.stdout
+        self.steps: dict[str, int] = {}
+        self.first: dict[str, tuple[float, int]] = {}
+        self.running: set[str] = set()
+        self.finished_names: set[str] = set()
+        self._last_line = 0.0
+
+    @property
+    def pending(self) -> int:
+        """Trials neither running nor finished."""
+        return len(self.budgets) - len(self.running) - len(self.finished_names)
+
+    def rate(self) -> float:
+        """Steps per second of all running trials together (NaN before two reports)."""
+        now = time.monotonic()
+        total = 0.0
+        for name in self.running:
+            if name in self.first and now > self.first[name][0] and self.steps[name] > self.first[name][1]:
+                total += (self.steps[name] - self.first[name][1]) / (now - self.first[name][0])
+        return total if total > 0 else math.nan
+
+    def seconds_left(self) -> float:
+        """Estimated seconds until every trial has trained (evaluation not counted)."""
+        left = sum(
+            budget - self.steps.get(name, 0) for name, budget in self.budgets.items() if name not in self.finished_names
+        )
+        return left / self.rate() if left > 0 else 0.0
+
+    def line(self) -> str:
+        """The progress line."""
+        running = ", ".join(
+            f"{name} {100 * self.steps.get(name, 0) / self.budgets[name]:.0f} %" for name in sorted(self.running)
+        )
+        return (
+            f"[study] {self.done} done, {len(self.running)} running"
+            + (f" ({running})" if running else "")
+            + f", {self.pending} pending, {self.failed} failed; time left: {_format_duration(self.seconds_left())}"
+        )
+
+    def show(self, force: bool = False) -> None:
+        """Print the progress line (at most every :data:`PROGRESS_EVERY` seconds unless forced)."""
+        now = time.monotonic()
+        if force or now - self._last_line >= PROGRESS_EVERY:
+            print(self.line(), file=self.stream, flush=True)
+            self._last_line = now
+
+    def started(self, name: str) -> None:
+        """A trial started (or resumed)."""
+        self.running.add(name)
+        self.show(force=True)
+
+    def result(self, name: str, steps: int) -> None:
+        """A trial reported its step count."""
+        self.steps[name] = steps
+        self.first.setdefault(name, (time.monotonic(), steps))
+        self.show()
+
+    def finished(self, name: str, failed: bool) -> None:
+        """A trial ended (trained and evaluated, or failed)."""
+        self.running.discard(name)
+        self.finished_names.add(name)
+        if failed:
+            self.failed += 1
+        else:
+            self.done += 1
+            self.steps[name] = self.budgets[name]
+        self.show(force=True)
+
+
+def _check_address(address: str, timeout: float = 10.0) -> None:
+    """Fail fast where a ``host:port`` cluster address does not answer (Ray itself retries for minutes).
+
+    :param address: the address given with ``--address`` (``auto`` and ``ray://`` addresses are left to Ray)
+    :param timeout: seconds to wait for a connection
+    :raises StudyError: if nothing answers at the address
+    """
+    if address == "auto" or "://" in address:
+        return
+    host, _, port = address.rpartition(":")
+    if not host or not port.isdigit():
+        raise StudyError(f"--address must be auto or host:port of a Ray cluster's head, got {address!r}")
+    try:
+        socket.create_connection((host, int(port)), timeout=timeout).close()
+    except OSError as error:
+        raise StudyError(f"the Ray cluster at {address} does not answer ({error})") from None
+
+
+def _trainable(config: dict[str, Any]) -> None:
+    """One Ray Tune trial: run (or resume) a study trial and report its progress."""
+    from ray import tune
+
+    spec = load_study(config["study"])
+    trial = next(t for t in spec.trials() if t.name == config["trial"])
+    budget = spec.budget(trial.algorithm)
+
+    def report(steps: int) -> None:
+        tune.report({"timesteps": steps, "budget": budget})
+
+    status = run_trial(spec, trial, config["directory"], on_progress=report)
+    tune.report({"timesteps": status.get("timesteps", budget), "budget": budget, "done": 1})
+
+
+def run_study(
+    spec: StudySpec, directory: str | os.PathLike, address: str | None = None, stream: Any = None
+) -> dict[str, str]:
+    """Run every unfinished trial of a study on Ray Tune.
+
+    :param spec: the study
+    :param directory: the study folder (made if needed; on a cluster, a path every node sees)
+    :param address: address of a running Ray cluster (``auto`` for the one this machine
+        belongs to); None: start Ray on this machine with all its cores
+    :param stream: where progress lines go (default: stdout)
+    :return: trial name -> final status (``done`` or ``failed``) of every trial of the study
+    :raises StudyError: if the folder belongs to another study or the cluster does not answer
+    """
+    folder = prepare_folder(spec, directory).resolve()
+    trials = spec.trials()
+    todo = [t for t in trials if read_status(trial_folder(folder, t))["status"] != "done"]
+    stream = stream or sys.stdout
+    if not todo:
+        print(f"[study] all {len(trials)} trials are done; see python -m sb3_detc.study report {folder}", file=stream)
+        return {t.name: "done" for t in trials}
+    if address is not None:
+        _check_address(address)
+    os.environ.setdefault("RAY_AIR_NEW_OUTPUT", "0")  # with verbose=0: no tables of Ray's own
+    import ray
+    from ray import tune
+
+    try:
+        if address is None:
+            ray.init(
+                address="local",  # a Ray of its own, even where another one runs
+                num_cpus=os.cpu_count(),
+                include_dashboard=False,
+                log_to_driver=False,
+                logging_level=logging.WARNING,
+            )
+        else:
+            ray.init(address=address, log_to_driver=False, logging_level=logging.WARNING)
+    except (ConnectionError, RuntimeError, ValueError) as error:
+        raise StudyError(f"cannot reach the Ray cluster at {address!r}: {' '.join(str(error).split())}") from None
+    try:
+        cores = int(ray.cluster_resources().get("CPU", 1))
+        cpus = {t.name: min(t.algorithm.cpus, cores) for t in todo}
+        progress = StudyProgress({t.name: spec.budget(t.algorithm) for t in todo}, len(trials) - len(todo), stream)
+        print(
+            f"[study] {len(trials)} trials: {len(trials) - len(todo)} done, {len(todo)} to run on {cores} cores "
+            f"(results in {folder})",
+            file=stream,
+            flush=True,
+        )
+        trainable = tune.with_resources(_trainable, lambda config: {"cpu": cpus[config["trial"]]})
+        tuner = tune.Tuner(
+            trainable,
+            param_space={
+                "study": str(spec.path.resolve()),
+                "directory": str(folder),
+                "trial": tune.grid_search([t.name for t in todo]),
+            },
+            tune_config=tune.TuneConfig(trial_dirname_creator=lambda trial: trial.config["trial"].replace("/", "_")),
+            run_config=tune.RunConfig(
+                name="study",
+                storage_path=str(folder / ".ray"),
+                verbose=0,
+                callbacks=[_make_progress_callback(tune)(progress)],
+                failure_config=tune.FailureConfig(max_failures=0, fail_fast=False),
+            ),
+        )
+        tuner.fit()
+    finally:
+        ray.shutdown()
+    statuses = {t.name: read_status(trial_folder(folder, t))["status"] for t in trials}
+    failed = [name for name, status in statuses.items() if status != "done"]
+    progress.show(force=True)
+    for name in failed:
+        print(
+            f"[study] {name} failed: see {trial_folder(folder, next(t for t in trials if t.name == name))}/error.txt",
+            file=stream,
+        )
+    return statuses

@@ -1,0 +1,273 @@
+"""Study files: which algorithms (hyperparameter entries), which seeds, what budget, how to evaluate.
+
+A study file is YAML::
+
+    env: sb3_detc/MultiwalkerETC-v0      # registered environment id
+    seeds: [0, 1, 2, 3, 4]               # default seeds of every algorithm
+    n_timesteps: 6144000                 # optional: training budget (default: each entry's own)
+    checkpoint_interval: 204800          # environment steps between checkpoints
+    evaluation:                          # optional
+      episodes: 50                       # seeded episodes per mode (the same for every trial)
+      seed: 10000                        # seed of the first episode (episode k: seed + k)
+    algorithms:                          # label -> trial settings
+      mappoc_paper:
+        algo: mappoc                     # rl-zoo3 algorithm name
+      control_first:
+        algo: mappoc
+        seeds: [0, 1, 2]                 # optional: this algorithm's own seeds
+        cpus: 2                          # optional: cores per trial (default: see below)
+        conf: my_hyperparams.yml         # optional: another hyperparameter file (relative to the study file)
+        hyperparams:                     # optional: overrides of the entry, as rl-zoo3's --hyperparams
+          option_ent_coef: 0.03
+
+The entry of ``env`` is taken from the package's hyperparameter file of the algorithm
+(``sb3_detc/hyperparams/<algo>.yml``) unless ``conf`` names another one. A trial uses as
+many cores as its entry's rollout workers (``n_envs`` with
+:class:`~sb3_detc.mappoc.workers.RolloutWorker` envs), otherwise one.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from tempfile import TemporaryDirectory
+from typing import Any
+
+import yaml
+
+from sb3_detc.zoo import (
+    ALGORITHMS,
+    HYPERPARAMS_DIR,
+    ROLLOUT_WORKER,
+    InputError,
+    check_algorithm,
+    check_env,
+    check_hyperparams_file,
+)
+
+__all__ = ["AlgorithmSpec", "StudyError", "StudySpec", "Trial", "load_study"]
+
+#: Keys of a study file and of one algorithm's settings.
+STUDY_KEYS = frozenset({"env", "seeds", "n_timesteps", "checkpoint_interval", "evaluation", "algorithms"})
+ALGORITHM_KEYS = frozenset({"algo", "seeds", "cpus", "conf", "hyperparams"})
+EVALUATION_KEYS = frozenset({"episodes", "seed"})
+
+
+class StudyError(InputError):
+    """A malformed study file or study folder: reported as one line with exit code 2."""
+
+
+@dataclass(frozen=True)
+class AlgorithmSpec:
+    """One algorithm of a study: a hyperparameter entry, its overrides and its seeds.
+
+    :param label: the name of the algorithm in the study (folder names, report rows)
+    :param algo: rl-zoo3 algorithm name
+    :param conf: the hyperparameter file
+    :param hyperparams: overrides of the entry
+    :param seeds: the seeds
+    :param cpus: cores per trial
+    :param entry: the entry of the study's env in ``conf``, with the overrides applied
+    """
+
+    label: str
+    algo: str
+    conf: Path
+    hyperparams: dict[str, Any]
+    seeds: tuple[int, ...]
+    cpus: int
+    entry: dict[str, Any]
+
+
+@dataclass(frozen=True)
+class Trial:
+    """One (algorithm, seed) run of a study.
+
+    :param algorithm: the algorithm's settings
+    :param seed: the seed
+    """
+
+    algorithm: AlgorithmSpec
+    seed: int
+
+    @property
+    def name(self) -> str:
+        """The trial's name, also its folder below ``trials/``: ``<label>/seed<seed>``."""
+        return f"{self.algorithm.label}/seed{self.seed}"
+
+
+@dataclass(frozen=True)
+class StudySpec:
+    """A parsed study file (see the module for the format).
+
+    :param path: the study file
+    :param text: its content (a study folder remembers it)
+    :param env: environment id
+    :param n_timesteps: training budget, or None for every entry's own ``n_timesteps``
+    :param checkpoint_interval: environment steps between checkpoints
+    :param episodes: evaluation episodes per mode
+    :param eval_seed: seed of the first evaluation episode
+    :param algorithms: the algorithms, in the file's order
+    """
+
+    path: Path
+    text: str
+    env: str
+    n_timesteps: int | None
+    checkpoint_interval: int
+    episodes: int
+    eval_seed: int
+    algorithms: tuple[AlgorithmSpec, ...] = field(default_factory=tuple)
+
+    @property
+    def digest(self) -> str:
+        """A fingerprint of the study's content (a study folder belongs to one study)."""
+        return hashlib.sha256(self.text.encode()).hexdigest()[:16]
+
+    def trials(self) -> list[Trial]:
+        """Every (algorithm, seed) trial: each algorithm's first seed (in the file's order), then the second ones, ...
+
+        Run in this order, a study has comparable results of every algorithm early.
+        """
+        trials = [
+            (k, a, Trial(algorithm, seed))
+            for a, algorithm in enumerate(self.algorithms)
+            for k, seed in enumerate(algorithm.seeds)
+        ]
+        return [trial for _, _, trial in sorted(trials, key=lambda item: item[:2])]
+
+    def budget(self, algorithm: AlgorithmSpec) -> int:
+        """Training steps of one trial of ``algorithm``."""
+        return int(self.n_timesteps if self.n_timesteps is not None else algorithm.entry["n_timesteps"])
+
+
+def _fail(path: Path, message: str) -> StudyError:
+    return StudyError(f"{path}: {message}")
+
+
+def _int(path: Path, where: str, value: Any, minimum: int) -> int:
+    if isinstance(value, float) and value.is_integer():
+        value = int(value)
+    if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
+        raise _fail(path, f"{where} must be an integer >= {minimum}, got {value!r}")
+    return value
+
+
+def _seeds(path: Path, where: str, value: Any) -> tuple[int, ...]:
+    if not isinstance(value, list) or not value:
+        raise _fail(path, f"{where} must be a non-empty list of integers, got {value!r}")
+    seeds = tuple(_int(path, where, seed, 0) for seed in value)
+    if len(set(seeds)) != len(seeds):
+        raise _fail(path, f"{where} lists a seed twice: {list(seeds)}")
+    return seeds
+
+
+def _unknown(path: Path, where: str, keys: Any, allowed: frozenset[str]) -> None:
+    extra = sorted(set(map(str, keys)) - allowed)
+    if extra:
+        raise _fail(path, f"unknown key {extra[0]!r} in {where} (allowed: {', '.join(sorted(allowed))})")
+
+
+def _algorithm(path: Path, env: str, label: Any, settings: Any, seeds: tuple[int, ...] | None) -> AlgorithmSpec:
+    if not isinstance(label, str) or not label or "/" in label or label.startswith("."):
+        raise _fail(path, f"an algorithm label must be a non-empty name without '/', got {label!r}")
+    if not isinstance(settings, dict):
+        raise _fail(path, f"algorithm {label!r} needs a mapping with at least 'algo', got {settings!r}")
+    _unknown(path, f"algorithm {label!r}", settings, ALGORITHM_KEYS)
+    algo = settings.get("algo")
+    if not isinstance(algo, str):
+        raise _fail(path, f"algorithm {label!r}: missing 'algo' (an rl-zoo3 algorithm name)")
+    try:
+        check_algorithm(algo)
+    except InputError as error:
+        raise _fail(path, f"algorithm {label!r}: {error}") from None
+    if "conf" in settings:
+        conf = Path(os.path.expanduser(str(settings["conf"])))
+        conf = conf if conf.is_absolute() else path.parent / conf
+    elif algo in ALGORITHMS:
+        conf = HYPERPARAMS_DIR / f"{algo}.yml"
+    else:
+        raise _fail(path, f"algorithm {label!r}: {algo!r} is not one of sb3-detc's algorithms, name its 'conf' file")
+    hyperparams = settings.get("hyperparams") or {}
+    if not isinstance(hyperparams, dict):
+        raise _fail(path, f"algorithm {label!r}: 'hyperparams' must be a mapping, got {hyperparams!r}")
+    own = settings.get("seeds")
+    trial_seeds = _seeds(path, f"the seeds of {label!r}", own) if own is not None else seeds
+    if trial_seeds is None:
+        raise _fail(path, f"algorithm {label!r} has no seeds (give 'seeds' at the top or in the algorithm)")
+    entry = _checked_entry(path, env, label, algo, conf, hyperparams)
+    cpus = settings.get("cpus")
+    if cpus is None:
+        wrappers = entry.get("env_wrapper") or []
+        wrappers = wrappers if isinstance(wrappers, list) else [wrappers]
+        names = [w if isinstance(w, str) else next(iter(w)) for w in wrappers]
+        cpus = int(entry.get("n_envs", 1)) if ROLLOUT_WORKER in names else 1
+    cpus = _int(path, f"'cpus' of {label!r}", cpus, 1)
+    return AlgorithmSpec(label, algo, conf, dict(hyperparams), trial_seeds, cpus, entry)
+
+
+def _checked_entry(
+    path: Path, env: str, label: str, algo: str, conf: Path, hyperparams: dict[str, Any]
+) -> dict[str, Any]:
+    """The entry with the overrides, checked as a whole (written to a scratch file as rl-zoo3 would read it)."""
+    try:
+        entry = dict(check_hyperparams_file(conf, algo, env))
+    except InputError as error:
+        raise _fail(path, f"algorithm {label!r}: {error}") from None
+    merged = {**entry, **hyperparams}
+    try:
+        with TemporaryDirectory() as scratch:
+            merged_file = Path(scratch) / "entry.yml"
+            merged_file.write_text(yaml.safe_dump({env: merged}))
+            check_hyperparams_file(merged_file, algo, env)
+    except InputError as error:
+        message = str(error).split(": ", 1)[-1]
+        raise _fail(path, f"algorithm {label!r}: {message}") from None
+    return merged
+
+
+def load_study(path: str | os.PathLike) -> StudySpec:
+    """Read and check a study file.
+
+    :param path: the YAML file
+    :return: the study
+    :raises StudyError: on the first problem, with the file and the key in the message
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise StudyError(f"study file {str(path)!r} not found")
+    text = path.read_text()
+    try:
+        content = yaml.safe_load(text)
+    except yaml.YAMLError as error:
+        mark = getattr(error, "problem_mark", None)
+        at = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
+        raise _fail(path, f"not valid YAML{at}: {getattr(error, 'problem', None) or type(error).__name__}") from None
+    if not isinstance(content, dict):
+        raise _fail(path, "a study file is a mapping with at least 'env' and 'algorithms'")
+    _unknown(path, "the study", content, STUDY_KEYS)
+    env = content.get("env")
+    if not isinstance(env, str):
+        raise _fail(path, "missing 'env' (a registered environment id)")
+    try:
+        check_env(env)
+    except InputError as error:
+        raise _fail(path, str(error)) from None
+    seeds = _seeds(path, "'seeds'", content["seeds"]) if "seeds" in content else None
+    n_timesteps = content.get("n_timesteps")
+    if n_timesteps is not None:
+        n_timesteps = _int(path, "'n_timesteps'", n_timesteps, 1)
+    interval = _int(path, "'checkpoint_interval'", content.get("checkpoint_interval", 100_000), 1)
+    evaluation = content.get("evaluation") or {}
+    if not isinstance(evaluation, dict):
+        raise _fail(path, f"'evaluation' must be a mapping, got {evaluation!r}")
+    _unknown(path, "'evaluation'", evaluation, EVALUATION_KEYS)
+    episodes = _int(path, "'evaluation: episodes'", evaluation.get("episodes", 50), 1)
+    eval_seed = _int(path, "'evaluation: seed'", evaluation.get("seed", 10_000), 0)
+    algorithms = content.get("algorithms")
+    if not isinstance(algorithms, dict) or not algorithms:
+        raise _fail(path, "'algorithms' must be a non-empty mapping of labels to settings")
+    specs = tuple(_algorithm(path, env, label, settings, seeds) for label, settings in algorithms.items())
+    return StudySpec(path, text, env, n_timesteps, interval, episodes, eval_seed, specs)

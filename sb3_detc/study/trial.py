@@ -1,0 +1,346 @@
+"""One trial of a study: train from a hyperparameter entry with checkpoints, resume, evaluate.
+
+A trial's folder (``<study dir>/trials/<label>/seed<seed>/``) holds plain files:
+
+* ``status.json``: ``status`` (``running``, ``done`` or ``failed``), ``timesteps``, ``budget``,
+  ``seconds`` (training time over all attempts);
+* ``checkpoint.zip`` and ``checkpoint.json`` while it trains: the latest checkpoint (the whole
+  model, optimizer included) and its step count, written atomically every
+  ``checkpoint_interval`` steps at the start of a rollout;
+* ``segments/<first step>/``: rl-zoo3's files of every attempt (``config.yml``, monitor
+  files, the logger's ``progress.csv``); ``progress.csv`` in the trial folder merges them,
+  cut at each checkpoint an attempt resumed from;
+* when done: ``policy.pt`` (the final policy only, :meth:`MlpHybridPolicy.load`) and
+  ``evaluation.json`` (:func:`evaluate_policy_modes`); the checkpoint is removed;
+* ``error.txt``: the traceback of the last failure.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import shutil
+import time
+import traceback
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+import pandas as pd
+import torch as th
+from rl_zoo3.utils import get_callback_list
+from stable_baselines3.common.callbacks import BaseCallback
+
+from sb3_detc.callbacks import FixedTriggerCallback
+from sb3_detc.evaluation import Episodes, evaluate_episodes
+from sb3_detc.mappoc.policies import MlpHybridPolicy
+from sb3_detc.study.spec import StudySpec, Trial
+from sb3_detc.triggers import RandomTrigger
+from sb3_detc.zoo import ExperimentManager
+
+__all__ = [
+    "MODES",
+    "TrialCheckpoint",
+    "evaluate_policy_modes",
+    "merged_progress",
+    "read_status",
+    "run_trial",
+    "trial_folder",
+]
+
+#: The evaluation modes, in the order of the protocol.
+MODES = ("learned", "random_same_rate", "periodic", "never")
+
+#: Fraction of evaluation episodes without a fall for a Multiwalker seed to succeed.
+SUCCESS_NO_FALL = 0.9
+#: Package travel of a successful seed relative to periodic communication with the same controller.
+SUCCESS_TRAVEL = 0.5
+
+
+def trial_folder(directory: str | os.PathLike, trial: Trial) -> Path:
+    """The folder of ``trial`` in the study folder ``directory``."""
+    return Path(directory) / "trials" / trial.algorithm.label / f"seed{trial.seed}"
+
+
+def _write_json(path: Path, content: dict[str, Any]) -> None:
+    scratch = path.with_suffix(".tmp")
+    scratch.write_text(json.dumps(content, indent=1) + "\n")
+    os.replace(scratch, path)
+
+
+def read_status(folder: Path) -> dict[str, Any]:
+    """A trial's ``status.json`` (``{"status": "pending"}`` if it has none)."""
+    path = folder / "status.json"
+    return json.loads(path.read_text()) if path.is_file() else {"status": "pending"}
+
+
+class TrialCheckpoint(BaseCallback):
+    """Save the whole model to ``<folder>/checkpoint.zip`` every ``interval`` steps, at the start of a rollout.
+
+    At the start of a rollout the model has learned from every step it counted, so a run
+    resumed from the checkpoint repeats nothing and loses nothing but the steps after it.
+    The file is replaced atomically; ``checkpoint.json`` holds its step count. After every
+    save (and at every rollout start) ``on_progress`` gets the step count.
+
+    :param folder: the trial folder
+    :param interval: environment steps between checkpoints
+    :param on_progress: called with the model's step count at the start of every rollout
+    :param on_save: called after every checkpoint
+    :param verbose: verbosity level
+    """
+
+    def __init__(
+        self,
+        folder: Path,
+        interval: int,
+        on_progress: Callable[[int], None] | None = None,
+        on_save: Callable[[int], None] | None = None,
+        verbose: int = 0,
+    ) -> None:
+        super().__init__(verbose)
+        self.folder = Path(folder)
+        self.interval = interval
+        self.on_progress = on_progress
+        self.on_save = on_save
+        self._saved_at: int | None = None
+
+    def _on_training_start(self) -> None:
+        self._saved_at = self.model.num_timesteps
+
+    def _on_rollout_start(self) -> None:
+        steps = self.model.num_timesteps
+        if steps - self._saved_at >= self.interval:
+            scratch = self.folder / "checkpoint.tmp.zip"
+            self.model.save(scratch)
+            os.replace(scratch, self.folder / "checkpoint.zip")
+            _write_json(self.folder / "checkpoint.json", {"timesteps": steps})
+            self._saved_at = steps
+            if self.on_save is not None:
+                self.on_save(steps)
+        if self.on_progress is not None:
+            self.on_progress(steps)
+
+    def _on_step(self) -> bool:
+        return True
+
+
+def merged_progress(folder: Path) -> pd.DataFrame:
+    """The logger's rows of all attempts of a trial, each attempt's rows cut where the next one resumed.
+
+    :param folder: the trial folder
+    :return: the rows, by ``time/total_timesteps`` (empty if nothing was logged)
+    """
+    starts = sorted((int(path.name), path) for path in (folder / "segments").glob("*") if path.name.isdigit())
+    parts = []
+    for k, (_, path) in enumerate(starts):
+        csv = path / "progress.csv"
+        if not csv.is_file() or csv.stat().st_size == 0:
+            continue
+        rows = pd.read_csv(csv)
+        if k + 1 < len(starts) and "time/total_timesteps" in rows:
+            rows = rows[rows["time/total_timesteps"] <= starts[k + 1][0]]
+        parts.append(rows)
+    return pd.concat(parts, ignore_index=True) if parts else pd.DataFrame()
+
+
+def _write_progress(folder: Path) -> None:
+    rows = merged_progress(folder)
+    if not rows.empty:
+        scratch = folder / "progress.tmp.csv"
+        rows.to_csv(scratch, index=False)
+        os.replace(scratch, folder / "progress.csv")
+
+
+def _episodes_json(episodes: Episodes) -> dict[str, Any]:
+    return {
+        "return": episodes.returns.tolist(),
+        "control_return": episodes.control_returns.tolist(),
+        "length": episodes.lengths.tolist(),
+        "broadcasts": episodes.broadcasts.sum(axis=1).tolist(),
+        "failed": episodes.failed.tolist(),
+        "package_travel": [None if math.isnan(x) else x for x in episodes.package_travel.tolist()],
+        "savings": episodes.savings,
+    }
+
+
+def evaluate_policy_modes(
+    policy: MlpHybridPolicy,
+    env: gym.Env,
+    episodes: int,
+    seed: int,
+    own_trigger: Any = None,
+) -> dict[str, Any]:
+    """The study's evaluation protocol: the same seeded episodes in four communication modes.
+
+    Episode ``k`` is reset with ``seed + k`` in every mode; the control policy acts with its
+    mean. Modes: ``learned`` (options sampled from the policy over options, or the fixed
+    trigger the trial trained with, ``own_trigger``), ``random_same_rate`` (every agent
+    skips at random with the learned mode's savings), ``periodic`` (every agent broadcasts
+    every step), ``never`` (no broadcasts after the reset).
+
+    :param policy: the trained policy
+    :param env: a joint env with the trial's settings (communication cost included)
+    :param episodes: episodes per mode
+    :param seed: seed of the first episode
+    :param own_trigger: the trial's fixed trigger (None: its policy over options)
+    :return: ``modes`` (mode -> per-episode lists and savings) and ``metrics`` (see the
+        study report: returns with and without the communication cost per mode, savings, the
+        mean paired difference of learned and random control returns, and where the env
+        reports them package travel, fall rate and success)
+    """
+    seeds = [seed + k for k in range(episodes)]
+    if own_trigger is not None and hasattr(own_trigger, "fork"):
+        own_trigger = own_trigger.fork(seed)
+    learned = evaluate_episodes(
+        policy, env, seeds, deterministic=True, deterministic_options=False, option_override=own_trigger
+    )
+    results = {"learned": learned}
+    for mode, skip in (("random_same_rate", learned.savings), ("periodic", 0.0), ("never", 1.0)):
+        trigger = RandomTrigger(float(np.clip(skip, 0.0, 1.0)), seed=seed)
+        results[mode] = evaluate_episodes(policy, env, seeds, deterministic=True, option_override=trigger)
+    metrics: dict[str, float] = {
+        "return": float(np.mean(learned.returns)),
+        "control_return": float(np.mean(learned.control_returns)),
+        "savings": learned.savings,
+    }
+    for mode in MODES[1:]:
+        metrics[f"{mode}_return"] = float(np.mean(results[mode].returns))
+        metrics[f"{mode}_control_return"] = float(np.mean(results[mode].control_returns))
+    metrics["random_same_rate_savings"] = results["random_same_rate"].savings
+    difference = learned.control_returns - results["random_same_rate"].control_returns
+    metrics["learned_minus_random_control_return"] = float(np.mean(difference))
+    if not np.isnan(learned.package_travel).any():
+        metrics["package_travel"] = float(np.mean(learned.package_travel))
+        metrics["fall_rate"] = float(np.mean(learned.failed))
+        metrics["periodic_package_travel"] = float(np.mean(results["periodic"].package_travel))
+        metrics["random_same_rate_package_travel"] = float(np.mean(results["random_same_rate"].package_travel))
+        carried = 1.0 - metrics["fall_rate"] >= SUCCESS_NO_FALL
+        far = metrics["package_travel"] >= SUCCESS_TRAVEL * metrics["periodic_package_travel"]
+        metrics["success"] = float(carried and far)
+    return {
+        "episodes": episodes,
+        "seed": seed,
+        "modes": {mode: _episodes_json(result) for mode, result in results.items()},
+        "metrics": metrics,
+    }
+
+
+def _fixed_trigger(entry: dict[str, Any]) -> Any:
+    """The trigger of a fixed-trigger callback in the entry (the random-skip baseline), else None."""
+    if "callback" not in entry:
+        return None
+    callbacks = get_callback_list({"callback": entry["callback"]})
+    triggers = [c.trigger for c in callbacks if isinstance(c, FixedTriggerCallback)]
+    return triggers[0] if triggers else None
+
+
+def _train(spec: StudySpec, trial: Trial, folder: Path, on_progress: Callable[[int], None] | None) -> None:
+    algorithm = trial.algorithm
+    budget = spec.budget(algorithm)
+    checkpoint = folder / "checkpoint.zip"
+    start = 0
+    if checkpoint.is_file() and (folder / "checkpoint.json").is_file():
+        start = int(json.loads((folder / "checkpoint.json").read_text())["timesteps"])
+    if start >= budget:
+        raise RuntimeError(f"the checkpoint of {trial.name} is at {start} steps, not below the budget {budget}")
+    args = argparse.Namespace(
+        algo=algorithm.algo, env=spec.env, seed=trial.seed, n_timesteps=budget, study=str(spec.path)
+    )
+    manager = ExperimentManager(
+        args,
+        algorithm.algo,
+        spec.env,
+        log_folder=str(folder / "segments"),
+        n_timesteps=budget - start,
+        eval_freq=-1,
+        save_freq=-1,
+        log_interval=-1,
+        hyperparams=dict(algorithm.hyperparams),
+        trained_agent=str(checkpoint) if start else "",
+        seed=trial.seed,
+        verbose=0,
+        config=str(algorithm.conf),
+        device="cpu",
+    )
+    segment = folder / "segments" / str(start)
+    if segment.exists():
+        shutil.rmtree(segment)
+    manager.save_path = str(segment)
+    manager.params_path = str(segment / "params")
+    model, _ = manager.setup_experiment()
+
+    def saved(steps: int) -> None:
+        _write_progress(folder)
+        status = read_status(folder)
+        _write_json(folder / "status.json", {**status, "timesteps": steps})
+
+    manager.callbacks.append(TrialCheckpoint(folder, spec.checkpoint_interval, on_progress, saved))
+    began = time.monotonic()
+    manager.learn(model)
+    status = read_status(folder)
+    seconds = status.get("seconds", 0.0) + time.monotonic() - began
+    _write_json(folder / "status.json", {**status, "timesteps": model.num_timesteps, "seconds": seconds})
+    if model.num_timesteps < budget:
+        raise RuntimeError(f"training of {trial.name} stopped at {model.num_timesteps} of {budget} steps")
+    model.policy.save(str(folder / "policy.pt"))
+    _write_progress(folder)
+
+
+def run_trial(
+    spec: StudySpec,
+    trial: Trial,
+    directory: str | os.PathLike,
+    on_progress: Callable[[int], None] | None = None,
+) -> dict[str, Any]:
+    """Train (or resume) and evaluate one trial in its folder; a finished trial is left as it is.
+
+    :param spec: the study
+    :param trial: the trial
+    :param directory: the study folder
+    :param on_progress: called with the step count at the start of every rollout
+    :return: the trial's status
+    :raises Exception: whatever training or evaluation raised, after writing its traceback
+        to ``error.txt`` and ``failed`` to ``status.json``
+    """
+    folder = trial_folder(directory, trial)
+    folder.mkdir(parents=True, exist_ok=True)
+    status = read_status(folder)
+    if status["status"] == "done":
+        return status
+    budget = spec.budget(trial.algorithm)
+    _write_json(folder / "status.json", {**status, "status": "running", "budget": budget})
+    threads = th.get_num_threads()
+    th.set_num_threads(trial.algorithm.cpus)
+    try:
+        if not (folder / "policy.pt").is_file():
+            _train(spec, trial, folder, on_progress)
+        policy = MlpHybridPolicy.load(str(folder / "policy.pt"), device="cpu")
+        env_kwargs = trial.algorithm.entry.get("env_kwargs") or {}
+        env = gym.make(spec.env, **env_kwargs)
+        try:
+            evaluation = evaluate_policy_modes(
+                policy, env, spec.episodes, spec.eval_seed, _fixed_trigger(trial.algorithm.entry)
+            )
+        finally:
+            env.close()
+        evaluation["timesteps"] = read_status(folder).get("timesteps", budget)
+        _write_json(folder / "evaluation.json", evaluation)
+        for leftover in ("checkpoint.zip", "checkpoint.json"):
+            (folder / leftover).unlink(missing_ok=True)
+        status = {**read_status(folder), "status": "done"}
+        status.pop("error", None)
+        _write_json(folder / "status.json", status)
+        return status
+    except BaseException as error:
+        (folder / "error.txt").write_text(traceback.format_exc())
+        _write_json(
+            folder / "status.json",
+            {**read_status(folder), "status": "failed", "error": f"{type(error).__name__}: {error}"},
+        )
+        raise
+    finally:
+        th.set_num_threads(threads)

@@ -1,0 +1,305 @@
+"""Multi-seed studies: study files, the Ray Tune runner, resumption after a kill, the report."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from sb3_detc.study.__main__ import main as study_main
+from sb3_detc.study.report import report_study, summarise
+from sb3_detc.study.spec import StudyError, load_study
+from sb3_detc.study.trial import MODES, read_status, trial_folder
+
+ROOT = Path(__file__).resolve().parents[1]
+
+#: A tiny study: the LQR-controlled linear system (one core per trial), 2 algorithms x 2 seeds.
+TINY = {
+    "env": "sb3_detc/LinearETC-LQR-v0",
+    "seeds": [0, 1],
+    "n_timesteps": 2048,
+    "checkpoint_interval": 1024,
+    "evaluation": {"episodes": 3, "seed": 500},
+    "algorithms": {"learned": {"algo": "mappoc"}, "random": {"algo": "ppo_random_skip"}},
+}
+
+
+def write_study(folder: Path, content: dict | str, name: str = "study.yml") -> Path:
+    path = folder / name
+    path.write_text(content if isinstance(content, str) else yaml.safe_dump(content, sort_keys=False))
+    return path
+
+
+def run_command(*args: str, timeout: float = 600) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "sb3_detc.study", *args],
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        cwd=ROOT,
+    )
+
+
+# ----------------------------------------------------------------------------- study files
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        ({"env": "sb3_detc/NoSuchEnv-v0"}, "unknown environment"),
+        ({"algorithms": {"a": {"algo": "mapoc"}}}, "unknown algorithm 'mapoc'"),
+        ({"algorithms": {"a": {"algo": "mappoc", "hyperparams": {"learning_rat": 1e-3}}}}, "learning_rat"),
+        ({"algorithms": {"a": {"algo": "mappoc", "colour": 1}}}, "unknown key 'colour'"),
+        ({"algorithms": {"a/b": {"algo": "mappoc"}}}, "label"),
+        ({"seeds": [0, 0]}, "seed twice"),
+        ({"seeds": "zero"}, "list of integers"),
+        ({"n_timesteps": -5}, "'n_timesteps' must be an integer >= 1"),
+        ({"evaluation": {"episodes": 0}}, "episodes"),
+        ({"evaluation": {"episods": 3}}, "unknown key 'episods'"),
+        ({"budget": 3}, "unknown key 'budget'"),
+        ({"algorithms": {}}, "'algorithms' must be a non-empty mapping"),
+    ],
+)
+def test_bad_study_files_are_refused_with_the_key_in_the_message(tmp_path, change, message):
+    path = write_study(tmp_path, {**TINY, **change})
+    with pytest.raises(StudyError, match=message):
+        load_study(path)
+
+
+def test_malformed_yaml_and_missing_file(tmp_path):
+    with pytest.raises(StudyError, match="not valid YAML at line 3"):
+        load_study(write_study(tmp_path, "env: x\nseeds: [0, 1\n"))
+    with pytest.raises(StudyError, match="not found"):
+        load_study(tmp_path / "nothing.yml")
+
+
+def test_a_study_file_names_entries_overrides_and_seeds(tmp_path):
+    spec = load_study(
+        write_study(
+            tmp_path,
+            {
+                **TINY,
+                "algorithms": {
+                    "learned": {"algo": "mappoc", "seeds": [3], "hyperparams": {"learning_rate": 5e-4}},
+                    "random": {"algo": "ppo_random_skip"},
+                },
+            },
+        )
+    )
+    learned, random = spec.algorithms
+    assert learned.seeds == (3,) and random.seeds == (0, 1)
+    assert learned.entry["learning_rate"] == 5e-4 and learned.entry["n_envs"] == 2  # the rest from the entry
+    assert learned.cpus == 1  # no rollout workers
+    assert [t.name for t in spec.trials()] == ["learned/seed3", "random/seed0", "random/seed1"]
+    assert spec.budget(learned) == 2048
+
+
+def test_the_shipped_study_files_load():
+    shipped = sorted((ROOT / "sb3_detc" / "studies").glob("*.yml"))
+    assert {path.name for path in shipped} >= {"multiwalker_paper.yml", "linear.yml", "linear_lqr.yml"}
+    for path in shipped:
+        spec = load_study(path)
+        assert all(len(a.seeds) >= 5 for a in spec.algorithms), path
+    paper = load_study(ROOT / "sb3_detc" / "studies" / "multiwalker_paper.yml")
+    assert paper.episodes >= 50
+    assert {a.label: a.cpus for a in paper.algorithms} == {
+        "mappoc_paper": 2,
+        "random_skip_paper": 2,
+        "control_first": 2,
+    }
+    assert all(paper.budget(a) == 6_144_000 for a in paper.algorithms)
+
+
+def test_command_line_bad_input_is_one_line_with_exit_code_2(tmp_path):
+    path = write_study(tmp_path, {**TINY, "env": "sb3_detc/NoSuchEnv-v0"})
+    result = run_command("run", str(path), "--dir", str(tmp_path / "out"))
+    assert result.returncode == 2
+    assert result.stderr.strip().startswith("python -m sb3_detc.study: error:")
+    assert len(result.stderr.strip().splitlines()) == 1
+    result = run_command("report", str(tmp_path / "nowhere"))
+    assert result.returncode == 2 and "not a study folder" in result.stderr
+
+
+def test_a_folder_of_another_study_is_refused(tmp_path):
+    folder = tmp_path / "out"
+    folder.mkdir()
+    write_study(folder, {**TINY, "seeds": [7]})
+    with pytest.raises(SystemExit) as stop:
+        study_main(["run", str(write_study(tmp_path, TINY)), "--dir", str(folder)])
+    assert stop.value.code == 2
+
+
+def test_an_address_that_does_not_answer_is_reported(tmp_path, capsys):
+    with pytest.raises(SystemExit) as stop:
+        study_main(
+            ["run", str(write_study(tmp_path, TINY)), "--dir", str(tmp_path / "out"), "--address", "127.0.0.1:1"]
+        )
+    assert stop.value.code == 2
+    assert "does not answer" in capsys.readouterr().err
+
+
+# ----------------------------------------------------------------------------- running and reporting
+@pytest.fixture(scope="module")
+def finished_study(tmp_path_factory):
+    """The tiny study, run once through the command line."""
+    folder = tmp_path_factory.mktemp("study")
+    path = write_study(folder, TINY, "tiny.yml")
+    result = run_command("run", str(path), "--dir", str(folder / "out"))
+    assert result.returncode == 0, result.stdout + result.stderr
+    return path, folder / "out", result
+
+
+def test_a_study_runs_every_trial_through_ray_and_evaluates_it(finished_study):
+    path, out, result = finished_study
+    assert "[study] 4 done, 0 running, 0 pending, 0 failed" in result.stdout
+    spec = load_study(path)
+    for trial in spec.trials():
+        folder = trial_folder(out, trial)
+        status = read_status(folder)
+        assert status["status"] == "done" and status["timesteps"] == 2048
+        assert (folder / "policy.pt").is_file() and (folder / "progress.csv").is_file()
+        assert not (folder / "checkpoint.zip").exists()  # only the final policy stays
+        evaluation = json.loads((folder / "evaluation.json").read_text())
+        assert set(evaluation["modes"]) == set(MODES)
+        for mode in MODES:
+            assert len(evaluation["modes"][mode]["control_return"]) == 3
+        assert evaluation["modes"]["periodic"]["savings"] == 0.0
+        assert evaluation["modes"]["never"]["savings"] == 1.0
+        # the same seeded episodes: never broadcasting is the same for the same controller (LQR here)
+        never = evaluation["modes"]["never"]["control_return"]
+        assert (
+            never
+            == json.loads((trial_folder(out, spec.trials()[0]) / "evaluation.json").read_text())["modes"]["never"][
+                "control_return"
+            ]
+        )
+
+
+def test_running_a_finished_study_again_trains_nothing(finished_study):
+    path, out, _ = finished_study
+    stamps = {p: p.stat().st_mtime_ns for p in out.rglob("evaluation.json")}
+    result = run_command("run", str(path), "--dir", str(out))
+    assert result.returncode == 0 and "all 4 trials are done" in result.stdout
+    assert {p: p.stat().st_mtime_ns for p in out.rglob("evaluation.json")} == stamps
+
+
+def test_the_report_equals_a_hand_computation_from_the_evaluation_files(finished_study):
+    path, out, _ = finished_study
+    text = report_study(out, plot=True)
+    summary = json.loads((out / "summary.json").read_text())
+    spec = load_study(path)
+    for algorithm in spec.algorithms:
+        evaluations = [
+            json.loads((trial_folder(out, t) / "evaluation.json").read_text())
+            for t in spec.trials()
+            if t.algorithm.label == algorithm.label
+        ]
+        control = [np.mean(e["modes"]["learned"]["control_return"]) for e in evaluations]
+        random = [np.mean(e["modes"]["random_same_rate"]["control_return"]) for e in evaluations]
+        paired = [
+            np.mean(
+                np.subtract(e["modes"]["learned"]["control_return"], e["modes"]["random_same_rate"]["control_return"])
+            )
+            for e in evaluations
+        ]
+        entry = summary[algorithm.label]
+        assert entry["mean"]["control_return"] == pytest.approx(np.mean(control))
+        assert entry["mean"]["random_same_rate_control_return"] == pytest.approx(np.mean(random))
+        assert entry["mean"]["learned_minus_random_control_return"] == pytest.approx(np.mean(paired))
+        assert entry["mean"]["savings"] == pytest.approx(
+            np.mean(
+                [
+                    1 - sum(e["modes"]["learned"]["broadcasts"]) / (3 * sum(e["modes"]["learned"]["length"]))
+                    for e in evaluations
+                ]
+            )
+        )
+        # With two seeds, a bootstrap resample of the mean takes each seed's value alone with
+        # probability 1/4 each: the 95 % percentile interval runs from the smaller to the larger.
+        assert entry["ci95"]["control_return"] == pytest.approx([min(control), max(control)])
+        assert entry["ci95"]["learned_minus_random_control_return"] == pytest.approx([min(paired), max(paired)])
+        assert set(entry["seeds"]) == {"0", "1"}
+        assert {"timesteps", "return", "savings", "periodic_control_return", "never_control_return"} <= set(
+            entry["mean"]
+        )
+        assert f"## {algorithm.label} ({algorithm.algo}): 2 of 2 seeds finished" in text
+    assert (out / "curves.png").stat().st_size > 0
+    pairs = {(row["better"], row["than"]) for row in summary["comparisons"]}
+    assert pairs == {("learned", "random"), ("random", "learned")}
+    result = run_command("report", str(out), "--no-plot")
+    assert result.returncode == 0 and "Probability of improvement" in result.stdout
+
+
+def test_a_failing_trial_is_kept_with_its_traceback_and_the_others_go_on(tmp_path):
+    study = {
+        **TINY,
+        "seeds": [0],
+        "n_timesteps": 1024,
+        "algorithms": {
+            "broken": {"algo": "mappoc", "hyperparams": {"policy_kwargs": "dict(net_arch=[-3])"}},
+            "random": {"algo": "ppo_random_skip"},
+        },
+    }
+    out = tmp_path / "out"
+    result = run_command("run", str(write_study(tmp_path, study)), "--dir", str(out))
+    assert result.returncode == 1
+    broken = out / "trials" / "broken" / "seed0"
+    assert read_status(broken)["status"] == "failed"
+    assert "Traceback" in (broken / "error.txt").read_text() and "net_arch" in (broken / "error.txt").read_text()
+    assert read_status(out / "trials" / "random" / "seed0")["status"] == "done"
+    summary = summarise(out)
+    assert summary["broken"]["unfinished"][0].startswith("failed")
+    assert "seed 0: failed" in report_study(out, plot=False)
+
+
+def test_a_killed_study_resumes_from_its_checkpoints(tmp_path):
+    # A short algorithm that finishes, and a long one that is killed after its first checkpoint.
+    study = {
+        **TINY,
+        "seeds": [0],
+        "checkpoint_interval": 2048,
+        "algorithms": {
+            "short": {"algo": "ppo_random_skip", "hyperparams": {"n_timesteps": 2048}},
+            "long": {"algo": "mappoc", "hyperparams": {"n_timesteps": 24576}},
+        },
+    }
+    del study["n_timesteps"]
+    path = write_study(tmp_path, study)
+    out = tmp_path / "out"
+    process = subprocess.Popen(
+        [sys.executable, "-m", "sb3_detc.study", "run", str(path), "--dir", str(out)],
+        cwd=ROOT,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        start_new_session=True,
+    )
+    short, long = out / "trials" / "short" / "seed0", out / "trials" / "long" / "seed0"
+    try:
+        deadline = time.monotonic() + 300
+        while not (read_status(short)["status"] == "done" and (long / "checkpoint.json").is_file()):
+            assert process.poll() is None, "the study ended before it could be killed"
+            assert time.monotonic() < deadline, "no checkpoint within 5 minutes"
+            time.sleep(0.2)
+    finally:
+        os.killpg(process.pid, signal.SIGKILL)
+        process.wait()
+    checkpoint = json.loads((long / "checkpoint.json").read_text())["timesteps"]
+    assert 0 < checkpoint < 24576
+    assert read_status(long)["status"] == "running"
+    stamp = (short / "evaluation.json").stat().st_mtime_ns
+
+    result = run_command("run", str(path), "--dir", str(out))
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert (short / "evaluation.json").stat().st_mtime_ns == stamp  # not run again
+    status = read_status(long)
+    assert status["status"] == "done" and status["timesteps"] == 24576  # the budget, not budget + steps before
+    assert (long / "segments" / str(checkpoint)).is_dir()  # the second attempt started at the checkpoint
+    progress = np.genfromtxt(long / "progress.csv", delimiter=",", names=True)
+    steps = progress["timetotal_timesteps"]
+    assert np.all(np.diff(steps) > 0) and steps[-1] == 24576  # one row per iteration, none twice
