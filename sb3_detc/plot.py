@@ -101,7 +101,8 @@ def curriculum_phases(progress: dict[str, np.ndarray]) -> list[tuple[float, str]
     """Iterations at which a curriculum phase starts, with the phase's name.
 
     From ``curriculum/phase`` (:class:`~sb3_detc.callbacks.CurriculumCallback`) where logged,
-    else from ``curriculum/option_ent_coef`` (:class:`~sb3_detc.callbacks.OptionEntropySchedule`):
+    else from ``curriculum/stage`` (:class:`~sb3_detc.callbacks.ControlFirstCallback`: "stage 2"
+    where the policies over options start to learn), else from ``curriculum/option_ent_coef`` (:class:`~sb3_detc.callbacks.OptionEntropySchedule`):
     "entropy decay" where it first leaves its initial value, "decayed" where it first reaches
     its last logged value after that.
 
@@ -112,6 +113,14 @@ def curriculum_phases(progress: dict[str, np.ndarray]) -> list[tuple[float, str]
     phase = progress.get("curriculum/phase")
     if phase is not None and phase.dtype.kind in "US":
         return [(float(iterations[k]), str(phase[k])) for k in range(1, len(phase)) if phase[k] != phase[k - 1]]
+    stage = progress.get("curriculum/stage")
+    if stage is not None and stage.dtype.kind == "f" and np.isfinite(stage).any():
+        logged = np.flatnonzero(np.isfinite(stage))
+        return [
+            (float(iterations[k]), f"stage {stage[k]:.0f}")
+            for j, k in enumerate(logged[1:], start=1)
+            if stage[k] != stage[logged[j - 1]]
+        ]
     coef = progress.get("curriculum/option_ent_coef")
     if coef is None or coef.dtype.kind != "f" or not np.isfinite(coef).any():
         return []

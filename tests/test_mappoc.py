@@ -599,6 +599,45 @@ def test_save_load_round_trip(tmp_path) -> None:
     assert all(th.equal(saved[k], v) for k, v in parameters(without_env).items())
 
 
+@pytest.mark.parametrize("critic", CRITICS)
+def test_a_policy_saved_alone_loads_alone(tmp_path, critic: str) -> None:
+    model = make_model(n_agents=3, policy_kwargs={"critic": critic, "learn_log_std": True, "age_scale": 0.0})
+    model.learn(16)
+    path = tmp_path / "policy.pt"
+    model.policy.save(str(path))
+    loaded = MlpHybridPolicy.load(str(path), device="cpu")
+    saved, restored = parameters(model.policy), parameters(loaded)
+    assert saved.keys() == restored.keys()
+    assert all(th.equal(saved[key], restored[key]) for key in saved)
+    assert (loaded.critic, loaded.age_scale, loaded.net_arch) == (critic, 0.0, [16, 16])
+    env = linear_etc_v0.joint_env(n_agents=3, max_cycles=20)
+    obs = {key: v.numpy() for key, v in joint_obs_batch(env, steps=6).items()}
+    th.manual_seed(1)
+    expected, _ = model.predict(obs, deterministic=True)
+    th.manual_seed(1)
+    got, _ = loaded.predict(obs, deterministic=True)
+    for a, b in zip(expected, got, strict=True):
+        np.testing.assert_array_equal(a["comm"], b["comm"])
+        np.testing.assert_array_equal(a["control"], b["control"])
+
+
+def test_default_net_arch_is_recorded_and_survives_loading(tmp_path) -> None:
+    model = make_model(policy_kwargs={"net_arch": None})
+    assert model.policy.net_arch == [96, 96, 96]
+    model.save(tmp_path / "model.zip")
+    assert MAPPOC.load(tmp_path / "model.zip").policy.net_arch == [96, 96, 96]
+
+
+def test_predict_on_a_reset_tuple_says_which_apis_are_mixed() -> None:
+    model = make_model()
+    env = linear_etc_v0.joint_env(n_agents=2, max_cycles=20)
+    with pytest.raises(ValueError, match="mixing the Gymnasium API"):
+        model.predict(env.reset(seed=0))
+    obs, _ = env.reset(seed=0)
+    action, _ = model.predict(obs)
+    assert set(action) == {"comm", "control"}
+
+
 # ------------------------------------------------------------------ 5b. torch.compile
 @pytest.mark.parametrize("critic", ["option_heads", "afterstate"])
 def test_compiled_forward_and_losses_match_eager(tmp_path, critic: str) -> None:

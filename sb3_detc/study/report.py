@@ -38,6 +38,7 @@ METRICS = (
     "savings",
     "random_same_rate_return",
     "random_same_rate_control_return",
+    "random_same_rate_savings",
     "learned_minus_random_control_return",
     "periodic_return",
     "periodic_control_return",
@@ -68,7 +69,7 @@ def interval_estimates(values: dict[str, np.ndarray]) -> tuple[dict[str, np.ndar
 
 
 def _bootstrap(values: dict[str, Any], statistic: Any) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
-    """rliable's stratified-bootstrap point estimates and 95 % percentile intervals, reproducibly."""
+    """Stratified-bootstrap (rliable) point estimates and 95 % percentile intervals, reproducibly."""
     with warnings.catch_warnings():
         # arch warns that a RandomState will once have to be passed differently; rliable passes it.
         warnings.simplefilter("ignore", FutureWarning)
