@@ -11,7 +11,7 @@ $(VENV)/.installed: setup.cfg pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
 	$(PY) -m pip install -q $(TORCH_SPEC)
-	$(PY) -m pip install -q -e ".[test,zoo,dev]"
+	$(PY) -m pip install -q -e ".[test,zoo,study,dev]"
 	touch $@
 
 install: $(VENV)/.installed

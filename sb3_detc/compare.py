@@ -1,40 +1,44 @@
-"""Train MAPPOC and the random-skip baseline through rl-zoo3, evaluate both, print a table and plot.
+"""Train MAPPOC and the random-skip baseline over seeds, evaluate both on the same episodes, print and plot.
 
-``python -m sb3_detc.compare`` (``make run``) trains, for every seed, ``mappoc`` (learned
-communication) and ``ppo_random_skip`` (random skips, the paper's baseline) with
-:mod:`sb3_detc.train` and the package's hyperparameter files, the two in parallel (one
-process each; MAPPOC shows a progress bar, the baseline's output goes to
-``<folder>/ppo_random_skip_seed<seed>.log``). Then both final models run the same seeded
-evaluation episodes with the training communication cost: MAPPOC with options sampled from
-its policy over options, the baseline with its random trigger and once more with random
-skips at MAPPOC's mean rate (equal communication). The default environment is
-``sb3_detc/LinearETC-LQR-v0``: the controls are LQR on held broadcasts, so the comparison
-is between a learned and a random trigger for the same controller. The table gives the
-team-mean return per agent and episode (communication cost included), the control return
-(without it) and the communication savings ``1 - broadcasts / agent-steps``; the figure of
-:mod:`sb3_detc.plot` is drawn from the runs' logs.
+``python -m sb3_detc.compare`` (``make run``) runs a study (:mod:`sb3_detc.study`) of
+``mappoc`` (learned communication) and ``ppo_random_skip`` (random skips, the paper's
+baseline) with the package's hyperparameter entries, for every seed (``--seeds``, default
+0, 1 and 2), on Ray on this machine (one core per run). Every final policy then runs the
+same 50 seeded evaluation episodes with the training communication cost, with its own
+options (MAPPOC sampling from its policy over options, the baseline with its random
+trigger), with random skips at its own rate, always and never broadcasting. The default
+environment is ``sb3_detc/LinearETC-LQR-v0``: the controls are LQR on held broadcasts, so
+the comparison is between a learned and a random trigger for the same controller. The table
+gives the team-mean return per agent and episode (communication cost included), the control
+return (without it) and the communication savings ``1 - broadcasts / agent-steps``, each as
+the mean over seeds with a 95 % bootstrap interval, and the paired difference between the
+learned options and random skips at the learned rate (same controller, same episodes). The
+figure (``<dir>/curves.png``) shows the training control return and savings of both, the
+control return without the communication cost for both, since the baseline trains without
+paying it. Running the command again with the same settings reuses finished runs.
 """
 
 from __future__ import annotations
 
 import argparse
-import subprocess
 import sys
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import gymnasium as gym
 import numpy as np
-import torch as th
+import yaml
 from huggingface_sb3 import EnvironmentName
-from rl_zoo3.utils import get_callback_list, get_latest_run_id, get_saved_hyperparams
+from rl_zoo3.utils import get_callback_list, get_saved_hyperparams
 
 from sb3_detc.callbacks import FixedTriggerCallback
 from sb3_detc.evaluation import CommunicationReport, evaluate_communication
 from sb3_detc.mappoc import MAPPOC
 from sb3_detc.mappoc.mappoc import OptionOverride
-from sb3_detc.plot import plot_runs
-from sb3_detc.triggers import RandomTrigger
+from sb3_detc.study.report import report_study, summarise
+from sb3_detc.study.runner import run_study
+from sb3_detc.study.spec import load_study
 from sb3_detc.zoo import InputError, check_env, run_cli
 
 #: The compared algorithms (rl-zoo3 names): learned communication and the random-skip baseline.
@@ -45,52 +49,6 @@ EQUAL_RATE = "ppo_random_skip at mappoc's rate"
 
 #: Seed of the first evaluation episode (the same episodes for every model).
 EVAL_SEED = 10_000
-
-
-def train_command(algo: str, env_id: str, seed: int, folder: str, timesteps: int | None, progress: bool) -> list[str]:
-    """The :mod:`sb3_detc.train` command line of one run (one thread, no periodic evaluation).
-
-    :param algo: rl-zoo3 algorithm name
-    :param env_id: environment id
-    :param seed: the run's seed
-    :param folder: log folder
-    :param timesteps: training steps (None: the hyperparameter file's)
-    :param progress: show a progress bar
-    :return: the command
-    """
-    command = [sys.executable, "-m", "sb3_detc.train", "--algo", algo, "--env", env_id, "--seed", str(seed)]
-    command += ["-f", folder, "--num-threads", "1", "--eval-freq", "-1", "--verbose", "0"]
-    if timesteps is not None:
-        command += ["-n", str(timesteps)]
-    return [*command, "--progress"] if progress else command
-
-
-def train_pair(env_id: str, seed: int, folder: str, timesteps: int | None) -> dict[str, Path]:
-    """Train MAPPOC and the baseline with one seed in parallel; returns their run folders.
-
-    :param env_id: environment id
-    :param seed: seed of both runs
-    :param folder: log folder
-    :param timesteps: training steps (None: the hyperparameter files')
-    :return: algorithm name -> run folder
-    :raises RuntimeError: if a training process fails
-    """
-    Path(folder).mkdir(parents=True, exist_ok=True)
-    log = Path(folder) / f"ppo_random_skip_seed{seed}.log"
-    with log.open("w") as output:
-        baseline = subprocess.Popen(
-            train_command("ppo_random_skip", env_id, seed, folder, timesteps, progress=False),
-            stdout=output,
-            stderr=subprocess.STDOUT,
-        )
-        learned = subprocess.run(train_command("mappoc", env_id, seed, folder, timesteps, progress=True), check=False)
-        baseline.wait()
-    if learned.returncode != 0:
-        raise RuntimeError(f"training mappoc (seed {seed}) failed")
-    if baseline.returncode != 0:
-        raise RuntimeError(f"training ppo_random_skip (seed {seed}) failed, see {log}")
-    name = EnvironmentName(env_id)
-    return {algo: Path(folder) / algo / f"{name}_{get_latest_run_id(str(Path(folder) / algo), name)}" for algo in ALGOS}
 
 
 def evaluate_run(
@@ -151,39 +109,92 @@ def table(reports: dict[str, list[CommunicationReport]]) -> str:
     return "\n".join(lines)
 
 
+def comparison_study(env_id: str, seeds: Sequence[int], timesteps: int | None, episodes: int) -> dict[str, Any]:
+    """The study that :mod:`sb3_detc.compare` runs: both algorithms' entries of ``env_id`` over ``seeds``.
+
+    :param env_id: environment id
+    :param seeds: the seeds
+    :param timesteps: training steps per run (None: the hyperparameter files')
+    :param episodes: evaluation episodes per mode
+    :return: the study file's content
+    """
+    study: dict[str, Any] = {"env": env_id, "seeds": list(seeds)}
+    if timesteps is not None:
+        study["n_timesteps"] = timesteps
+    study["checkpoint_interval"] = 100_000
+    study["evaluation"] = {"episodes": episodes, "seed": EVAL_SEED}
+    study["algorithms"] = {algo: {"algo": algo} for algo in ALGOS}
+    return study
+
+
+def comparison_table(summary: dict[str, Any]) -> str:
+    """Markdown table of the comparison: mean and 95 % interval over seeds of return, control return and savings.
+
+    :param summary: :func:`sb3_detc.study.report.summarise` of the comparison's study folder
+    :return: the table and a line on the paired learned-minus-random difference
+    """
+
+    def cell(entry: dict[str, Any], metric: str, digits: int = 2) -> str:
+        low, high = entry["ci95"][metric]
+        return f"{entry['mean'][metric]:.{digits}f} [{low:.{digits}f}, {high:.{digits}f}]"
+
+    lines = ["| algorithm | seeds | return | control return | savings |", "|---|---|---|---|---|"]
+    for algo in ALGOS:
+        entry = summary[algo]
+        seeds = len(entry["seeds"])
+        lines.append(
+            f"| {algo} | {seeds} | {cell(entry, 'return')} | {cell(entry, 'control_return')} "
+            f"| {cell(entry, 'savings', 3)} |"
+        )
+    learned = summary["mappoc"]
+    lines.append(
+        f"| {EQUAL_RATE} | {len(learned['seeds'])} | {cell(learned, 'random_same_rate_return')} "
+        f"| {cell(learned, 'random_same_rate_control_return')} | {cell(learned, 'random_same_rate_savings', 3)} |"
+    )
+    differences = [seed["learned_minus_random_control_return"] for seed in learned["seeds"].values()]
+    lines += [
+        "",
+        "Learned options minus random skips at the learned rate, same controller, paired episodes (control "
+        f"return): {cell(learned, 'learned_minus_random_control_return')}; learned better in "
+        f"{sum(d > 0 for d in differences)} of {len(differences)} seeds.",
+    ]
+    return "\n".join(lines)
+
+
 def _main() -> None:
     parser = argparse.ArgumentParser(prog="python -m sb3_detc.compare", description=__doc__.splitlines()[0])
     parser.add_argument("--env", default="sb3_detc/LinearETC-LQR-v0", help="environment id")
-    parser.add_argument("--seeds", type=int, nargs="+", default=[0], help="seeds (one run per seed and algorithm)")
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2], help="seeds (default: 0 1 2)")
     parser.add_argument("-n", "--n-timesteps", type=int, default=None, help="training steps (default: the files')")
-    parser.add_argument("-f", "--folder", default="logs", help="rl-zoo3 log folder (default: logs)")
-    parser.add_argument("--eval-episodes", type=int, default=50, help="evaluation episodes per model")
-    parser.add_argument("-o", "--out", default=None, help="figure (default: <folder>/compare.png)")
+    parser.add_argument("--dir", default="logs/compare", help="study folder (default: logs/compare)")
+    parser.add_argument("--eval-episodes", type=int, default=50, help="evaluation episodes per mode (default: 50)")
+    parser.add_argument("--address", default=None, help="address of a running Ray cluster (default: local)")
     args = parser.parse_args(sys.argv[1:])
     check_env(args.env)
     if args.eval_episodes < 1:
         raise InputError(f"--eval-episodes must be >= 1, got {args.eval_episodes}")
-    th.set_num_threads(1)
-    runs: dict[str, list[Path]] = {algo: [] for algo in ALGOS}
-    for seed in args.seeds:
-        print(f"Training mappoc and ppo_random_skip on {args.env}, seed {seed} (the baseline in a second process)")
-        for algo, run in train_pair(args.env, seed, args.folder, args.n_timesteps).items():
-            runs[algo].append(run)
-    reports = {algo: [evaluate_run(run, args.env, args.eval_episodes) for run in group] for algo, group in runs.items()}
-    # The baseline once more with random skips at the learned trigger's rate: equal communication.
-    savings = float(np.mean([report.savings for report in reports["mappoc"]]))
-    reports[EQUAL_RATE] = [
-        evaluate_run(run, args.env, args.eval_episodes, RandomTrigger(savings, seed=seed))
-        for run, seed in zip(runs["ppo_random_skip"], args.seeds, strict=True)
-    ]
+    folder = Path(args.dir)
+    text = yaml.safe_dump(comparison_study(args.env, args.seeds, args.n_timesteps, args.eval_episodes), sort_keys=False)
+    path = folder / "study.yml"
+    if path.is_file() and yaml.safe_load(path.read_text()) != yaml.safe_load(text):
+        raise InputError(f"{folder} holds a comparison with other settings; give another --dir")
+    folder.mkdir(parents=True, exist_ok=True)
+    path.write_text(text)
+    print(f"Training mappoc and ppo_random_skip on {args.env}, seeds {', '.join(map(str, args.seeds))}")
+    statuses = run_study(load_study(path), folder, address=args.address)
+    if any(status != "done" for status in statuses.values()):
+        raise SystemExit(1)
+    report = report_study(folder)
     print()
-    print(f"{args.env}, {args.eval_episodes} evaluation episodes per model, per agent and episode:")
+    print(
+        f"{args.env}, {len(args.seeds)} seeds, {args.eval_episodes} evaluation episodes per model and mode, per agent "
+        "and episode; mean over seeds [95 % bootstrap interval]:"
+    )
     print()
-    print(table(reports))
+    print(comparison_table(summarise(folder)))
     print()
-    figure = plot_runs(runs, args.out or Path(args.folder) / "compare.png", title=args.env)
-    print(f"Runs: {', '.join(str(run) for group in runs.values() for run in group)}")
-    print(f"Figure: {figure}")
+    print(f"Full report: python -m sb3_detc.study report {folder} ({len(report.splitlines())} lines)")
+    print(f"Figure: {folder / 'curves.png'}")
 
 
 def main(argv: Sequence[str] | None = None) -> None:

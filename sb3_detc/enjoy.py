@@ -4,7 +4,8 @@ Registers sb3-detc's algorithms with rl-zoo3, checks the input, then runs
 ``rl_zoo3.enjoy``: it loads the latest run of ``--algo`` on ``--env`` from ``-f`` (default
 ``logs``, where :mod:`sb3_detc.train` saves) or ``--exp-id``, runs it and prints the
 episode returns. sb3-detc's environments draw no window (rendering is off-screen), so
-rendering is switched off; videos: :mod:`sb3_detc.record_video`.
+rendering is switched off; videos: :mod:`sb3_detc.record_video`. Environments of other
+packages: ``--gym-packages <module>`` imports the module that registers them.
 """
 
 from __future__ import annotations

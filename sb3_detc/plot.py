@@ -102,9 +102,9 @@ def curriculum_phases(progress: dict[str, np.ndarray]) -> list[tuple[float, str]
 
     From ``curriculum/phase`` (:class:`~sb3_detc.callbacks.CurriculumCallback`) where logged,
     else from ``curriculum/stage`` (:class:`~sb3_detc.callbacks.ControlFirstCallback`: "stage 2"
-    where the policies over options start to learn), else from ``curriculum/option_ent_coef`` (:class:`~sb3_detc.callbacks.OptionEntropySchedule`):
-    "entropy decay" where it first leaves its initial value, "decayed" where it first reaches
-    its last logged value after that.
+    where the policies over options start to learn), else from ``curriculum/option_ent_coef``
+    (:class:`~sb3_detc.callbacks.OptionEntropySchedule`): "entropy decay" where it first leaves
+    its initial value, "decayed" where it first reaches its last logged value after that.
 
     :param progress: a run's columns from :func:`read_progress`
     :return: (iteration, name) of every phase start after the first phase

@@ -4,7 +4,8 @@ Registers sb3-detc's algorithms with rl-zoo3, checks the input, then runs
 ``rl_zoo3.record_video`` (options ``-n`` frames, ``-o`` output folder, ``--exp-id``, ...;
 default folder ``-f logs``). Multiwalker frames mark every walker's option of the step: a
 green disc above a walker that broadcast, a grey ring above a silent one. The video is
-written to ``<run folder>/videos/`` unless ``-o`` says otherwise.
+written to ``<run folder>/videos/`` unless ``-o`` says otherwise. Environments of other
+packages: ``--gym-packages <module>`` imports the module that registers them.
 """
 
 from __future__ import annotations

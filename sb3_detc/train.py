@@ -3,9 +3,11 @@
 Registers sb3-detc's algorithms with rl-zoo3 (:func:`sb3_detc.zoo.register`), checks the
 input, then runs ``rl_zoo3.train``: every rl-zoo3 training option works (``-n``,
 ``--seed``, ``-conf``, ``--eval-freq``, ``--save-freq``, ``-i``, ``--optimize``,
-``--tensorboard-log``, ``--progress``, ...). Defaults: ``--algo mappoc``, ``--env
-sb3_detc/LinearETC-v0`` and the package's hyperparameter file of the algorithm. Runs are
-saved to ``logs/<algo>/<env>_<run id>/`` with the logger's values in ``progress.csv``.
+``--tensorboard-log``, ``--progress``, ``--gym-packages``, ...). Defaults: ``--algo mappoc``,
+``--env sb3_detc/LinearETC-v0`` and the package's hyperparameter file of the algorithm. Runs
+are saved to ``logs/<algo>/<env>_<run id>/`` with the logger's values in ``progress.csv``.
+Bad input ends the command with one line on stderr and exit code 2; an error while training
+ends it with its traceback.
 """
 
 from __future__ import annotations

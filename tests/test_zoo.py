@@ -188,16 +188,24 @@ def test_rendered_frames_mark_who_broadcast() -> None:
     env.close()
 
 
-def test_compare_table_and_figure(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
-    logs = tmp_path / "logs"
-    compare.main(["-n", "256", "-f", str(logs), "--eval-episodes", "2", "-o", str(tmp_path / "c.png")])
-    out = capsys.readouterr().out
+def test_compare_reports_over_seeds_with_intervals_and_a_figure(tmp_path: Path) -> None:
+    folder = tmp_path / "compare"
+    command = [sys.executable, "-m", "sb3_detc.compare", "-n", "1024", "--seeds", "0", "1", "--dir", str(folder)]
+    result = subprocess.run([*command, "--eval-episodes", "2"], capture_output=True, text=True, timeout=600)
+    assert result.returncode == 0, result.stdout + result.stderr
+    out = result.stdout
     assert (
-        "| mappoc | 1 |" in out
-        and "| ppo_random_skip | 1 |" in out
-        and "| ppo_random_skip at mappoc's rate | 1 |" in out
+        "| mappoc | 2 |" in out
+        and "| ppo_random_skip | 2 |" in out
+        and "| ppo_random_skip at mappoc's rate | 2 |" in out
     )
-    assert (tmp_path / "c.png").is_file()
+    assert "learned better in" in out and "of 2 seeds" in out
+    assert (folder / "curves.png").is_file() and (folder / "summary.json").is_file()
+    # the same settings again: nothing trains; other settings in the same folder: refused
+    again = subprocess.run([*command, "--eval-episodes", "2"], capture_output=True, text=True, timeout=600)
+    assert again.returncode == 0 and "all 4 trials are done" in again.stdout
+    other = subprocess.run([*command, "--eval-episodes", "3"], capture_output=True, text=True, timeout=600)
+    assert other.returncode == 2 and "other settings" in other.stderr
 
 
 # ----------------------------------------------------------------------------- bad input
@@ -257,6 +265,45 @@ def test_bad_values_inside_rl_zoo_are_one_line(tmp_path: Path, capsys: pytest.Ca
     assert "n_steps" in bad(train.main, ["-conf", conf, "-f", str(tmp_path / "logs"), "--eval-freq", "-1"], capsys)
 
 
+@pytest.mark.parametrize(
+    ("params", "message"),
+    [
+        (["n_steps:0"], "n_steps must be a positive integer, got 0"),
+        (["gamma:'high'"], "gamma must be in (0, 1], got 'high'"),
+        (["n_steps:many"], "-params 'n_steps:many': expected key:value with a Python value (NameError"),
+        (["learnig_rate:0.1"], "unknown hyperparameter 'learnig_rate' (did you mean 'learning_rate'?)"),
+        (["policy:'MlpPolicy'"], "unknown policy 'MlpPolicy'"),
+        (["learning_rate:'fast'"], "learning_rate must be a number or a linear schedule 'lin_<initial value>'"),
+        (["policy_kwargs:'dict(net_arc=[8])'"], "unknown policy_kwargs key 'net_arc' (did you mean 'net_arch'?)"),
+        (["policy_kwargs:'dict(net_arch=[8]'"], "policy_kwargs 'dict(net_arch=[8]' is not a Python expression"),
+        (["n_timesteps:'1e6'"], "n_timesteps must be a number >= 0, got '1e6' (YAML reads 1e6 as text"),
+        (["n_envs:0"], "n_envs must be a positive integer"),
+        (["env_wrapper:'sb3_detc.envs.Nope'"], "unknown env wrapper 'sb3_detc.envs.Nope'"),
+        (["normalize:True"], "MAPPOC cannot use a VecNormalize that normalises the observations 'message'"),
+        (["normalize:\"dict(norm_obs_keys=['local', 'age'])\""], "normalises the observations 'age'"),
+    ],
+)
+def test_bad_values_are_found_before_the_run(
+    tmp_path: Path, capsys: pytest.CaptureFixture, params: list[str], message: str
+) -> None:
+    argv = ["-f", str(tmp_path / "logs"), "-n", "64", "--eval-freq", "-1", "--num-threads", "1", "-params", *params]
+    assert message in bad(train.main, argv, capsys)
+
+
+def test_observation_normalization_of_the_local_state_passes_the_checks() -> None:
+    for normalize in ("dict(norm_obs_keys=['local'])", "dict(norm_obs=False, norm_reward=True)", False):
+        zoo.check_hyperparams_file(zoo.HYPERPARAMS_DIR / "mappoc.yml", "mappoc", LINEAR, {"normalize": normalize})
+
+
+def test_malformed_arguments_and_other_conf_files(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    assert "argument --env: expected one argument" in bad(train.main, ["--env"], capsys)
+    assert "--env-kwargs 'comm_cost'" in bad(train.main, ["--env-kwargs", "comm_cost"], capsys)
+    assert "no module to import" in bad(train.main, ["-conf", "no_such_module.hyperparams"], capsys)
+    assert "'missing.py' not found" in bad(train.main, ["-conf", "missing.py"], capsys)
+    conf = write(tmp_path / "conf.py", f"hyperparams = {{{LINEAR!r}: {{'n_timesteps': 1, 'policy': 'Nope'}}}}\n")
+    assert "unknown policy 'Nope'" in bad(train.main, ["-conf", conf], capsys)
+
+
 def test_missing_models(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     logs = str(tmp_path / "logs")
     assert "no trained mappoc model for sb3_detc/LinearETC-v0" in bad(enjoy.main, ["-f", logs], capsys)
@@ -264,6 +311,10 @@ def test_missing_models(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     missing = str(tmp_path / "missing.zip")
     assert "no saved model" in bad(train.main, ["-i", missing, "-f", logs], capsys)
     assert "no runs of mappoc, ppo_random_skip" in bad(plot.main, ["-f", logs], capsys)
+    assert "folder was not found" in bad(enjoy.main, ["-f", logs, "--exp-id", "3"], capsys)
+    (tmp_path / "logs" / "mappoc").mkdir(parents=True)
+    checkpoint = ["-f", logs, "--exp-id", "-1", "--load-last-checkpoint"]
+    assert "No checkpoint found for mappoc" in bad(record_video.main, checkpoint, capsys)
 
 
 def test_smooth_averages_the_trailing_window_and_skips_nan() -> None:
@@ -285,6 +336,8 @@ def test_curriculum_phases_from_the_logs() -> None:
     assert plot.curriculum_phases(phases) == [(3.0, "II"), (5.0, "III"), (6.0, "done")]
     coef = {"iteration": iterations, "curriculum/option_ent_coef": np.array([0.1, 0.1, 0.05, 0.001, 0.001, 0.001])}
     assert plot.curriculum_phases(coef) == [(3.0, "entropy decay"), (4.0, "decayed")]
+    stage = {"iteration": iterations, "curriculum/stage": np.array([1.0, np.nan, 1.0, 2.0, np.nan, 2.0])}
+    assert plot.curriculum_phases(stage) == [(4.0, "stage 2")]
     assert plot.curriculum_phases({"iteration": iterations}) == []
 
 

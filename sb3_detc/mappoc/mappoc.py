@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pathlib
 import pickle
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Any, ClassVar, TypeVar
 
 import numpy as np
@@ -18,7 +18,7 @@ from stable_baselines3.common.running_mean_std import RunningMeanStd
 from stable_baselines3.common.save_util import load_from_zip_file
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
 from stable_baselines3.common.utils import FloatSchedule, explained_variance, obs_as_tensor
-from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecEnv
+from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecEnv, unwrap_vec_normalize
 
 from sb3_detc.envs.wrappers import EventTriggeredNetwork, JointEnv
 from sb3_detc.mappoc.buffers import HybridRolloutBuffer, HybridRolloutSamples
@@ -29,6 +29,11 @@ SelfMAPPOC = TypeVar("SelfMAPPOC", bound="MAPPOC")
 
 #: Statistics of every gradient step, in the order :meth:`MAPPOC._losses` returns them (logged as ``train/<name>``).
 STEP_STATS = ("pi_loss", "mu_loss", "q_loss", "entropy_mu", "clip_pi", "clip_mu", "kl_pi", "kl_mu")
+
+#: Observation keys that the policy turns into the network's state with the broadcast rule (the
+#: message copied into ``held``, ``age`` reset to 0) or that feed the policy over options: a
+#: ``VecNormalize`` must pass them on as the environment returns them.
+NETWORK_KEYS = ("message", "held", "age", "trigger", "trigger_held")
 
 #: Signature of an option override: joint observations (n_envs, N, ...) -> options (n_envs, N).
 #: With rollout workers (:mod:`sb3_detc.mappoc.workers`) an override that has ``fork(seed)``
@@ -54,7 +59,11 @@ class MAPPOC(OnPolicyAlgorithm):
     :param policy: the policy model (``"MlpHybridPolicy"`` or a subclass of :class:`MlpHybridPolicy`)
     :param env: the joint env (Gymnasium env, VecEnv or registered id such as
         ``"sb3_detc/MultiwalkerETC-v0"``) or a PettingZoo :class:`EventTriggeredNetwork`,
-        which is adapted to the joint view
+        which is adapted to the joint view. A ``VecNormalize`` in its wrappers may normalise
+        the ``local`` observations (``norm_obs_keys=["local"]``), not the keys of
+        :data:`NETWORK_KEYS` (see :func:`check_observation_normalization`); its reward
+        normalisation leaves the per-agent rewards MAPPOC learns from (``info["agent_rewards"]``)
+        as they are, ``normalize_reward`` normalises those
     :param learning_rate: learning rate, constant or a schedule of the remaining progress (paper: 3e-5)
     :param n_steps: steps per environment per rollout (paper: 2048 in total per iteration)
     :param batch_size: minibatch size (paper: 32)
@@ -154,7 +163,7 @@ class MAPPOC(OnPolicyAlgorithm):
         device: th.device | str = "auto",
         _init_setup_model: bool = True,
     ) -> None:
-        _check_hyperparameters(
+        check_hyperparameters(
             n_steps=n_steps,
             batch_size=batch_size,
             n_epochs=n_epochs,
@@ -192,6 +201,7 @@ class MAPPOC(OnPolicyAlgorithm):
         )
         if self.env is not None:  # without an env (loading), the spaces are checked in _setup_model
             check_joint_spaces(self.observation_space, self.action_space)
+            _check_vec_normalize(self.env)  # also on load(path, env): SB3's load builds the model with the env
         self.batch_size = batch_size
         self.n_epochs = n_epochs
         self.clip_range = clip_range
@@ -738,11 +748,15 @@ class MAPPOC(OnPolicyAlgorithm):
     def set_env(self, env: GymEnv | EventTriggeredNetwork, force_reset: bool = True) -> None:
         """Use a new environment (a PettingZoo event-triggered env is adapted to the joint view).
 
-        :param env: the new environment, with the same spaces
+        :param env: the new environment, with the same spaces (and no ``VecNormalize`` of the
+            network's observations, see :func:`check_observation_normalization`)
         :param force_reset: force a reset of the environment before the next ``learn``
+        :raises ValueError: if the environment has another number of agents than the model or
+            normalises the network's observations
         """
         env = _as_joint_env(env)
         _check_same_agents(env, self.n_agents)  # type: ignore[arg-type]
+        _check_vec_normalize(env)  # type: ignore[arg-type]
         super().set_env(env, force_reset=force_reset)  # type: ignore[arg-type]
 
     @classmethod
@@ -766,7 +780,8 @@ class MAPPOC(OnPolicyAlgorithm):
         :param force_reset: force a reset of the environment before the next ``learn``
         :param kwargs: attributes to change on the loaded model
         :raises FileNotFoundError: if there is no file at ``path``
-        :raises ValueError: if the environment has another number of agents than the model
+        :raises ValueError: if the environment has another number of agents than the model or
+            normalises the network's observations (see :func:`check_observation_normalization`)
         """
         env = _as_joint_env(env)
         if env is not None:
@@ -919,9 +934,53 @@ _HYPERPARAMETER_RULES: dict[str, tuple[Callable[[Any], bool], str]] = {
 }
 
 
-def _check_hyperparameters(**values: Any) -> None:
+def check_hyperparameters(**values: Any) -> None:
+    """Check the values of MAPPOC's numeric hyperparameters (before anything is built).
+
+    :param values: every hyperparameter of :data:`_HYPERPARAMETER_RULES` and ``normalize_advantage``
+    :raises ValueError: on the first value out of its range (or of the wrong type)
+    """
     for name, (rule, needs) in _HYPERPARAMETER_RULES.items():
-        if not rule(values[name]):
-            raise ValueError(f"{name} must be {needs}, got {values[name]!r}.")
+        value = values[name]
+        try:
+            valid = not isinstance(value, bool) and bool(rule(value))
+        except TypeError:  # e.g. a string where a number belongs
+            valid = False
+        if not valid:
+            raise ValueError(f"{name} must be {needs}, got {value!r}.")
     if values["normalize_advantage"] and values["batch_size"] == 1:
         raise ValueError("batch_size must be > 1 when normalize_advantage=True (a single advantage has no spread).")
+
+
+def check_observation_normalization(norm_obs: bool, norm_obs_keys: Sequence[str] | None) -> None:
+    """Refuse a ``VecNormalize`` that would normalise observations of :data:`NETWORK_KEYS`.
+
+    ``VecNormalize`` keeps separate statistics per key, while the policy applies the broadcast
+    rule (copy the message into ``held``, reset ``age`` to 0) to the values it is given: with
+    normalised ``message``, ``held`` and ``age`` the network state it computes is no longer the
+    environment's. Normalising only the local state (``norm_obs_keys=["local"]``) or no
+    observations (``norm_obs=False``) is fine.
+
+    :param norm_obs: whether the ``VecNormalize`` normalises observations
+    :param norm_obs_keys: the keys it normalises (None: all of them)
+    :raises ValueError: if it would normalise one of :data:`NETWORK_KEYS`
+    """
+    if not norm_obs:
+        return
+    keys = [key for key in NETWORK_KEYS if norm_obs_keys is None or key in norm_obs_keys]
+    if keys:
+        raise ValueError(
+            f"MAPPOC cannot use a VecNormalize that normalises the observations {', '.join(map(repr, keys))}: "
+            "VecNormalize scales every key with its own statistics, while the policy copies the message into "
+            "'held' and resets 'age' to 0 on a broadcast, so its view of the network would differ from the "
+            "environment's. Normalise only the local state with VecNormalize(env, norm_obs_keys=['local']), "
+            "or no observations with norm_obs=False (the per-agent rewards MAPPOC learns from are normalised "
+            "by normalize_reward=True, not by VecNormalize)."
+        )
+
+
+def _check_vec_normalize(env: GymEnv | None) -> None:
+    """Apply :func:`check_observation_normalization` to a ``VecNormalize`` anywhere in ``env``'s vector wrappers."""
+    vec_normalize = unwrap_vec_normalize(env) if isinstance(env, VecEnv) else None
+    if vec_normalize is not None:
+        check_observation_normalization(vec_normalize.norm_obs, vec_normalize.norm_obs_keys)
