@@ -73,9 +73,7 @@ def _bootstrap(values: dict[str, Any], statistic: Any) -> tuple[dict[str, np.nda
     with warnings.catch_warnings():
         # arch warns that a RandomState will once have to be passed differently; rliable passes it.
         warnings.simplefilter("ignore", FutureWarning)
-        return rly.get_interval_estimates(
-            values, statistic, reps=BOOTSTRAP_REPS, random_state=np.random.RandomState(0)
-        )
+        return rly.get_interval_estimates(values, statistic, reps=BOOTSTRAP_REPS, random_state=np.random.RandomState(0))
 
 
 def _trials(directory: Path) -> tuple[Any, dict[str, dict[int, dict[str, Any]]], dict[str, dict[int, str]]]:
