@@ -18,8 +18,8 @@ physical lower bound. Savings are ``1 - broadcasts / agent-steps``.
 
 With ``--from-zoo`` the settings and callbacks are those of the ``sb3_detc/LinearETC-v0``
 entry of ``sb3_detc/hyperparams/mappoc.yml`` (what ``python -m sb3_detc.train`` trains);
-without it, the script's own settings below, which the older tables of benchmarks/README.md
-were made with.
+without it, the script's own settings below (the variations of benchmarks/README.md, section
+"control and communication learned jointly").
 """
 
 from __future__ import annotations
@@ -162,7 +162,7 @@ def main() -> None:
     parser.add_argument("--timesteps", type=int, help="training steps (default: 300000, or the entry's)")
     parser.add_argument("--eval-episodes", type=int, default=60)
     parser.add_argument("--workers", type=int, default=2, help="parallel training processes")
-    parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "linear_learning.json")
+    parser.add_argument("--out", type=Path, default=Path("linear_learning.json"))
     args = parser.parse_args()
     common = {"eval_episodes": args.eval_episodes, "changes": args.set}
     if args.from_zoo:

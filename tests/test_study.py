@@ -266,7 +266,7 @@ def test_a_killed_study_resumes_from_its_checkpoints(tmp_path):
         "checkpoint_interval": 2048,
         "algorithms": {
             "short": {"algo": "ppo_random_skip", "hyperparams": {"n_timesteps": 2048}},
-            "long": {"algo": "mappoc", "hyperparams": {"n_timesteps": 24576}},
+            "long": {"algo": "mappoc", "hyperparams": {"n_timesteps": 12288}},
         },
     }
     del study["n_timesteps"]
@@ -290,7 +290,7 @@ def test_a_killed_study_resumes_from_its_checkpoints(tmp_path):
         os.killpg(process.pid, signal.SIGKILL)
         process.wait()
     checkpoint = json.loads((long / "checkpoint.json").read_text())["timesteps"]
-    assert 0 < checkpoint < 24576
+    assert 0 < checkpoint < 12288
     assert read_status(long)["status"] == "running"
     stamp = (short / "evaluation.json").stat().st_mtime_ns
 
@@ -298,8 +298,8 @@ def test_a_killed_study_resumes_from_its_checkpoints(tmp_path):
     assert result.returncode == 0, result.stdout + result.stderr
     assert (short / "evaluation.json").stat().st_mtime_ns == stamp  # not run again
     status = read_status(long)
-    assert status["status"] == "done" and status["timesteps"] == 24576  # the budget, not budget + steps before
+    assert status["status"] == "done" and status["timesteps"] == 12288  # the budget, not budget + steps before
     assert (long / "segments" / str(checkpoint)).is_dir()  # the second attempt started at the checkpoint
     progress = np.genfromtxt(long / "progress.csv", delimiter=",", names=True)
     steps = progress["timetotal_timesteps"]
-    assert np.all(np.diff(steps) > 0) and steps[-1] == 24576  # one row per iteration, none twice
+    assert np.all(np.diff(steps) > 0) and steps[-1] == 12288  # one row per iteration, none twice
