@@ -303,3 +303,24 @@ def test_a_killed_study_resumes_from_its_checkpoints(tmp_path):
     progress = np.genfromtxt(long / "progress.csv", delimiter=",", names=True)
     steps = progress["timetotal_timesteps"]
     assert np.all(np.diff(steps) > 0) and steps[-1] == 12288  # one row per iteration, none twice
+
+
+def test_progress_counts_trials_and_estimates_the_time_left_from_recent_progress(monkeypatch):
+    from sb3_detc.study import runner
+
+    clock = [0.0]
+    monkeypatch.setattr(runner.time, "monotonic", lambda: clock[0])
+    lines = []
+    progress = runner.StudyProgress({"a/seed0": 10_000, "b/seed0": 10_000}, done=3, stream=None)
+    progress.show = lambda force=False: lines.append(progress.line())
+    progress.started("a/seed0")
+    for t, steps in ((0, 0), (100, 100), (1000, 1000), (1700, 8000)):  # slow at first, then 10 steps/s
+        clock[0] = t
+        progress.result("a/seed0", steps)
+    assert progress.rate() == pytest.approx(7000 / 700)  # the samples of the last RATE_WINDOW seconds
+    assert progress.seconds_left() == pytest.approx((2000 + 10_000) / 10)
+    assert lines[-1] == "[study] 3 done, 1 running (a/seed0 80 %), 1 pending, 0 failed; time left: 20 min"
+    progress.finished("a/seed0", failed=False)
+    progress.started("b/seed0")
+    progress.finished("b/seed0", failed=True)
+    assert lines[-1].startswith("[study] 4 done, 0 running, 0 pending, 1 failed")

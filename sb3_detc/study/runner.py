@@ -14,6 +14,7 @@ import os
 import socket
 import sys
 import time
+from collections import deque
 from pathlib import Path
 from typing import Any
 
@@ -26,6 +27,9 @@ __all__ = ["StudyProgress", "prepare_folder", "run_study"]
 
 #: Seconds between two progress lines while nothing else happens.
 PROGRESS_EVERY = 60.0
+
+#: Seconds of recent progress from which the rate of a trial is estimated.
+RATE_WINDOW = 600.0
 
 
 def prepare_folder(spec: StudySpec, directory: str | os.PathLike) -> Path:
@@ -89,7 +93,7 @@ class StudyProgress:
     """Counts of finished, running, pending and failed trials and an estimate of the time left.
 
     The estimate divides the steps still to train by the rate at which the running trials
-    advance together (steps per second since each started reporting).
+    advance together (steps per second over the last :data:`RATE_WINDOW` seconds of each).
 
     :param budgets: trial name -> training budget of every trial still to run
     :param done: number of trials already finished before this run
@@ -102,7 +106,7 @@ class StudyProgress:
         self.failed = 0
         self.stream = stream or sys.stdout
         self.steps: dict[str, int] = {}
-        self.first: dict[str, tuple[float, int]] = {}
+        self.history: dict[str, deque[tuple[float, int]]] = {}
         self.running: set[str] = set()
         self.finished_names: set[str] = set()
         self._last_line = 0.0
@@ -114,11 +118,11 @@ class StudyProgress:
 
     def rate(self) -> float:
         """Steps per second of all running trials together (NaN before two reports)."""
-        now = time.monotonic()
         total = 0.0
         for name in self.running:
-            if name in self.first and now > self.first[name][0] and self.steps[name] > self.first[name][1]:
-                total += (self.steps[name] - self.first[name][1]) / (now - self.first[name][0])
+            samples = self.history.get(name)
+            if samples and len(samples) > 1 and samples[-1][0] > samples[0][0]:
+                total += (samples[-1][1] - samples[0][1]) / (samples[-1][0] - samples[0][0])
         return total if total > 0 else math.nan
 
     def seconds_left(self) -> float:
@@ -154,7 +158,11 @@ class StudyProgress:
     def result(self, name: str, steps: int) -> None:
         """A trial reported its step count."""
         self.steps[name] = steps
-        self.first.setdefault(name, (time.monotonic(), steps))
+        now = time.monotonic()
+        samples = self.history.setdefault(name, deque())
+        samples.append((now, steps))
+        while len(samples) > 2 and now - samples[1][0] >= RATE_WINDOW:
+            samples.popleft()
         self.show()
 
     def finished(self, name: str, failed: bool) -> None:
