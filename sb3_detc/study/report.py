@@ -175,7 +175,7 @@ def _markdown(directory: Path, spec: Any, summary: dict[str, Any]) -> str:
         lines += ["| metric | mean | 95 % CI |", "|---|---|---|"]
         for name, mean in entry["mean"].items():
             low, high = entry["ci95"][name]
-            digits = 3 if name in ("savings", "fall_rate", "success") else 2
+            digits = 3 if "savings" in name or name in ("fall_rate", "success") else 2
             lines.append(f"| {name} | {_number(mean, digits)} | [{_number(low, digits)}, {_number(high, digits)}] |")
         lines.append("")
         difference = entry["mean"].get("learned_minus_random_control_return")
