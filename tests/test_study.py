@@ -324,3 +324,15 @@ def test_progress_counts_trials_and_estimates_the_time_left_from_recent_progress
     progress.started("b/seed0")
     progress.finished("b/seed0", failed=True)
     assert lines[-1].startswith("[study] 4 done, 0 running, 0 pending, 1 failed")
+
+
+def test_intervals_are_the_same_on_every_call_and_leave_numpys_generator_alone():
+    from sb3_detc.study.report import interval_estimates
+
+    scores = {"a": np.random.default_rng(1).normal(size=(6, 2))}
+    np.random.seed(5)
+    expected_next = np.random.rand()
+    np.random.seed(5)
+    first = interval_estimates(scores)[1]["a"]
+    assert np.random.rand() == expected_next
+    np.testing.assert_array_equal(interval_estimates(scores)[1]["a"], first)

@@ -69,11 +69,22 @@ def interval_estimates(values: dict[str, np.ndarray]) -> tuple[dict[str, np.ndar
 
 
 def _bootstrap(values: dict[str, Any], statistic: Any) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
-    """Stratified-bootstrap (rliable) point estimates and 95 % percentile intervals, reproducibly."""
-    with warnings.catch_warnings():
-        # arch warns that a RandomState will once have to be passed differently; rliable passes it.
-        warnings.simplefilter("ignore", FutureWarning)
-        return rly.get_interval_estimates(values, statistic, reps=BOOTSTRAP_REPS, random_state=np.random.RandomState(0))
+    """Stratified-bootstrap (rliable) point estimates and 95 % percentile intervals, the same on every call.
+
+    rliable draws its resamples from NumPy's global generator: it is seeded for the call and
+    restored afterwards.
+    """
+    state = np.random.get_state()
+    np.random.seed(0)
+    try:
+        with warnings.catch_warnings():
+            # arch warns that a RandomState will once have to be passed differently; rliable passes it.
+            warnings.simplefilter("ignore", FutureWarning)
+            return rly.get_interval_estimates(
+                values, statistic, reps=BOOTSTRAP_REPS, random_state=np.random.RandomState(0)
+            )
+    finally:
+        np.random.set_state(state)
 
 
 def _trials(directory: Path) -> tuple[Any, dict[str, dict[int, dict[str, Any]]], dict[str, dict[int, str]]]:
