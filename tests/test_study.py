@@ -289,9 +289,17 @@ def test_a_killed_study_resumes_from_its_checkpoints(tmp_path):
     finally:
         os.killpg(process.pid, signal.SIGKILL)
         process.wait()
+    # Ray's trial worker has a process group of its own and ends when it notices that Ray is
+    # gone: wait until the trial's files stop changing.
+    stamps, quiet_since = None, time.monotonic()
+    while time.monotonic() - quiet_since < 3 and time.monotonic() < deadline + 60:
+        now = sorted((p.name, p.stat().st_mtime_ns) for p in long.glob("*") if p.is_file())
+        if now != stamps:
+            stamps, quiet_since = now, time.monotonic()
+        time.sleep(0.2)
     checkpoint = json.loads((long / "checkpoint.json").read_text())["timesteps"]
     assert 0 < checkpoint < 12288
-    assert read_status(long)["status"] == "running"
+    assert read_status(long)["status"] in ("running", "interrupted")  # killed, or told to stop by Ray
     stamp = (short / "evaluation.json").stat().st_mtime_ns
 
     result = run_command("run", str(path), "--dir", str(out))
@@ -336,3 +344,23 @@ def test_intervals_are_the_same_on_every_call_and_leave_numpys_generator_alone()
     first = interval_estimates(scores)[1]["a"]
     assert np.random.rand() == expected_next
     np.testing.assert_array_equal(interval_estimates(scores)[1]["a"], first)
+
+
+def test_an_interrupted_trial_says_so_and_the_next_run_finishes_it(tmp_path):
+    from sb3_detc.study.trial import run_trial
+
+    spec = load_study(write_study(tmp_path, {**TINY, "seeds": [0], "n_timesteps": 4096}))
+    trial = spec.trials()[0]
+    folder = trial_folder(tmp_path / "out", trial)
+
+    def stop_after_the_first_checkpoint(steps: int) -> None:
+        if steps >= 2048:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        run_trial(spec, trial, tmp_path / "out", on_progress=stop_after_the_first_checkpoint)
+    assert read_status(folder)["status"] == "interrupted"
+    assert not (folder / "error.txt").exists()
+    assert json.loads((folder / "checkpoint.json").read_text())["timesteps"] == 2048
+    status = run_trial(spec, trial, tmp_path / "out")
+    assert status["status"] == "done" and status["timesteps"] == 4096

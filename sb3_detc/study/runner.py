@@ -280,8 +280,15 @@ def run_study(
     finally:
         ray.shutdown()
     statuses = {t.name: read_status(trial_folder(folder, t))["status"] for t in trials}
-    failed = [name for name, status in statuses.items() if status != "done"]
+    failed = [name for name, status in statuses.items() if status == "failed"]
     progress.show(force=True)
+    unfinished = sum(status not in ("done", "failed") for status in statuses.values())
+    if unfinished:
+        print(
+            f"[study] {unfinished} trial(s) unfinished: run the same command again to continue them "
+            "(from their checkpoints where they have one)",
+            file=stream,
+        )
     for name in failed:
         print(
             f"[study] {name} failed: see {trial_folder(folder, next(t for t in trials if t.name == name))}/error.txt",

@@ -2,7 +2,7 @@
 
 A trial's folder (``<study dir>/trials/<label>/seed<seed>/``) holds plain files:
 
-* ``status.json``: ``status`` (``running``, ``done`` or ``failed``), ``timesteps``, ``budget``,
+* ``status.json``: ``status`` (``running``, ``done``, ``interrupted`` or ``failed``), ``timesteps``, ``budget``,
   ``seconds`` (training time over all attempts);
 * ``checkpoint.zip`` and ``checkpoint.json`` while it trains: the latest checkpoint (the whole
   model, optimizer included) and its step count, written atomically every
@@ -284,8 +284,8 @@ def _train(spec: StudySpec, trial: Trial, folder: Path, on_progress: Callable[[i
     status = read_status(folder)
     seconds = status.get("seconds", 0.0) + time.monotonic() - began
     _write_json(folder / "status.json", {**status, "timesteps": model.num_timesteps, "seconds": seconds})
-    if model.num_timesteps < budget:
-        raise RuntimeError(f"training of {trial.name} stopped at {model.num_timesteps} of {budget} steps")
+    if model.num_timesteps < budget:  # rl-zoo3's learn() ends quietly on a KeyboardInterrupt
+        raise KeyboardInterrupt(f"training of {trial.name} stopped at {model.num_timesteps} of {budget} steps")
     model.policy.save(str(folder / "policy.pt"))
     _write_progress(folder)
 
@@ -304,7 +304,8 @@ def run_trial(
     :param on_progress: called with the step count at the start of every rollout
     :return: the trial's status
     :raises Exception: whatever training or evaluation raised, after writing its traceback
-        to ``error.txt`` and ``failed`` to ``status.json``
+        to ``error.txt`` and ``failed`` to ``status.json`` (``interrupted`` for a
+        ``KeyboardInterrupt`` or ``SystemExit``, with no traceback)
     """
     folder = trial_folder(directory, trial)
     folder.mkdir(parents=True, exist_ok=True)
@@ -335,6 +336,9 @@ def run_trial(
         status.pop("error", None)
         _write_json(folder / "status.json", status)
         return status
+    except (KeyboardInterrupt, SystemExit):  # stopped from outside (Ctrl-C, Ray): resumed by the next run
+        _write_json(folder / "status.json", {**read_status(folder), "status": "interrupted"})
+        raise
     except BaseException as error:
         (folder / "error.txt").write_text(traceback.format_exc())
         _write_json(
