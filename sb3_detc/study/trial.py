@@ -34,6 +34,7 @@ import pandas as pd
 import torch as th
 from rl_zoo3.utils import get_callback_list
 from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.save_util import load_from_zip_file
 
 from sb3_detc.callbacks import FixedTriggerCallback
 from sb3_detc.evaluation import Episodes, evaluate_episodes
@@ -243,8 +244,9 @@ def _train(spec: StudySpec, trial: Trial, folder: Path, on_progress: Callable[[i
     budget = spec.budget(algorithm)
     checkpoint = folder / "checkpoint.zip"
     start = 0
-    if checkpoint.is_file() and (folder / "checkpoint.json").is_file():
-        start = int(json.loads((folder / "checkpoint.json").read_text())["timesteps"])
+    if checkpoint.is_file():  # the step count saved in the model itself (checkpoint.json is for readers)
+        data, _, _ = load_from_zip_file(checkpoint, load_data=True, device="cpu", print_system_info=False)
+        start = int(data["num_timesteps"])
     if start >= budget:
         raise RuntimeError(f"the checkpoint of {trial.name} is at {start} steps, not below the budget {budget}")
     args = argparse.Namespace(
