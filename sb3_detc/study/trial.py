@@ -84,7 +84,7 @@ class TrialCheckpoint(BaseCallback):
 
     At the start of a rollout the model has learned from every step it counted, so a run
     resumed from the checkpoint repeats nothing and loses nothing but the steps after it.
-    The file is replaced atomically; ``checkpoint.json`` holds its step count. After every
+    The file is replaced atomically; ``checkpoint.json`` repeats its step count for readers. After every
     save (and at every rollout start) ``on_progress`` gets the step count.
 
     :param folder: the trial folder
