@@ -709,6 +709,15 @@ def test_fused_gradient_step_updates_like_backward_and_the_optimizer(max_grad_no
             th.testing.assert_close(fused_state[i][key], value, rtol=1e-5, atol=1e-7)
 
 
+def test_fused_gradient_step_is_not_recompiled_when_schedules_change() -> None:
+    # Scheduled scalars (zeta, clip ranges) enter the compiled step as tensors; were they compiled
+    # in, each new value would recompile it, and past the limit the eager fallback fails on a CPU.
+    model = make_model(torch_compile=True, option_ent_coef=lambda p: p, clip_range=lambda p: 0.1 + 0.1 * p)
+    with th._dynamo.config.patch(recompile_limit=1):
+        model.learn(16 * 6)
+    assert model.num_timesteps == 96
+
+
 def test_fused_gradient_step_only_for_plain_adam_and_without_early_stopping() -> None:
     """Other optimizers, Adam variants and ``target_kl`` keep the unfused step (it can stop before applying)."""
     assert make_model(torch_compile=True, policy_kwargs={"optimizer_class": th.optim.SGD})._gradient_step is None

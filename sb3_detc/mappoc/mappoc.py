@@ -527,10 +527,13 @@ class MAPPOC(OnPolicyAlgorithm):
             adam = (optimizer.param_groups[0]["params"], *adam_state(optimizer))
             names = self._loss_module.names_of(adam[0])
             lr = th.tensor(optimizer.param_groups[0]["lr"], device=self.device)
+        scalars = (clip_pi, clip_mu, zeta)
+        if fused:  # as tensors: a float would be compiled in, and every new value of a schedule recompile the step
+            scalars = tuple(th.tensor(value, dtype=th.float64, device=self.device) for value in scalars)
         train_pi = self.train_control_policy
         for epoch in range(self.n_epochs):
             for idx in self.rollout_buffer.minibatch_indices(self.batch_size):
-                loss_args = (inputs, samples, p_broadcast, idx, clip_pi, clip_mu, zeta, train_pi, train_mu)
+                loss_args = (inputs, samples, p_broadcast, idx, *scalars, train_pi, train_mu)
                 if fused:
                     step_stats = self._gradient_step(adam, names, lr, loss_args)  # type: ignore[misc]
                 else:
