@@ -712,6 +712,7 @@ def test_fused_gradient_step_updates_like_backward_and_the_optimizer(max_grad_no
 def test_fused_gradient_step_is_not_recompiled_when_schedules_change() -> None:
     # Scheduled scalars (zeta, clip ranges) enter the compiled step as tensors; were they compiled
     # in, each new value would recompile it, and past the limit the eager fallback fails on a CPU.
+    th._dynamo.reset()  # forget what other tests compiled: only this model's compilations count
     model = make_model(torch_compile=True, option_ent_coef=lambda p: p, clip_range=lambda p: 0.1 + 0.1 * p)
     with th._dynamo.config.patch(recompile_limit=1):
         model.learn(16 * 6)
