@@ -61,6 +61,7 @@ __all__ = [
     "import_gym_packages",
     "register",
     "run_cli",
+    "uses_rollout_workers",
     "sample_mappoc_params",
 ]
 
@@ -189,6 +190,17 @@ class CSVLogCallback(BaseCallback):
             self._output = None
 
 
+def uses_rollout_workers(entry: dict[str, Any]) -> bool:
+    """Whether a hyperparameter entry names :data:`ROLLOUT_WORKER` among its ``env_wrapper``.
+
+    :param entry: the entry (``env_wrapper``: one name, a ``{name: arguments}`` mapping or a list of those)
+    :return: True if its envs are rollout workers
+    """
+    wrappers = entry.get("env_wrapper") or []
+    wrappers = wrappers if isinstance(wrappers, list) else [wrappers]
+    return ROLLOUT_WORKER in [w if isinstance(w, str) else next(iter(w)) for w in wrappers]
+
+
 class ExperimentManager(rl_zoo3.exp_manager.ExperimentManager):
     """rl-zoo3's experiment manager that writes ``progress.csv`` and continues step counts.
 
@@ -207,11 +219,7 @@ class ExperimentManager(rl_zoo3.exp_manager.ExperimentManager):
         :param hyperparams: the entry, as read from the file and the command line
         :return: what rl-zoo3's preprocessing returns
         """
-        wrappers = hyperparams.get("env_wrapper") or []
-        names = [
-            w if isinstance(w, str) else next(iter(w)) for w in (wrappers if isinstance(wrappers, list) else [wrappers])
-        ]
-        if ROLLOUT_WORKER in names:
+        if uses_rollout_workers(hyperparams):
             self.vec_env_class = SubprocVecEnv
         return super()._preprocess_hyperparams(hyperparams)
 

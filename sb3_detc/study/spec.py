@@ -40,11 +40,11 @@ import yaml
 from sb3_detc.zoo import (
     ALGORITHMS,
     HYPERPARAMS_DIR,
-    ROLLOUT_WORKER,
     InputError,
     check_algorithm,
     check_env,
     check_hyperparams_file,
+    uses_rollout_workers,
 )
 
 __all__ = ["AlgorithmSpec", "StudyError", "StudySpec", "Trial", "load_study"]
@@ -200,10 +200,7 @@ def _algorithm(path: Path, env: str, label: Any, settings: Any, seeds: tuple[int
     entry = _checked_entry(path, env, label, algo, conf, hyperparams)
     cpus = settings.get("cpus")
     if cpus is None:
-        wrappers = entry.get("env_wrapper") or []
-        wrappers = wrappers if isinstance(wrappers, list) else [wrappers]
-        names = [w if isinstance(w, str) else next(iter(w)) for w in wrappers]
-        cpus = int(entry.get("n_envs", 1)) if ROLLOUT_WORKER in names else 1
+        cpus = int(entry.get("n_envs", 1)) if uses_rollout_workers(entry) else 1
     cpus = _int(path, f"'cpus' of {label!r}", cpus, 1)
     return AlgorithmSpec(label, algo, conf, dict(hyperparams), trial_seeds, cpus, entry)
 
