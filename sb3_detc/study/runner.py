@@ -36,7 +36,8 @@ def prepare_folder(spec: StudySpec, directory: str | os.PathLike) -> Path:
     """Create the study folder, or check that an existing one belongs to this study.
 
     The folder keeps a copy of the study file (``study.yml``) and a ``.gitignore`` for
-    Ray's files and half-written checkpoints.
+    Ray's files and half-written checkpoints; it keeps ``checkpoint.zip`` in, so that a study
+    committed while it runs resumes on another machine.
 
     :param spec: the study
     :param directory: the study folder
@@ -56,7 +57,7 @@ def prepare_folder(spec: StudySpec, directory: str | os.PathLike) -> Path:
     folder.mkdir(parents=True, exist_ok=True)
     if not copy.is_file():
         copy.write_text(spec.text)
-    (folder / ".gitignore").write_text(".ray/\n*.tmp\n*.tmp.zip\n*.tmp.csv\n")
+    (folder / ".gitignore").write_text(".ray/\n*.tmp\n*.tmp.zip\n*.tmp.csv\n!checkpoint.zip\n")
     return folder
 
 

@@ -268,9 +268,12 @@ def _train(spec: StudySpec, trial: Trial, folder: Path, on_progress: Callable[[i
         config=str(algorithm.conf),
         device="cpu",
     )
-    segment = folder / "segments" / str(start)
-    if segment.exists():
-        shutil.rmtree(segment)
+    segments = folder / "segments"
+    if segments.is_dir():  # segments of attempts whose checkpoints are lost (from this step on) are stale
+        for stale in segments.iterdir():
+            if stale.name.isdigit() and int(stale.name) >= start:
+                shutil.rmtree(stale)
+    segment = segments / str(start)
     manager.save_path = str(segment)
     manager.params_path = str(segment / "params")
     model, _ = manager.setup_experiment()
