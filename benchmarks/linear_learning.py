@@ -42,7 +42,7 @@ from sb3_detc import MAPPOC
 from sb3_detc.callbacks import ControlFirstCallback, OptionEntropySchedule
 from sb3_detc.envs.linear import LinearSystem, lqr_episode_cost
 from sb3_detc.evaluation import evaluate_communication
-from sb3_detc.mappoc.policies import CRITICS
+from sb3_detc.mappoc.critics import CRITICS
 from sb3_detc.triggers import RandomTrigger
 from sb3_detc.zoo import check_hyperparams_file
 
@@ -123,8 +123,8 @@ def run(job: dict[str, Any]) -> dict[str, Any]:
         return -report.mean_control_return / bound, report.savings
 
     cost_learned, savings = evaluate(deterministic_options=False)
-    cost_random, _ = evaluate(option_override=RandomTrigger(savings, seed=seed))
-    cost_periodic, _ = evaluate(option_override=RandomTrigger(0.0))
+    cost_random, _ = evaluate(fixed_trigger=RandomTrigger(savings, seed=seed))
+    cost_periodic, _ = evaluate(fixed_trigger=RandomTrigger(0.0))
     return {
         "comm_cost": comm_cost,
         "seed": seed,

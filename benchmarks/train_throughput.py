@@ -3,6 +3,11 @@
 Both algorithms train on the same machine in the same run, alternating, with 2 worker
 processes (``SubprocVecEnv``) each:
 
+* **MAPPOC, one-liner**: what a user gets from ``MAPPOC("MlpHybridPolicy",
+  "sb3_detc/MultiwalkerETC-v0").learn(6_144_000)`` with every default (MAPPOC builds its
+  rollout workers from the id and compiles for a run that long), timed over its first
+  iterations; its warm-up is everything from the constructor to the end of the first
+  iteration (worker start, compilation);
 * **MAPPOC** on ``sb3_detc/MultiwalkerETC-v0`` with the paper's hyperparameters: 2048
   environment steps per iteration (2 envs x 1024), minibatch 32, 10 epochs, three agents
   with their own networks (policy over options, control policy and option-value critic,
@@ -96,6 +101,54 @@ def make_mappoc(seed: int, torch_compile: bool, envs: str) -> BaseAlgorithm:
     return MAPPOC("MlpHybridPolicy", env, n_steps=1024, seed=seed, torch_compile=torch_compile)
 
 
+class IterationTimer(BaseCallback):
+    """Note when every rollout starts and ends, and stop training when rollout ``stop_at`` starts.
+
+    :param stop_at: number (from 0) of the rollout at whose start training stops
+    """
+
+    def __init__(self, stop_at: int) -> None:
+        super().__init__()
+        self.stop_at = stop_at
+        self.starts: list[float] = []
+        self.ends: list[float] = []
+
+    def _on_rollout_start(self) -> None:
+        self.starts.append(time.perf_counter())
+
+    def _on_rollout_end(self) -> None:
+        self.ends.append(time.perf_counter())
+
+    def _on_step(self) -> bool:
+        return len(self.starts) <= self.stop_at
+
+
+def measure_one_liner(name: str, seed: int, iterations: int) -> dict[str, Any]:
+    """The documented one-liner with the paper's budget, timed over ``iterations`` iterations after the first."""
+    start = time.perf_counter()
+    model = MAPPOC("MlpHybridPolicy", "sb3_detc/MultiwalkerETC-v0", seed=seed)
+    timer = IterationTimer(stop_at=iterations + 1)
+    model.learn(PAPER_TIMESTEPS, callback=timer)
+    model.get_env().close()
+    timed = range(1, iterations + 1)
+    seconds = timer.starts[iterations + 1] - timer.starts[1]
+    rollout = sum(timer.ends[i] - timer.starts[i] for i in timed)
+    gradient_steps = iterations * model.n_epochs * -(-model.n_steps * model.n_envs // model.batch_size)
+    return {
+        "name": name,
+        "warm_up_s": timer.starts[1] - start,
+        "env_steps": iterations * model.n_steps * model.n_envs,
+        "seconds": seconds,
+        "steps_per_s": iterations * model.n_steps * model.n_envs / seconds,
+        "rollout_s": rollout,
+        "update_s": seconds - rollout,
+        "gradient_steps": iterations * model.n_epochs,
+        "ms_per_gradient_step": 1e3 * (seconds - rollout) / gradient_steps,
+        "n_envs": model.n_envs,
+        "compiled": type(model.gradient_step).__name__,
+    }
+
+
 def make_ppo_supersuit(seed: int) -> BaseAlgorithm:
     import supersuit as ss
 
@@ -178,6 +231,9 @@ def matmul_floor(name: str, seed: int, repeats: int = 500) -> dict[str, Any]:
     }
 
 
+ONE_LINER = "MAPPOC, one-liner"
+#: The paper's budget: 3000 iterations of 2048 environment steps.
+PAPER_TIMESTEPS = 6_144_000
 MAPPOC_VARIANTS = {  # name -> (torch_compile, envs)
     "MAPPOC": (False, "workers"),
     "MAPPOC, compiled": (True, "workers"),
@@ -190,11 +246,13 @@ MAPPOC_VARIANTS = {  # name -> (torch_compile, envs)
 TWO_THREADS = ("MAPPOC, compiled, rollout workers, 2 threads", "PPO + SuperSuit, 2 threads")
 ENV_ONLY = {"joint env only, 2 worker processes": True, "joint env only, in-process": False}
 MATMUL_FLOOR = "MAPPOC gradient step, matrix products only"
-ALGORITHMS = (*MAPPOC_VARIANTS, "PPO + SuperSuit", "PPO + SuperSuit, 2 threads", *ENV_ONLY, MATMUL_FLOOR)
+ALGORITHMS = (ONE_LINER, *MAPPOC_VARIANTS, "PPO + SuperSuit", "PPO + SuperSuit, 2 threads", *ENV_ONLY, MATMUL_FLOOR)
 
 
 def measure_one(name: str, seed: int, iterations: int, ppo_iterations: int) -> dict[str, Any]:
     """One measurement of ``name`` (one of :data:`ALGORITHMS`) in this process."""
+    if name == ONE_LINER:  # as a user runs it: PyTorch's default threads
+        return measure_one_liner(name, seed, iterations)
     th.set_num_threads(2 if name in TWO_THREADS else 1)
     if name in ENV_ONLY:
         return env_only(name, ENV_ONLY[name], 1024 * iterations, seed)
@@ -255,7 +313,7 @@ def main() -> None:
     print()
     print("median env steps/s: " + ", ".join(f"{name} {value:.0f}" for name, value in medians.items()))
     for reference in (name for name in ("PPO + SuperSuit", "PPO + SuperSuit, 2 threads") if name in results):
-        for name in (name for name in MAPPOC_VARIANTS if name in results):
+        for name in (name for name in (ONE_LINER, *MAPPOC_VARIANTS) if name in results):
             pairs = zip(results[name], results[reference], strict=True)
             per_repeat = ", ".join(f"{a['steps_per_s'] / b['steps_per_s']:.2f}" for a, b in pairs)
             print(f"ratio {name} / {reference}: {medians[name] / medians[reference]:.2f} (per repeat: {per_repeat})")

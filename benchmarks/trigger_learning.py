@@ -120,7 +120,7 @@ def run(job: tuple[str, int, float, int, int, Path | None]) -> dict[str, Any]:
         return -report.mean_control_return * eval_env.unwrapped.n_agents / bound, report.savings
 
     learned, savings = cost(deterministic_options=False)
-    random, _ = cost(option_override=RandomTrigger(savings, seed=seed))
+    random, _ = cost(fixed_trigger=RandomTrigger(savings, seed=seed))
     curve = sweep_send_on_delta(eval_env.env, lqr_on_held_states(eval_env), DELTAS, n_episodes=episodes, seed=EVAL_SEED)
     order = np.argsort([p.savings for p in curve])
     send_on_delta = float(np.interp(savings, [curve[i].savings for i in order], [curve[i].cost / bound for i in order]))

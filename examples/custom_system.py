@@ -279,9 +279,9 @@ def evaluate(model: MAPPOC, n_episodes: int, seed: int) -> dict[str, Communicati
     random = RandomTrigger(skip_prob=learned.savings, seed=seed)
     return {
         "learned triggers": learned,
-        "random, same rate": evaluate_communication(model, ENV_ID, n_episodes, option_override=random, seed=seed),
+        "random, same rate": evaluate_communication(model, ENV_ID, n_episodes, fixed_trigger=random, seed=seed),
         "always broadcast": evaluate_communication(
-            model, ENV_ID, n_episodes, option_override=PeriodicTrigger(1), seed=seed
+            model, ENV_ID, n_episodes, fixed_trigger=PeriodicTrigger(1), seed=seed
         ),
     }
 

@@ -26,7 +26,6 @@ rollout, so a rollout and the update that follows it use the values of the same 
 from __future__ import annotations
 
 import math
-import weakref
 from typing import Any
 
 import numpy as np
@@ -120,10 +119,6 @@ def _boundaries(unit: str, **named: tuple[float | None, float]) -> list[float]:
 
 
 # ----------------------------------------------------------------------------- curriculum
-#: Per model, the action-noise terms of every noise schedule: ``action_noise_std`` is their maximum.
-_NOISE_TERMS: weakref.WeakKeyDictionary[Any, weakref.WeakKeyDictionary[Any, float]] = weakref.WeakKeyDictionary()
-
-
 class _Schedule(BaseCallback):
     """Sets a model attribute from a schedule of the iteration (or timestep) at every rollout start.
 
@@ -163,20 +158,18 @@ class _NoiseSchedule(_Schedule):
     term_name = "noise"
 
     def _init_callback(self) -> None:
-        _NOISE_TERMS.setdefault(self.model, weakref.WeakKeyDictionary())[self] = 0.0
+        self.model.set_action_noise_std(0.0, source=self)
 
     def apply(self, t: float) -> None:
-        """Set this schedule's term of position ``t``, ``action_noise_std`` to the maximum term, and log both."""
+        """Set this schedule's term of position ``t`` (the model uses the largest term), and log both."""
         value = self.value(t)
-        terms = _NOISE_TERMS.setdefault(self.model, weakref.WeakKeyDictionary())
-        terms[self] = value
-        self.model.action_noise_std = max(terms.values())
+        self.model.set_action_noise_std(value, source=self)
         self.logger.record(f"curriculum/{self.term_name}", value)
         self.logger.record("curriculum/action_noise_std", self.model.action_noise_std)
 
     def _on_training_end(self) -> None:
         # A finished callback no longer contributes (e.g. to a later learn() with other callbacks).
-        _NOISE_TERMS.get(self.model, {}).pop(self, None)
+        self.model.set_action_noise_std(None, source=self)
 
 
 class ActionNoiseSchedule(_NoiseSchedule):
@@ -186,10 +179,10 @@ class ActionNoiseSchedule(_NoiseSchedule):
     ``end`` (paper: 0.25 -> 0 over iterations 0..900). Logs its own term as
     ``curriculum/noise_decay`` and the model's value as ``curriculum/action_noise_std``.
 
-    The noise schedules (this one and :class:`TentNoiseSchedule`) own ``action_noise_std``
-    while they train: the model's value is the **maximum** of the terms of all noise schedules
-    attached to it (whatever their order in a ``CallbackList``), and the constructor's value is
-    overwritten at the first rollout.
+    The noise schedules (this one and :class:`TentNoiseSchedule`) each set their own term
+    (``model.set_action_noise_std(value, source=self)``) while they train: the model's value is
+    the **maximum** of the terms of all noise schedules attached to it (whatever their order
+    in a ``CallbackList``), and the constructor's value is overwritten at the first rollout.
 
     :param initial_std: noise standard deviation until ``start`` (>= 0)
     :param start: end of the constant part (default 0)
@@ -429,12 +422,12 @@ class ControlFirstCallback(_Schedule):
     """Two stages: the control policy under random skips, then the policies over options for it.
 
     * stage 1 (positions before ``switch``): options are drawn by
-      :class:`~sb3_detc.triggers.RandomTrigger` with ``skip_prob`` (``model.option_override``),
+      :class:`~sb3_detc.triggers.RandomTrigger` with ``skip_prob`` (``model.set_fixed_trigger``),
       ``pi`` and the critic learn, ``mu`` does not;
     * stage 2 (from ``switch`` on): the options come from ``mu`` again, ``mu`` and the critic
-      learn, ``pi`` stays as stage 1 left it (``model.train_control_policy = False``), with
+      learn, ``pi`` stays as stage 1 left it (``model.set_trained_policies``), with
       ``trigger_learning_rate`` if given, and rewards normalised if ``trigger_normalize_reward``
-      (``model.normalize_reward = True``: the scale that suits option values can spoil a
+      (``model.set_reward_normalization(True)``: the scale that suits option values can spoil a
       controller's learning, so each stage may have its own).
 
     Why: a trigger can only be learned for a controller that already controls, and while
@@ -486,14 +479,12 @@ class ControlFirstCallback(_Schedule):
     def apply(self, t: float) -> None:
         """Put the model into the stage of position ``t`` and log the stage."""
         stage = int(self.value(t))
-        self.model.option_override = self.trigger if stage == 1 else None
-        self.model.train_option_policy = stage == 2
-        self.model.train_control_policy = stage == 1
+        self.model.set_fixed_trigger(self.trigger if stage == 1 else None)
+        self.model.set_trained_policies(control_policy=stage == 1, option_policy=stage == 2)
         if stage == 2 and self.trigger_learning_rate is not None:
-            self.model.learning_rate = self.trigger_learning_rate
-            self.model._setup_lr_schedule()
+            self.model.set_learning_rate(self.trigger_learning_rate)
         if stage == 2 and self.trigger_normalize_reward:
-            self.model.normalize_reward = True
+            self.model.set_reward_normalization(True)
         self.logger.record("curriculum/stage", stage)
 
 
@@ -501,14 +492,14 @@ class ControlFirstCallback(_Schedule):
 class FixedTriggerCallback(BaseCallback):
     """Train MAPPOC's control policy with a fixed, non-learned trigger instead of the policy over options.
 
-    At the start of training: ``model.option_override = trigger`` (the rollouts take their
-    options from it), ``model.train_option_policy = False`` (``mu`` is not updated), and,
+    At the start of training: ``model.set_fixed_trigger(trigger)`` (the rollouts take their
+    options from it, and ``mu`` is not updated), and,
     unless ``charge_comm_cost``, the communication cost of every training env is set to 0.
 
     This is a training *mode*: nothing is restored at the end of training, so a following
-    ``learn`` keeps the trigger and the zero cost. The override is not saved with the model
+    ``learn`` keeps the trigger and the zero cost. The trigger is not saved with the model
     and evaluation envs are not changed: evaluate with
-    :func:`~sb3_detc.evaluation.evaluate_communication` and ``option_override=callback.trigger``
+    :func:`~sb3_detc.evaluation.evaluate_communication` and ``fixed_trigger=callback.trigger``
     (its ``mean_control_return`` excludes the communication cost).
 
     :param trigger: callable joint observations (B, N, ...) -> options (B, N), e.g. from
@@ -525,8 +516,7 @@ class FixedTriggerCallback(BaseCallback):
         self.charge_comm_cost = bool(charge_comm_cost)
 
     def _on_training_start(self) -> None:
-        self.model.option_override = self.trigger
-        self.model.train_option_policy = False
+        self.model.set_fixed_trigger(self.trigger)
         if not self.charge_comm_cost:
             set_comm_cost(self.training_env, 0.0)
 

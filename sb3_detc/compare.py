@@ -35,7 +35,7 @@ from rl_zoo3.utils import get_callback_list, get_saved_hyperparams
 from sb3_detc.callbacks import FixedTriggerCallback
 from sb3_detc.evaluation import CommunicationReport, evaluate_communication
 from sb3_detc.mappoc import MAPPOC
-from sb3_detc.mappoc.mappoc import OptionOverride
+from sb3_detc.mappoc.mappoc import FixedTrigger
 from sb3_detc.study.report import report_study, summarise
 from sb3_detc.study.runner import run_study
 from sb3_detc.study.spec import load_study
@@ -52,7 +52,7 @@ EVAL_SEED = 10_000
 
 
 def evaluate_run(
-    run: Path, env_id: str, episodes: int, trigger: OptionOverride | None = None, model: Path | None = None
+    run: Path, env_id: str, episodes: int, trigger: FixedTrigger | None = None, model: Path | None = None
 ) -> CommunicationReport:
     """Evaluate a run's final model or a checkpoint on seeded episodes, with the run's env settings and trigger.
 
@@ -84,7 +84,7 @@ def evaluate_run(
         episodes,
         deterministic=True,
         deterministic_options=False,
-        option_override=triggers[0] if triggers else None,
+        fixed_trigger=triggers[0] if triggers else None,
         seed=EVAL_SEED,
     )
 

@@ -12,7 +12,7 @@ import torch as th
 from stable_baselines3.common.utils import obs_as_tensor
 
 from sb3_detc.envs.wrappers import JointEnv
-from sb3_detc.mappoc.mappoc import MAPPOC, OptionOverride
+from sb3_detc.mappoc.mappoc import MAPPOC, FixedTrigger
 from sb3_detc.mappoc.policies import MlpHybridPolicy
 
 
@@ -72,7 +72,7 @@ def evaluate_episodes(
     seeds: Sequence[int | None],
     deterministic: bool = True,
     deterministic_options: bool | None = None,
-    option_override: OptionOverride | None = None,
+    fixed_trigger: FixedTrigger | None = None,
 ) -> Episodes:
     """Run a policy for whole episodes, one per seed, and record each.
 
@@ -82,7 +82,7 @@ def evaluate_episodes(
     :param deterministic: mode of ``mu`` and mean of ``pi`` instead of samples
     :param deterministic_options: mode (True) or samples (False) of ``mu`` whatever
         ``deterministic`` says (None: as ``deterministic``)
-    :param option_override: options to use instead of ``mu``'s (e.g. a
+    :param fixed_trigger: options to use instead of ``mu``'s (e.g. a
         :class:`~sb3_detc.triggers.RandomTrigger`), with the policy's control policy
     :return: the episodes' results
     """
@@ -105,8 +105,8 @@ def evaluate_episodes(
             batch = {key: value[None] for key, value in obs.items()}
             with th.no_grad():
                 comm = None
-                if option_override is not None:
-                    comm = th.as_tensor(option_override(batch), device=policy.device)
+                if fixed_trigger is not None:
+                    comm = th.as_tensor(fixed_trigger(batch), device=policy.device)
                 action = policy(
                     obs_as_tensor(batch, policy.device),
                     deterministic=deterministic,
@@ -137,7 +137,7 @@ def evaluate_communication(
     n_eval_episodes: int = 10,
     deterministic: bool = True,
     deterministic_options: bool | None = None,
-    option_override: OptionOverride | None = None,
+    fixed_trigger: FixedTrigger | None = None,
     seed: int | None = None,
 ) -> CommunicationReport:
     """Run a model's policies for whole episodes and report returns and communication savings.
@@ -148,7 +148,7 @@ def evaluate_communication(
     :param deterministic: mode of ``mu`` and mean of ``pi`` instead of samples
     :param deterministic_options: mode (True) or samples (False) of ``mu`` whatever
         ``deterministic`` says (None: as ``deterministic``)
-    :param option_override: options to use instead of ``mu``'s (e.g. a
+    :param fixed_trigger: options to use instead of ``mu``'s (e.g. a
         :class:`~sb3_detc.triggers.RandomTrigger`), with the model's control policy
     :param seed: seed of the first episode (the following ones continue its generator)
     :return: the averages
@@ -161,7 +161,7 @@ def evaluate_communication(
         [seed] + [None] * (n_eval_episodes - 1),
         deterministic=deterministic,
         deterministic_options=deterministic_options,
-        option_override=option_override,
+        fixed_trigger=fixed_trigger,
     )
     agent_rate = episodes.broadcasts.sum(axis=0) / episodes.lengths.sum()
     return CommunicationReport(

@@ -1,4 +1,4 @@
-"""Non-learned communication triggers, usable wherever MAPPOC accepts an option override.
+"""Non-learned communication triggers, usable wherever MAPPOC accepts a fixed trigger.
 
 A trigger maps a batch of joint observations (dict of arrays shaped (B, N, ...)) to
 options (B, N) in {0, 1}. :func:`evaluate_trigger` runs a trigger with a given control law

@@ -45,8 +45,8 @@ from stable_baselines3.common.logger import CSVOutputFormat
 from stable_baselines3.common.vec_env import SubprocVecEnv
 
 from sb3_detc.mappoc import MAPPOC
+from sb3_detc.mappoc.critics import CRITICS
 from sb3_detc.mappoc.mappoc import check_hyperparameters, check_observation_normalization
-from sb3_detc.mappoc.policies import CRITICS
 
 __all__ = [
     "ALGORITHMS",
@@ -129,8 +129,10 @@ def sample_mappoc_params(
         "team_reward": trial.suggest_categorical("team_reward", [False, True]),
         "normalize_option_advantage": trial.suggest_categorical("normalize_option_advantage", [False, True]),
         "net_arch": trial.suggest_categorical("net_arch", list(NET_ARCHS)),
-        # the centred critic needs mu's own options, which the random-skip baseline replaces
-        "critic": trial.suggest_categorical("critic", [c for c in CRITICS if c != "centred"]),
+        # the random-skip baseline replaces mu's options: no critic that needs the probabilities they were drawn with
+        "critic": trial.suggest_categorical(
+            "critic", [name for name, critic in CRITICS.items() if not critic.needs_draw_probabilities]
+        ),
     }
     params["batch_size"] = min(params["batch_size"], params["n_steps"] * n_envs)
     return convert_mappoc_params(params)

@@ -258,7 +258,7 @@ class Stages(BaseCallback):
 
     def _on_rollout_start(self) -> None:
         model = self.model
-        self.rows.append((model.option_override, model.train_option_policy, model.train_control_policy))
+        self.rows.append((model.fixed_trigger, model.train_option_policy, model.train_control_policy))
 
     def _on_rollout_end(self) -> None:
         self.learning_rates.append(self.model.lr_schedule(self.model._current_progress_remaining))
@@ -314,9 +314,9 @@ def test_control_first_normalises_the_rewards_of_stage_two_only() -> None:
         stages = ControlFirstCallback(1, trigger_normalize_reward=normalise)
         model.learn(8, callback=stages)
         stage_1 = model.rollout_buffer.rewards.copy()
-        assert model.normalize_reward is False and model.reward_rms is None
+        assert model.normalize_reward is False and model.reward_transform.return_rms is None
         model.learn(8, callback=stages, reset_num_timesteps=False)
-        assert model.normalize_reward is normalise and (model.reward_rms is not None) is normalise
+        assert model.normalize_reward is normalise and (model.reward_transform.return_rms is not None) is normalise
         rewards.append((stage_1, model.rollout_buffer.rewards.copy()))
     (normalised_1, normalised_2), (raw_1, raw_2) = rewards
     np.testing.assert_array_equal(normalised_1, raw_1)  # stage 1: the same rewards
@@ -334,8 +334,7 @@ def test_random_skip_rate_frozen_mu_and_no_comm_cost(skip_prob: float) -> None:
     capture = capture_logger(model)
     model.learn(n_steps * n_envs * n_iterations, callback=[RandomSkipCallback(skip_prob), metrics, record])
 
-    assert isinstance(model.option_override, RandomTrigger) and model.option_override.skip_prob == skip_prob
-    assert model.train_option_policy is False
+    assert isinstance(model.fixed_trigger, RandomTrigger) and model.fixed_trigger.skip_prob == skip_prob
     comm = np.array([info["comm"] for step in record.infos for info in step])
     n = comm.size
     assert n == n_agents * n_envs * n_steps * n_iterations
@@ -374,7 +373,7 @@ def test_periodic_comm_callback_broadcasts_every_kth_step_of_each_episode(period
     model = make_model(n_agents=3, max_cycles=max_cycles, n_steps=n_steps, comm_cost=0.5)
     record = Record()
     model.learn(n_steps, callback=[PeriodicCommCallback(period, charge_comm_cost=charge), record])
-    assert isinstance(model.option_override, PeriodicTrigger) and model.train_option_policy is False
+    assert isinstance(model.fixed_trigger, PeriodicTrigger)
     comm = np.array([step[0]["comm"] for step in record.infos])  # (steps, agents)
     step_in_episode = np.arange(n_steps) % max_cycles
     expected = ((step_in_episode + 1) % period == 0).astype(np.int64)  # e.g. period 3: steps 2 and 5 of 0..6
@@ -496,7 +495,7 @@ def test_comm_metrics_equal_hand_counts_in_a_scripted_run() -> None:
         g = next(counter)
         return np.array([[int(g in SENDS[0]), int(g in SENDS[1])]])
 
-    model.option_override = script
+    model.set_fixed_trigger(script)
     record = Record()
     capture = capture_logger(model)
     model.learn(2 * n_steps, callback=[CommMetricsCallback(), record])
@@ -611,10 +610,12 @@ def test_paper_setup_runs_end_to_end_on_multiwalker() -> None:
 
     from sb3_detc import MAPPOC
     from sb3_detc.callbacks import CommMetricsCallback, CurriculumCallback
+    from sb3_detc.mappoc.mappoc import default_n_envs
 
     model = MAPPOC("MlpHybridPolicy", "sb3_detc/MultiwalkerETC-v0", n_steps=128, n_epochs=1, seed=0)
+    assert model.n_envs == default_n_envs()  # the fast setting: rollout workers built from the id
     model.set_logger(configure(None, []))
-    model.learn(256, callback=CallbackList([CurriculumCallback(), CommMetricsCallback()]))
+    model.learn(2 * 128 * model.n_envs, callback=CallbackList([CurriculumCallback(), CommMetricsCallback()]))
     logged = model.logger.name_to_value
     assert model.action_noise_std == pytest.approx(0.25 * (1 - 1 / 900))  # phase I, iteration 1
     assert 0.0 <= logged["comm/savings"] <= 1.0

@@ -25,15 +25,13 @@ def fresh_model(module, kwargs: dict, share_parameters: bool) -> MAPPOC:
 def sharpen_option_policy(model: MAPPOC, seed: int, scale: float = 4.0) -> None:
     """Large random weights for every agent's ``mu`` (only), so its options depend more on its inputs.
 
-    Reaches into the batched chains (``_where``): the control policies keep their initial
+    Writes into ``mu``'s views from ``net_parameters``: the control policies keep their initial
     weights, so their outputs stay small and the float32 tolerance stays meaningful. Padding
     weights only ever meet zero inputs or are sliced off, so they may be random too.
     """
-    chain, start, stop = model.policy._where["mu"]
     gen = th.Generator().manual_seed(seed)
-    with th.no_grad():
-        for param in [*model.policy.chains[chain].weights, *model.policy.chains[chain].biases]:
-            param[start:stop] = th.randn(param[start:stop].shape, generator=gen) * scale
+    for view in model.policy.net_parameters("mu"):
+        view.copy_(th.randn(view.shape, generator=gen) * scale)
 
 
 def lockstep(model: MAPPOC, module, kwargs: dict, seed: int, n_steps: int = 40) -> np.ndarray:

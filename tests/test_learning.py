@@ -57,12 +57,12 @@ def test_control_policy_learns_with_random_skips() -> None:
     env_kwargs = {"comm_cost": 0.0, "max_cycles": 50}
     env = make_vec_env(ENV_ID, n_envs=2, seed=0, env_kwargs=env_kwargs)
     model = MAPPOC("MlpHybridPolicy", env, seed=0, policy_kwargs={"net_arch": [32, 32]}, **SETTINGS)
-    model.option_override = RandomTrigger(0.5, seed=0)
+    model.set_fixed_trigger(RandomTrigger(0.5, seed=0))
     eval_env = gym.make(ENV_ID, **env_kwargs)
 
     def control_return() -> float:
         report = evaluate_communication(
-            model, eval_env, 4, deterministic=True, option_override=RandomTrigger(0.5, seed=2), seed=1
+            model, eval_env, 4, deterministic=True, fixed_trigger=RandomTrigger(0.5, seed=2), seed=1
         )
         return report.mean_control_return
 

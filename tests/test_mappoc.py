@@ -15,11 +15,16 @@ from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.vec_env import DummyVecEnv
 
 import sb3_detc  # noqa: F401  (registers the env ids)
+from sb3_detc.callbacks import RandomSkipCallback
 from sb3_detc.envs import linear_etc_v0
 from sb3_detc.envs.wrappers import JointEnv
 from sb3_detc.mappoc import MAPPOC, HybridRolloutBuffer, MlpHybridPolicy
-from sb3_detc.mappoc.mappoc import clipped_surrogate_loss, greedy_option_advantage, option_gap_scale
-from sb3_detc.mappoc.policies import CRITICS, NETS, BatchedMLP
+from sb3_detc.mappoc import mappoc as mappoc_module
+from sb3_detc.mappoc.batched import BatchedMLP
+from sb3_detc.mappoc.critics import CRITICS
+from sb3_detc.mappoc.losses import UpdateInputs, clipped_surrogate_loss, greedy_option_advantage, option_gap_scale
+from sb3_detc.mappoc.policies import NETS
+from sb3_detc.mappoc.steps import FusedGradientStep, GradientStep
 from sb3_detc.triggers import RandomTrigger
 
 ENV_ID = "sb3_detc/LinearETC-v0"
@@ -213,7 +218,7 @@ def test_agents_have_independent_networks_without_sharing(critic: str) -> None:
     )
     loss.backward()
     for net in NETS:
-        chain_idx, start, stop = policy._where[net]
+        chain_idx, start, stop = policy.chains.location(net)
         chain = policy.chains[chain_idx]
         assert stop - start == 3
         for p in (*chain.weights, *chain.biases):
@@ -242,13 +247,12 @@ def test_policy_outputs_match_each_agents_extracted_networks(share: bool, net_ar
         action = policy(obs, deterministic=True, comm=comm)
         outputs = {}
         for net in NETS:
-            chain_idx, start, _ = policy._where[net]
             per_agent = []
             for i in range(n):
                 x = features[net][..., i, :]
                 if share:
                     x = th.cat([x, th.eye(n)[i].expand(*x.shape[:-1], -1)], dim=-1)
-                per_agent.append(policy.chains[chain_idx].extract(start + (0 if share else i))(x))
+                per_agent.append(policy.chains.extract(net, 0 if share else i)(x))
             outputs[net] = th.stack(per_agent, dim=1)
     if critic == "afterstate":  # (B, N, options, 1) -> (B, N, options)
         outputs["q"] = outputs["q"][..., 0]
@@ -392,7 +396,7 @@ def test_centred_critic_option_values(n_agents: int) -> None:
     price = th.rand(7, n_agents, generator=th.Generator().manual_seed(2))
     p = th.rand(7, n_agents, generator=th.Generator().manual_seed(3))
     with th.no_grad():
-        value, gap = policy._run({"q": policy.critic_features(obs)})["q"].unbind(-1)
+        value, gap = policy.chains.run({"q": policy.critic_features(obs)})["q"].unbind(-1)
         q = policy.evaluate_actions(obs, comm, th.zeros(7, n_agents, 1), price, p).option_values
         state_values = policy.state_values(obs, price)
     th.testing.assert_close(q[..., 1] - q[..., 0], gap - price)
@@ -416,15 +420,16 @@ def test_comm_price_is_what_a_broadcast_takes_from_the_learners_reward(team_rewa
         _, _, _, _, info = copy.deepcopy(env).step({"comm": comm, "control": control})
         agent_rewards = model.reward_scale * np.asarray(info["agent_rewards"])
         rewards.append(np.full(3, agent_rewards.mean()) if team_reward else agent_rewards)
-    price = model._comm_prices(np.array([0.4], dtype=np.float32))[0]
+    price = model.reward_transform.price(np.array([0.4], dtype=np.float32))[0]
     np.testing.assert_allclose(rewards[1][1] - rewards[0][1], price[1], rtol=1e-5)
 
 
 def test_centred_critic_refuses_options_of_unknown_probability() -> None:
     model = MAPPOC("MlpHybridPolicy", ENV_ID, n_steps=8, batch_size=8, policy_kwargs={**TINY, "critic": "centred"})
-    model.option_override = RandomTrigger(0.5, seed=0)
     with pytest.raises(ValueError, match="probabilities with which the options were drawn"):
-        model.learn(8)
+        model.set_fixed_trigger(RandomTrigger(0.5, seed=0))
+    with pytest.raises(ValueError, match="probabilities with which the options were drawn"):
+        model.learn(8, callback=RandomSkipCallback(0.5))
 
 
 def test_clipped_surrogate_loss_hand_computed() -> None:
@@ -640,23 +645,30 @@ def test_predict_on_a_reset_tuple_says_which_apis_are_mixed() -> None:
 
 # ------------------------------------------------------------------ 5b. torch.compile
 @pytest.mark.parametrize("critic", ["option_heads", "afterstate"])
-def test_compiled_forward_and_losses_match_eager(tmp_path, critic: str) -> None:
-    """``torch_compile=True`` computes what the eager networks and losses compute, and survives save/load."""
+def test_compiled_sampling_and_loss_match_eager(tmp_path, critic: str) -> None:
+    """Compiled, the policy and the loss compute what they compute eagerly; a compiled model survives save/load."""
     model = make_model(
         n_agents=3, n_envs=2, torch_compile=True, normalize_option_advantage=True, policy_kwargs={"critic": critic}
     )
     model.learn(64)  # compiled rollouts and updates
-    assert model._act is not model.policy and model._step_losses is not model._losses
+    assert isinstance(model.gradient_step, FusedGradientStep)
 
     rollout = model.rollout_buffer.tensors()
-    inputs = model.policy.training_inputs(rollout.observations, rollout.comm)
-    samples = rollout._replace(observations={})
-    p_broadcast = th.full_like(rollout.old_log_prob_comm, 0.5)
+    update = UpdateInputs(
+        model.policy.training_inputs(rollout.observations, rollout.comm),
+        rollout._replace(observations={}),
+        th.full_like(rollout.old_log_prob_comm, 0.5),
+        0.2,
+        0.1,
+        0.05,
+        True,
+        True,
+    )
     idx = th.arange(0, 32, 3)
     results = []
-    for losses in (model._losses, model._step_losses):
+    for loss_fn in (model.loss, th.compile(model.loss)):
         model.policy.optimizer.zero_grad(set_to_none=True)
-        loss, step_stats = losses(inputs, samples, p_broadcast, idx, 0.2, 0.1, 0.05, True, True)
+        loss, step_stats = loss_fn(update, idx)
         loss.backward()
         results.append((loss.detach(), step_stats, [p.grad for p in model.policy.parameters() if p.requires_grad]))
     (eager_loss, eager_stats, eager_grads), (loss, step_stats, grads) = results
@@ -665,23 +677,23 @@ def test_compiled_forward_and_losses_match_eager(tmp_path, critic: str) -> None:
     for grad, eager_grad in zip(grads, eager_grads, strict=True):
         th.testing.assert_close(grad, eager_grad)
 
-    obs = {key: th.as_tensor(value) for key, value in model._last_obs.items()}
+    obs = {key: th.as_tensor(value) for key, value in model.get_env().reset().items()}
     price = th.full((2, 3), 0.1)
     with th.no_grad():
-        compiled = model._act(obs, deterministic=True, comm_price=price)
+        compiled = th.compile(model.policy.forward)(obs, deterministic=True, comm_price=price)
         eager = model.policy(obs, deterministic=True, comm_price=price)
     for got, expected in zip(compiled, eager, strict=True):
         th.testing.assert_close(got, expected)
 
     model.save(tmp_path / "compiled.zip")
     loaded = MAPPOC.load(tmp_path / "compiled.zip", env=model.get_env())
-    assert loaded.torch_compile and loaded._step_losses is not loaded._losses
+    assert loaded.torch_compile is True and isinstance(loaded.gradient_step, FusedGradientStep)
     loaded.learn(32)
 
 
 @pytest.mark.parametrize("max_grad_norm", [None, 0.05])
 def test_fused_gradient_step_updates_like_backward_and_the_optimizer(max_grad_norm: float | None) -> None:
-    """The compiled step (loss, gradients, clipping, Adam in one graph) leaves what the unfused one leaves."""
+    """The compiled step (loss, gradients, clipping, Adam in one graph) leaves what the eager one leaves."""
     model = make_model(
         n_agents=3,
         n_steps=32,
@@ -690,13 +702,13 @@ def test_fused_gradient_step_updates_like_backward_and_the_optimizer(max_grad_no
         policy_kwargs={"learn_log_std": True},
     )
     model.learn(32)  # a rollout and a first (fused) update: the optimizer has state
-    assert model._gradient_step is not None
+    eager = GradientStep(model.loss, model.policy.optimizer, max_grad_norm, None)
     start = parameters(model), copy.deepcopy(model.policy.optimizer.state_dict())
     results = []
-    for gradient_step in (model._gradient_step, None):
+    for gradient_step in (model.gradient_step, eager):
         model.policy.load_state_dict(start[0])
         model.policy.optimizer.load_state_dict(copy.deepcopy(start[1]))
-        model._gradient_step = gradient_step
+        model.gradient_step = gradient_step
         th.manual_seed(1)  # the same minibatches
         model.train()
         results.append((parameters(model), model.policy.optimizer.state_dict()["state"]))
@@ -720,21 +732,25 @@ def test_fused_gradient_step_is_not_recompiled_when_schedules_change() -> None:
 
 
 def test_fused_gradient_step_only_for_plain_adam_and_without_early_stopping() -> None:
-    """Other optimizers, Adam variants and ``target_kl`` keep the unfused step (it can stop before applying)."""
-    assert make_model(torch_compile=True, policy_kwargs={"optimizer_class": th.optim.SGD})._gradient_step is None
-    amsgrad = {"optimizer_kwargs": {"amsgrad": True}}
-    assert make_model(torch_compile=True, policy_kwargs=amsgrad)._gradient_step is None
-    model = make_model(torch_compile=True, target_kl=0.01)
-    assert model._gradient_step is not None
+    """Other optimizers, Adam variants and ``target_kl`` keep the eager step (it can stop before applying)."""
+    for policy_kwargs in ({"optimizer_class": th.optim.SGD}, {"optimizer_kwargs": {"amsgrad": True}}):
+        model = make_model(torch_compile=True, policy_kwargs=policy_kwargs)
+        assert type(model.gradient_step) is GradientStep and model.gradient_step.loss_fn is not model.loss
+    assert type(make_model(torch_compile=True, target_kl=0.01).gradient_step) is GradientStep
+    assert isinstance(make_model(torch_compile=True).gradient_step, FusedGradientStep)
 
-    def fail(*args: Any) -> None:
-        raise AssertionError("the fused step cannot stop early")
 
-    model._gradient_step = fail
-    model.learn(16)  # target_kl: the unfused step
-    model.target_kl = None
-    with pytest.raises(AssertionError, match="cannot stop early"):
-        model.learn(16)
+def test_automatic_compilation_only_for_runs_long_enough(monkeypatch: pytest.MonkeyPatch) -> None:
+    model = make_model()  # torch_compile="auto"
+    model.learn(16)
+    assert type(model.gradient_step) is GradientStep and model.gradient_step.loss_fn is model.loss
+    monkeypatch.setattr(mappoc_module, "COMPILE_FROM_TIMESTEPS", 0)
+    model.learn(0)  # chooses the steps (compiling would start with the first step)
+    assert isinstance(model.gradient_step, FusedGradientStep)
+    monkeypatch.setattr(mappoc_module, "has_cxx_compiler", lambda: False)
+    model.learn(0)  # no compiler: eager again
+    assert type(model.gradient_step) is GradientStep
+    assert type(make_model(torch_compile=False).learn(32).gradient_step) is GradientStep
 
 
 def test_torch_compile_without_a_cxx_compiler_is_rejected() -> None:
@@ -835,8 +851,9 @@ def test_non_finite_rollout_data_is_rejected(where: str, max_cycles: int) -> Non
     with pytest.raises(ValueError, match="non-finite"):
         model.learn(16)
     if max_cycles > 5:
-        # Caught right after the step that produced it, before that step is counted or stored.
-        assert model.num_timesteps == 4
+        # Caught before the step that produced it is counted or stored (an observation: before any
+        # step of the rollout, since the policy must not act on it)
+        assert model.num_timesteps == (0 if where == "obs" else 4)
     assert np.all(np.isfinite(model.rollout_buffer.rewards))
     assert all(th.all(th.isfinite(p)) for p in model.policy.parameters())
 
@@ -870,13 +887,13 @@ def test_policy_level_switches(train_control_policy: bool, train_option_policy: 
         assert unchanged is (not trained), net
 
 
-def test_option_override_drives_the_rollouts() -> None:
+def test_fixed_trigger_drives_the_rollouts() -> None:
     model = make_model(n_agents=3, n_envs=2, n_steps=16)
 
     def send_when_ahead(obs: dict[str, np.ndarray]) -> np.ndarray:
         return (obs["local"][..., 0] > 0).astype(np.int64)
 
-    model.option_override = send_when_ahead
+    model.set_fixed_trigger(send_when_ahead)
     model.learn(32)
     buffer = model.rollout_buffer
     expected = (buffer.observations["local"][..., 0] > 0).astype(np.int64)
@@ -920,10 +937,9 @@ def test_option_advantage_modes() -> None:
         seed=0,
         policy_kwargs=dict(net_arch=[16, 16]),
     )
-    chain, start, stop = model.policy._where["mu"]
-    before = model.policy.chains[chain].weights[0][start:stop].detach().clone()
+    before = model.policy.chains.agent_weights("mu")[0].clone()
     model.learn(64)
-    after = model.policy.chains[chain].weights[0][start:stop].detach()
+    after = model.policy.chains.agent_weights("mu")[0]
     assert not th.equal(before, after)
     buffer = model.rollout_buffer
     np.testing.assert_allclose(buffer.option_advantages, buffer.returns - buffer.state_values, rtol=1e-6)
@@ -962,23 +978,21 @@ def test_normalize_reward_divides_by_the_running_return_std() -> None:
     factors = stored / raw
     assert np.all(factors > 0)
     # the factor of the last step is 1 / std of the discounted returns seen so far, per agent
-    np.testing.assert_allclose(factors[-1, 0], 1 / np.sqrt(model.reward_rms.var + 1e-8), rtol=1e-4)
+    np.testing.assert_allclose(factors[-1, 0], 1 / np.sqrt(model.reward_transform.return_rms.var + 1e-8), rtol=1e-4)
     returns = np.zeros_like(raw[0])
     for r in raw:
         returns = 0.99 * returns + r
-    assert model._discounted_returns == pytest.approx(returns)
+    assert model.reward_transform.discounted_returns == pytest.approx(returns)
     assert not np.allclose(factors[0], factors[-1])  # the scale adapts
 
 
 def test_options_are_sampled_with_mu_probabilities() -> None:
     model = MAPPOC("MlpHybridPolicy", "sb3_detc/LinearETC-v0", n_steps=8, seed=0, policy_kwargs=dict(net_arch=[8]))
     policy = model.policy
-    chain, start, stop = policy._where["mu"]
-    with th.no_grad():
-        policy.chains[chain].weights[-1][start:stop] = 0.0
-        bias = policy.chains[chain].biases[-1]
-        bias[start:stop] = 0.0
-        bias[start:stop, 0, 1] = math.log(0.3 / 0.7)  # P(broadcast) = 0.3 for every agent
+    policy.chains.agent_weights("mu")[-1].zero_()  # views into the batched chain
+    bias = policy.chains.agent_biases("mu")[-1]
+    bias.zero_()
+    bias[:, 0, 1] = math.log(0.3 / 0.7)  # P(broadcast) = 0.3 for every agent
     obs = model.env.reset()
     batch = {key: th.as_tensor(np.repeat(value, 20000, axis=0)) for key, value in obs.items()}
     with th.no_grad():

@@ -6,6 +6,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+import torch as th
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecNormalize
@@ -13,7 +14,7 @@ from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecNorm
 import sb3_detc  # noqa: F401  (registers the env ids)
 from sb3_detc.callbacks import CommMetricsCallback
 from sb3_detc.mappoc import MAPPOC
-from sb3_detc.mappoc.mappoc import _has_rollout_workers
+from sb3_detc.mappoc.mappoc import has_rollout_workers
 from sb3_detc.mappoc.workers import RolloutWorker
 from sb3_detc.triggers import PeriodicTrigger, RandomTrigger
 
@@ -44,10 +45,10 @@ def test_worker_rollouts_fill_the_buffer_like_step_by_step_rollouts(normalize_re
     """
     settings = {"normalize_reward": normalize_reward, "team_reward": True, "learning_rate": 0.0}
     models = [make(workers, **settings) for workers in (False, True)]
-    assert [_has_rollout_workers(model.get_env()) for model in models] == [False, True]
+    assert [has_rollout_workers(model.get_env()) for model in models] == [False, True]
     if periodic:  # an option override that the workers run themselves
         for model in models:
-            model.option_override = PeriodicTrigger(3)
+            model.set_fixed_trigger(PeriodicTrigger(3))
     for model in models:
         model.learn(192, callback=CommMetricsCallback())  # two rollouts; the second starts mid-episode
     plain, worker = (model.rollout_buffer for model in models)
@@ -65,6 +66,7 @@ def test_worker_rollouts_fill_the_buffer_like_step_by_step_rollouts(normalize_re
     for key, value in a.logger.name_to_value.items():
         if key.startswith("comm/"):
             assert b.logger.name_to_value[key] == pytest.approx(value), key
+    assert [model.last_rollout_in_workers for model in models] == [False, True]
     np.testing.assert_allclose(b._last_obs["local"], a._last_obs["local"], atol=1e-5)
 
 
@@ -72,11 +74,13 @@ def test_worker_processes_train_and_take_the_new_policy_after_loading(tmp_path) 
     """In SubprocVecEnv workers: training runs, and a loaded model sends its own policy to the workers."""
     model = make(True, vec_env_cls=SubprocVecEnv, policy_kwargs={"net_arch": [16, 16]})
     model.learn(96)
-    assert model._workers_hold == (model.policy, model.get_env())
+    assert model.last_rollout_in_workers
     model.save(tmp_path / "model.zip")
-    loaded = MAPPOC.load(tmp_path / "model.zip", env=model.get_env())
-    loaded.learn(48, reset_num_timesteps=False)
-    assert loaded._workers_hold is not None and loaded._workers_hold[0] is loaded.policy
+    loaded = MAPPOC.load(tmp_path / "model.zip", env=model.get_env(), learning_rate=0.0)
+    with th.no_grad():  # the loaded policy always broadcasts, the workers' copy of the saved one does not
+        loaded.policy.net_parameters("mu")[-1][..., 1] = 30.0
+    loaded.learn(96, reset_num_timesteps=False)
+    assert loaded.last_rollout_in_workers and loaded.rollout_buffer.comm.all()
     assert loaded.num_timesteps == 2 * 96  # one more iteration of 2 x 48 steps
     model.get_env().close()
 
@@ -84,12 +88,12 @@ def test_worker_processes_train_and_take_the_new_policy_after_loading(tmp_path) 
 def test_random_skips_run_in_the_workers_with_one_fork_per_env_and_rollout() -> None:
     """Each env skips at random with its own stream, a new one every rollout, at the trigger's rate."""
     model = make(True, policy_kwargs={"net_arch": [16, 16]})
-    model.option_override = RandomTrigger(0.5, seed=0)
+    model.set_fixed_trigger(RandomTrigger(0.5, seed=0))
     comms = []
     for _ in range(2):
         model.learn(96, reset_num_timesteps=False)
         comms.append(model.rollout_buffer.comm.copy())
-    assert model._workers_hold is not None  # the worker path
+    assert model.last_rollout_in_workers
     assert not np.array_equal(comms[0][:, 0], comms[0][:, 1])  # the two envs
     assert not np.array_equal(comms[0], comms[1])  # the two rollouts
     assert 0.35 < np.mean(comms) < 0.65
@@ -98,10 +102,10 @@ def test_random_skips_run_in_the_workers_with_one_fork_per_env_and_rollout() -> 
 def test_other_overrides_and_vec_env_wrappers_keep_the_step_by_step_path() -> None:
     """An override without fork() draws its options in the learner; a VecNormalize changes what the policy sees."""
     model = make(True)
-    model.option_override = lambda obs: np.ones((2, 3), np.int64)
+    model.set_fixed_trigger(lambda obs: np.ones((2, 3), np.int64))
     model.learn(48)
-    assert model._workers_hold is None and model.rollout_buffer.comm.all()
-    assert not _has_rollout_workers(VecNormalize(model.get_env()))
+    assert model.last_rollout_in_workers is False and model.rollout_buffer.comm.all()
+    assert not has_rollout_workers(VecNormalize(model.get_env()))
 
 
 def test_collect_rollout_needs_a_reset_and_a_policy() -> None:
@@ -124,5 +128,5 @@ def test_a_callback_can_stop_a_worker_rollout() -> None:
     model.learn(960, callback=StopAt20())
     assert model.num_timesteps == 20  # 10 steps of 2 envs
     for index, env in enumerate(model.get_env().envs):
-        for key, value in env._obs.items():
+        for key, value in env.observation.items():
             np.testing.assert_array_equal(model._last_obs[key][index], value)

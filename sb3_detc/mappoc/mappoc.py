@@ -2,44 +2,98 @@
 
 from __future__ import annotations
 
+import os
 import pathlib
 import pickle
-from collections.abc import Callable, Sequence
-from typing import Any, ClassVar, TypeVar
+import warnings
+from collections.abc import Callable, Hashable, Sequence
+from typing import Any, ClassVar, NamedTuple, TypeVar
 
 import numpy as np
 import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.buffers import RolloutBuffer
 from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.on_policy_algorithm import OnPolicyAlgorithm
 from stable_baselines3.common.policies import BasePolicy
-from stable_baselines3.common.running_mean_std import RunningMeanStd
 from stable_baselines3.common.save_util import load_from_zip_file
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
 from stable_baselines3.common.utils import FloatSchedule, explained_variance, obs_as_tensor
 from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecEnv, unwrap_vec_normalize
 
 from sb3_detc.envs.wrappers import EventTriggeredNetwork, JointEnv
-from sb3_detc.mappoc.buffers import HybridRolloutBuffer, HybridRolloutSamples
-from sb3_detc.mappoc.fused import adam_state, adam_update_, clip_by_total_norm, fusable_adam
-from sb3_detc.mappoc.policies import ChainInput, HybridAction, MlpHybridPolicy, check_joint_spaces
+from sb3_detc.mappoc.buffers import HybridRolloutBuffer
+from sb3_detc.mappoc.losses import OPTION_ADVANTAGES, STEP_STATS, MAPPOCLoss, UpdateInputs
+from sb3_detc.mappoc.policies import MlpHybridPolicy, check_joint_spaces
+from sb3_detc.mappoc.rewards import RewardTransform, agent_rewards
+from sb3_detc.mappoc.steps import FusedGradientStep, GradientStep, fusable_adam
+from sb3_detc.mappoc.workers import RolloutWorker, check_finite
 
 SelfMAPPOC = TypeVar("SelfMAPPOC", bound="MAPPOC")
-
-#: Statistics of every gradient step, in the order :meth:`MAPPOC._losses` returns them (logged as ``train/<name>``).
-STEP_STATS = ("pi_loss", "mu_loss", "q_loss", "entropy_mu", "clip_pi", "clip_mu", "kl_pi", "kl_mu")
 
 #: Observation keys that the policy turns into the network's state with the broadcast rule (the
 #: message copied into ``held``, ``age`` reset to 0) or that feed the policy over options: a
 #: ``VecNormalize`` must pass them on as the environment returns them.
 NETWORK_KEYS = ("message", "held", "age", "trigger", "trigger_held")
 
-#: Signature of an option override: joint observations (n_envs, N, ...) -> options (n_envs, N).
-#: With rollout workers (:mod:`sb3_detc.mappoc.workers`) an override that has ``fork(seed)``
+#: Signature of a fixed trigger: joint observations (n_envs, N, ...) -> options (n_envs, N).
+#: With rollout workers (:mod:`sb3_detc.mappoc.workers`) a trigger that has ``fork(seed)``
 #: (an independent copy, like :meth:`sb3_detc.triggers.RandomTrigger.fork`) runs in the workers,
-#: one fork per env and rollout; any other override keeps the step-by-step rollout.
-OptionOverride = Callable[[dict[str, np.ndarray]], np.ndarray]
+#: one fork per env and rollout; any other keeps the rollout in the learner's process.
+FixedTrigger = Callable[[dict[str, np.ndarray]], np.ndarray]
+
+#: Environment steps per iteration of the paper (all envs together), MAPPOC's default.
+PAPER_ITERATION = 2048
+
+#: With ``torch_compile="auto"``: the shortest ``learn`` that compiles (compiling takes some tens of seconds).
+COMPILE_FROM_TIMESTEPS = 200_000
+
+
+class Rollout(NamedTuple):
+    """Steps of all envs as sampled, before the learner takes them in (T steps, n_envs envs)."""
+
+    observations: dict[str, np.ndarray]  # (T, n_envs, N, ...) before every step
+    comm: np.ndarray  # (T, n_envs, N) options
+    control: np.ndarray  # (T, n_envs, N, m) sampled controls (before clipping to the bounds)
+    dones: np.ndarray  # (T, n_envs) episode ends
+    infos: list[list[dict[str, Any]]]  # T lists of n_envs infos, as a VecEnv returns them
+    last_obs: dict[str, np.ndarray]  # (n_envs, N, ...) after the last step
+
+
+def default_n_envs() -> int:
+    """Envs that MAPPOC builds from an env id: one rollout worker per available CPU core, at most 8."""
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    return max(1, min(cores, 8))
+
+
+def make_rollout_workers(env_id: str, n_envs: int, seed: int | None = None) -> VecEnv:
+    """The fast setting for a registered joint env: ``n_envs`` :class:`RolloutWorker` envs.
+
+    Each env runs in its own process (``SubprocVecEnv``) when there are several, and samples
+    whole rollouts itself (:mod:`sb3_detc.mappoc.workers`).
+
+    Worker processes must find the id: the package's ids always, one's own where the module that
+    registers it is the main script or is imported by the worker (see :mod:`sb3_detc`). Where they
+    cannot, the envs run in this process instead, with a warning.
+
+    :param env_id: a registered joint env id, e.g. ``"sb3_detc/MultiwalkerETC-v0"``
+    :param n_envs: number of envs (>= 1)
+    :param seed: seed of the envs (None: random)
+    """
+    if n_envs > 1:
+        try:
+            return make_vec_env(
+                env_id, n_envs=n_envs, seed=seed, vec_env_cls=SubprocVecEnv, wrapper_class=RolloutWorker
+            )
+        except (EOFError, ConnectionError) as error:  # a worker died while making its env
+            warnings.warn(
+                f"worker processes could not make {env_id!r} ({type(error).__name__}; the worker's traceback is "
+                f"above), so its {n_envs} envs run in this process. Register the id in a module that the workers "
+                "import: the main script, or name the module in the id ('module:namespace/Name-v0').",
+                stacklevel=3,
+            )
+    return make_vec_env(env_id, n_envs=n_envs, seed=seed, vec_env_cls=DummyVecEnv, wrapper_class=RolloutWorker)
 
 
 def _as_joint_env(env: GymEnv | str | EventTriggeredNetwork | None) -> GymEnv | str | None:
@@ -57,15 +111,18 @@ class MAPPOC(OnPolicyAlgorithm):
     options on the greedy advantage ``Q(o) - max_o' Q(o')`` (Sec. 3 of the method reference).
 
     :param policy: the policy model (``"MlpHybridPolicy"`` or a subclass of :class:`MlpHybridPolicy`)
-    :param env: the joint env (Gymnasium env, VecEnv or registered id such as
-        ``"sb3_detc/MultiwalkerETC-v0"``) or a PettingZoo :class:`EventTriggeredNetwork`,
-        which is adapted to the joint view. A ``VecNormalize`` in its wrappers may normalise
-        the ``local`` observations (``norm_obs_keys=["local"]``), not the keys of
+    :param env: the joint env: a registered id such as ``"sb3_detc/MultiwalkerETC-v0"``,
+        from which MAPPOC builds the fast setting (``n_envs`` rollout workers, each in its own
+        process, :func:`make_rollout_workers`); a VecEnv or Gymnasium env, used as given (wrap
+        the envs in :class:`~sb3_detc.mappoc.workers.RolloutWorker` for the fast rollouts); or a
+        PettingZoo :class:`EventTriggeredNetwork`, adapted to the joint view. A ``VecNormalize``
+        in its wrappers may normalise the ``local`` observations (``norm_obs_keys=["local"]``), not the keys of
         :data:`NETWORK_KEYS` (see :func:`check_observation_normalization`); its reward
         normalisation leaves the per-agent rewards MAPPOC learns from (``info["agent_rewards"]``)
         as they are, ``normalize_reward`` normalises those
     :param learning_rate: learning rate, constant or a schedule of the remaining progress (paper: 3e-5)
-    :param n_steps: steps per environment per rollout (paper: 2048 in total per iteration)
+    :param n_steps: steps per environment per rollout (None: the paper's 2048 steps per
+        iteration, divided over the environments)
     :param batch_size: minibatch size (paper: 32)
     :param n_epochs: epochs per rollout (paper: 10)
     :param gamma: discount factor
@@ -107,13 +164,19 @@ class MAPPOC(OnPolicyAlgorithm):
         switch it off to learn only when to communicate for a trained controller
     :param train_option_policy: whether ``mu`` is trained (baselines with fixed
         communication switch it off)
-    :param torch_compile: compile the rollout's forward pass and every gradient step with
+    :param torch_compile: compile the rollout's sampling and every gradient step with
         ``torch.compile`` (needs a C++ compiler); with the default Adam optimizer and no
         ``target_kl``, a gradient step (loss, gradients, clipping, Adam update) is one
-        compiled graph (:mod:`sb3_detc.mappoc.fused`). On a CPU about twice the gradient
+        compiled graph (:mod:`sb3_detc.mappoc.steps`). On a CPU about twice the gradient
         steps per second and faster rollouts (benchmarks/README.md), for a one-off
         compilation of some tens of seconds (and a few seconds whenever a new variant
-        appears, e.g. a first option override), so worth it for long runs
+        appears, e.g. a first fixed trigger), so worth it for long runs. ``"auto"``: compile
+        when a C++ compiler is found, the device is the CPU and ``learn`` runs at least
+        :data:`COMPILE_FROM_TIMESTEPS` steps
+    :param n_envs: number of envs built from an env id (None: :func:`default_n_envs`, one
+        per CPU core); only for an env id
+    :param fixed_trigger: take the options from this trigger instead of ``mu`` (see
+        :meth:`set_fixed_trigger`; None: from ``mu``)
     :param stats_window_size: window size of the rollout logging (episodes)
     :param tensorboard_log: log location for TensorBoard (None: no logging)
     :param policy_kwargs: additional arguments of the policy on creation
@@ -132,7 +195,7 @@ class MAPPOC(OnPolicyAlgorithm):
         policy: str | type[MlpHybridPolicy],
         env: GymEnv | str | EventTriggeredNetwork,
         learning_rate: float | Schedule = 3e-5,
-        n_steps: int = 2048,
+        n_steps: int | None = None,
         batch_size: int = 32,
         n_epochs: int = 10,
         gamma: float = 0.99,
@@ -154,7 +217,9 @@ class MAPPOC(OnPolicyAlgorithm):
         share_parameters: bool = False,
         train_control_policy: bool = True,
         train_option_policy: bool = True,
-        torch_compile: bool = False,
+        torch_compile: bool | str = "auto",
+        n_envs: int | None = None,
+        fixed_trigger: FixedTrigger | None = None,
         stats_window_size: int = 100,
         tensorboard_log: str | None = None,
         policy_kwargs: dict[str, Any] | None = None,
@@ -163,6 +228,21 @@ class MAPPOC(OnPolicyAlgorithm):
         device: th.device | str = "auto",
         _init_setup_model: bool = True,
     ) -> None:
+        if torch_compile not in (True, False, "auto"):
+            raise ValueError(f"torch_compile must be True, False or 'auto', got {torch_compile!r}.")
+        if n_envs is not None:
+            if not isinstance(env, str):
+                raise ValueError(
+                    "n_envs is the number of envs MAPPOC builds from an env id; pass an env id, not an env."
+                )
+            if isinstance(n_envs, bool) or not isinstance(n_envs, int) or n_envs < 1:
+                raise ValueError(f"n_envs must be a positive integer, got {n_envs!r}.")
+        if isinstance(env, str):
+            env = make_rollout_workers(env, n_envs or default_n_envs(), seed)
+        env = _as_joint_env(env)
+        if n_steps is None:
+            n_envs_given = env.num_envs if isinstance(env, VecEnv) else 1
+            n_steps = max(1, PAPER_ITERATION // n_envs_given)
         check_hyperparameters(
             n_steps=n_steps,
             batch_size=batch_size,
@@ -180,7 +260,7 @@ class MAPPOC(OnPolicyAlgorithm):
         policy_kwargs.setdefault("share_parameters", share_parameters)
         super().__init__(
             policy,
-            _as_joint_env(env),
+            env,
             learning_rate=learning_rate,
             n_steps=n_steps,
             gamma=gamma,
@@ -208,7 +288,7 @@ class MAPPOC(OnPolicyAlgorithm):
         self.clip_range_option = clip_range_option
         self.option_ent_coef = option_ent_coef
         self.action_noise_std = action_noise_std
-        if option_advantage not in ("greedy", "return"):
+        if option_advantage not in OPTION_ADVANTAGES:
             raise ValueError(f"option_advantage must be 'greedy' or 'return', got {option_advantage!r}.")
         self.option_advantage = option_advantage
         self.option_advantage_offset = option_advantage_offset
@@ -216,16 +296,18 @@ class MAPPOC(OnPolicyAlgorithm):
         self.reward_scale = reward_scale
         self.normalize_reward = normalize_reward
         self.team_reward = team_reward
-        self.reward_rms: RunningMeanStd | None = None
-        self._discounted_returns: np.ndarray | None = None
         self.normalize_advantage = normalize_advantage
         self.target_kl = target_kl
         self.train_control_policy = train_control_policy
         self.train_option_policy = train_option_policy
         self.torch_compile = torch_compile
-        self.option_override: OptionOverride | None = None
+        self.fixed_trigger: FixedTrigger | None = None
+        self._action_noise_terms: dict[Hashable, float] = {}
+        #: whether the last rollout was sampled inside rollout workers (None: no rollout yet)
+        self.last_rollout_in_workers: bool | None = None
         if _init_setup_model:
             self._setup_model()
+            self.set_fixed_trigger(fixed_trigger)
 
     def _setup_model(self) -> None:
         self.n_agents, self.n_control = check_joint_spaces(self.observation_space, self.action_space)
@@ -244,32 +326,127 @@ class MAPPOC(OnPolicyAlgorithm):
             gae_lambda=self.gae_lambda,
             n_envs=self.n_envs,
         )
+        if getattr(self, "reward_transform", None) is None:  # a loaded model brings its own (with its statistics)
+            self.reward_transform = RewardTransform(
+                self.n_agents, self.gamma, self.reward_scale, self.team_reward, self.normalize_reward
+            )
+            # models saved by sb3-detc 0.1 kept the statistics as reward_rms
+            self.reward_transform.return_rms = self.__dict__.pop("reward_rms", None)
+        self.loss = MAPPOCLoss(
+            self.policy,
+            self.vf_coef,
+            self.option_advantage,
+            self.option_advantage_offset,
+            self.normalize_option_advantage,
+            self.normalize_advantage,
+        )
         control_space = self.action_space["control"]  # type: ignore[index]
         self._control_low, self._control_high = control_space.low, control_space.high
-        self._act: Callable[..., HybridAction] = self.policy
-        self._step_losses: Callable[..., tuple[th.Tensor, th.Tensor]] = self._losses
-        self._gradient_step: Callable[..., th.Tensor] | None = None
         self._workers_hold: tuple[MlpHybridPolicy, VecEnv] | None = None  # what the rollout workers have
-        if self.torch_compile:
+        self._setup_steps(self.torch_compile is True)
+
+    def _setup_steps(self, compiled: bool) -> None:
+        """Choose the sampling function and the gradient step: eager, or compiled (and fused where it can be).
+
+        :param compiled: whether to compile them
+        """
+        self._compiled = compiled
+        self._sample_actions: Callable[..., tuple[th.Tensor, th.Tensor]] = self.policy.sample_actions
+        optimizer = self.policy.optimizer
+        self.gradient_step: GradientStep | FusedGradientStep = GradientStep(
+            self.loss, optimizer, self.max_grad_norm, self.target_kl, compile_loss=compiled
+        )
+        if compiled:
             if self.device.type == "cpu":
-                _check_cxx_compiler()
-            self._act = th.compile(self.policy.forward)
-            self._step_losses = th.compile(self._losses)
-            if fusable_adam(self.policy.optimizer):
-                self._loss_module = _PolicyLoss(self.policy, self._losses)
-                self._gradient_step = th.compile(self._fused_gradient_step)
+                check_cxx_compiler()
+            self._sample_actions = th.compile(self.policy.sample_actions)
+            # Early stopping looks at a step's statistics before applying it: only the eager step can.
+            if fusable_adam(optimizer) and self.target_kl is None:
+                self.gradient_step = FusedGradientStep(self.loss, optimizer, self.max_grad_norm)
+
+    def _setup_learn(self, total_timesteps: int, *args: Any, **kwargs: Any) -> tuple[int, BaseCallback]:
+        if self.torch_compile == "auto":
+            compiled = self.device.type == "cpu" and total_timesteps >= COMPILE_FROM_TIMESTEPS and has_cxx_compiler()
+            if compiled != self._compiled:
+                self._setup_steps(compiled)
+        return super()._setup_learn(total_timesteps, *args, **kwargs)
 
     def _excluded_save_params(self) -> list[str]:
         return [
             *super()._excluded_save_params(),
-            "option_override",
-            "_discounted_returns",
-            "_act",
-            "_step_losses",
-            "_gradient_step",
-            "_loss_module",
+            "fixed_trigger",
+            "loss",
+            "gradient_step",
+            "_sample_actions",
             "_workers_hold",
+            "_action_noise_terms",
         ]
+
+    # ------------------------------------------------------------------ modes
+    def set_fixed_trigger(self, trigger: FixedTrigger | None) -> None:
+        """Take every rollout's options from a fixed trigger instead of ``mu`` (None: from ``mu`` again).
+
+        ``mu`` is not trained while a fixed trigger decides (its options are not ``mu``'s).
+        Not saved with the model.
+
+        :param trigger: callable joint observations (n_envs, N, ...) -> options (n_envs, N), e.g.
+            from :mod:`sb3_detc.triggers`; with rollout workers, a trigger with ``fork(seed)``
+            runs in the workers (one fork per env and rollout), any other keeps the rollout in
+            this process
+        :raises ValueError: for a trigger that is not callable, or with a critic that needs the
+            probabilities with which ``mu`` drew the options
+        """
+        if trigger is not None and not callable(trigger):
+            raise ValueError(f"a fixed trigger must be callable (joint observations -> options), got {trigger!r}.")
+        if trigger is not None and self.policy.option_critic.needs_draw_probabilities:
+            raise ValueError(
+                f"critic={self.policy.critic!r} needs the probabilities with which the options were drawn, which a "
+                "fixed trigger does not give; use critic='option_heads' or 'afterstate' with a fixed trigger."
+            )
+        self.fixed_trigger = trigger
+
+    def set_trained_policies(self, control_policy: bool, option_policy: bool) -> None:
+        """Choose which policy levels the updates train (the critic always learns).
+
+        :param control_policy: whether ``pi`` (and its log standard deviation, if learned) is trained
+        :param option_policy: whether ``mu`` is trained (never while a fixed trigger decides)
+        """
+        self.train_control_policy = bool(control_policy)
+        self.train_option_policy = bool(option_policy)
+
+    def set_action_noise_std(self, std: float | None, source: Hashable = None) -> None:
+        """Set one source's extra Gaussian noise on the controls; the noise used is the largest of all sources.
+
+        Schedules (e.g. the curriculum's phases I and III) each own one term; a source that
+        sets None withdraws its term (the noise keeps its value until another term changes it).
+
+        :param std: the source's standard deviation (>= 0), or None to withdraw it
+        :param source: who sets it (any hashable, e.g. the callback itself)
+        :raises ValueError: for a negative ``std``
+        """
+        if std is None:
+            self._action_noise_terms.pop(source, None)
+            return
+        if not std >= 0:
+            raise ValueError(f"action_noise_std must be >= 0, got {std!r}.")
+        self._action_noise_terms[source] = float(std)
+        self.action_noise_std = max(self._action_noise_terms.values())
+
+    def set_learning_rate(self, learning_rate: float | Schedule) -> None:
+        """Use another learning rate (a number, or a schedule of the remaining progress) from the next update on.
+
+        :param learning_rate: the new learning rate
+        """
+        self.learning_rate = learning_rate
+        self._setup_lr_schedule()
+
+    def set_reward_normalization(self, normalize: bool) -> None:
+        """Switch the normalisation of the learner's rewards (see ``normalize_reward``) on or off.
+
+        :param normalize: whether to divide rewards by the running spread of the returns
+        """
+        self.normalize_reward = bool(normalize)
+        self.reward_transform.normalize = self.normalize_reward
 
     # ------------------------------------------------------------------ rollouts
     def collect_rollouts(
@@ -281,11 +458,12 @@ class MAPPOC(OnPolicyAlgorithm):
     ) -> bool:
         """Collect ``n_rollout_steps`` steps per environment with the current policies.
 
-        Per step: all options are sampled from ``mu`` (or taken from
-        :attr:`option_override`), the broadcasts are delivered, then all controls are
-        sampled from ``pi`` on the updated views (same-step delivery), with
-        :attr:`action_noise_std` extra noise; the env receives the controls clipped to
-        their bounds. Per-agent rewards come from ``info["agent_rewards"]``.
+        Per step: all options are sampled from ``mu`` (or taken from the fixed trigger), the
+        broadcasts are delivered, then all controls are sampled from ``pi`` on the updated
+        views (same-step delivery), with :attr:`action_noise_std` extra noise; the env receives
+        the controls clipped to their bounds. The steps are sampled first, inside rollout
+        workers where the env has them (:mod:`sb3_detc.mappoc.workers`), else here; then every
+        step goes through :meth:`_record_rollout` in order.
 
         :param env: the training environment
         :param callback: callback called at each step (and at the beginning and end of the rollout)
@@ -294,114 +472,49 @@ class MAPPOC(OnPolicyAlgorithm):
         :return: True if the rollout was completed, False if a callback stopped it
         """
         assert self._last_obs is not None, "No previous observation was provided"
-        if self.option_override is not None and self.policy.critic == "centred":
-            raise ValueError(
-                "critic='centred' needs the probabilities with which the options were drawn, which an "
-                "option override does not give; use critic='option_heads' or 'afterstate' with fixed options."
-            )
-        buffer: HybridRolloutBuffer = rollout_buffer  # type: ignore[assignment]
         self.policy.set_training_mode(False)
-        n_steps = 0
-        buffer.reset()
-        callback.on_rollout_start()
-        # Overrides run in the workers when they can be forked for them (the package's triggers).
-        if (self.option_override is None or hasattr(self.option_override, "fork")) and _has_rollout_workers(env):
-            return self._collect_in_workers(env, callback, buffer, n_rollout_steps)
-        comm_cost = self._comm_costs(env)  # callbacks may change it between rollouts
-        new_obs, dones = self._last_obs, self._last_episode_starts
-        while n_steps < n_rollout_steps:
-            obs = self._last_obs
-            price = self._comm_prices(comm_cost)
-            price_tensor = th.as_tensor(price, device=self.device)
+        rollout_buffer.reset()
+        callback.on_rollout_start()  # callbacks may change the mode, the noise or the cost here
+        trigger = self.fixed_trigger
+        self.last_rollout_in_workers = (trigger is None or hasattr(trigger, "fork")) and has_rollout_workers(env)
+        if self.last_rollout_in_workers:
+            rollout = self._sample_in_workers(env, n_rollout_steps)
+        else:
+            rollout = self._sample_here(env, n_rollout_steps)
+        return self._record_rollout(rollout, env, callback, rollout_buffer)  # type: ignore[arg-type]
+
+    def _sample_here(self, env: VecEnv, n_steps: int) -> Rollout:
+        """Sample and step ``n_steps`` steps of every env in this process."""
+        obs = self._last_obs
+        steps = []
+        for _ in range(n_steps):
             with th.no_grad():
-                override = None
-                if self.option_override is not None:
-                    override = th.as_tensor(self.option_override(obs), device=self.device)  # type: ignore[arg-type]
-                action = self._act(
+                forced = None
+                if self.fixed_trigger is not None:
+                    forced = th.as_tensor(self.fixed_trigger(obs), device=self.device)  # type: ignore[arg-type]
+                comm, control = self._sample_actions(
                     obs_as_tensor(obs, self.device),  # type: ignore[arg-type]
-                    comm=override,
-                    action_noise_std=self.action_noise_std,
-                    comm_price=price_tensor,
+                    self.action_noise_std,
+                    forced,
                 )
-            comm = action.comm.cpu().numpy()
-            control = action.control.cpu().numpy()
+            comm, control = comm.cpu().numpy(), control.cpu().numpy()
             clipped = np.clip(control, self._control_low, self._control_high)
             new_obs, _, dones, infos = env.step([{"comm": c, "control": u} for c, u in zip(comm, clipped, strict=True)])
-            rewards = self._step_rewards(infos, dones, new_obs)
-            self.num_timesteps += env.num_envs
+            check_finite(new_obs)  # before the policy acts on them
+            steps.append((obs, comm, control, dones, infos))
+            obs = new_obs
+        observations, comm, control, dones, infos = zip(*steps, strict=True)
+        return Rollout(
+            _stack_dicts(list(observations), axis=0),
+            np.stack(comm),
+            np.stack(control),
+            np.stack(dones),
+            list(infos),
+            obs,
+        )  # type: ignore[arg-type]
 
-            callback.update_locals(locals())
-            if not callback.on_step():
-                return False
-            self._update_info_buffer(infos, dones)
-            n_steps += 1
-
-            # Bootstrap truncated episodes with V(s_T) = sum_o mu(o) Q(s_T, o), as SB3 does for PPO.
-            for idx, terminal_obs in _truncated(infos, dones):
-                with th.no_grad():
-                    value = self.policy.state_values(
-                        self.policy.obs_to_tensor(terminal_obs)[0], price_tensor[idx : idx + 1]
-                    )
-                rewards[idx] += self.gamma * value[0].cpu().numpy()
-
-            buffer.add(
-                obs,  # type: ignore[arg-type]
-                comm,
-                control,
-                rewards,
-                self._last_episode_starts,  # type: ignore[arg-type]
-                action.option_values.cpu().numpy(),
-                action.log_prob_comm.cpu().numpy(),
-                action.log_prob_control.cpu().numpy(),
-                price,
-            )
-            self._last_obs = new_obs  # type: ignore[assignment]
-            self._last_episode_starts = dones
-
-        with th.no_grad():
-            last_values = self.policy.state_values(
-                obs_as_tensor(new_obs, self.device),  # type: ignore[arg-type]
-                th.as_tensor(self._comm_prices(comm_cost), device=self.device),
-            )
-        buffer.compute_returns_and_advantage(last_values=last_values.cpu().numpy(), dones=dones)
-        callback.update_locals(locals())
-        callback.on_rollout_end()
-        return True
-
-    def _step_rewards(
-        self, infos: list[dict[str, Any]], dones: np.ndarray, new_obs: dict[str, np.ndarray] | None = None
-    ) -> np.ndarray:
-        """The learner's rewards of one step of all envs (n_envs, N): scaled, shared, normalised.
-
-        :param infos: the step's infos, with ``agent_rewards`` (checked for NaN)
-        :param dones: episode ends of the step
-        :param new_obs: observations after the step, to check for NaN (None: checked elsewhere)
-        """
-        rewards = self.reward_scale * _agent_rewards(infos)
-        _check_finite({} if new_obs is None else new_obs, rewards)
-        if self.team_reward:
-            rewards = np.repeat(rewards.mean(axis=1, keepdims=True), self.n_agents, axis=1)
-        if self.normalize_reward:
-            rewards = self._normalized_rewards(rewards, dones)
-        return rewards
-
-    def _collect_in_workers(
-        self, env: VecEnv, callback: BaseCallback, buffer: HybridRolloutBuffer, n_rollout_steps: int
-    ) -> bool:
-        """:meth:`collect_rollouts` with the sampling inside the envs (:mod:`sb3_detc.mappoc.workers`).
-
-        Every env samples and steps ``n_rollout_steps`` times with a copy of the current policy;
-        then the steps go through the learner in order, as in :meth:`collect_rollouts`: rewards,
-        callbacks, episode statistics, bootstrapping of truncated episodes; log-probabilities and
-        option values come from one batched evaluation of the same policy.
-
-        :param env: the training environment (a ``DummyVecEnv`` or ``SubprocVecEnv`` of
-            :class:`~sb3_detc.mappoc.workers.RolloutWorker` envs)
-        :param callback: callback called at each step (and at the end of the rollout)
-        :param buffer: the buffer to fill
-        :param n_rollout_steps: number of steps to collect per environment
-        :return: True if the rollout was completed, False if a callback stopped it
-        """
+    def _sample_in_workers(self, env: VecEnv, n_steps: int) -> Rollout:
+        """Let every env sample and step ``n_steps`` steps with a copy of the current policy (in parallel)."""
         n_envs = env.num_envs
         new_policy = self._workers_hold != (self.policy, env)
         if new_policy:
@@ -409,38 +522,62 @@ class MAPPOC(OnPolicyAlgorithm):
                 env.env_method("set_worker_index", index, indices=index)
         state = {key: value.detach().cpu().numpy() for key, value in self.policy.state_dict().items()}
         seeds = th.randint(2**31 - 1, (n_envs,)).tolist()
-        override = self.option_override
+        trigger = self.fixed_trigger
         trajectories = env.env_method(
             "collect_rollout",
             pickle.dumps(self.policy) if new_policy else None,
             state,
-            n_rollout_steps,
+            n_steps,
             self.action_noise_std,
             seeds,
-            self.torch_compile,
-            None if override is None else [pickle.dumps(override.fork(seed)) for seed in seeds],  # type: ignore[attr-defined]
+            self._compiled,
+            None if trigger is None else [pickle.dumps(trigger.fork(seed)) for seed in seeds],  # type: ignore[attr-defined]
         )
         self._workers_hold = (self.policy, env)
 
         def stacked(key: str) -> Any:  # (steps, n_envs, ...)
             return np.stack([trajectory[key] for trajectory in trajectories], axis=1)
 
-        observations = _stack_dicts([trajectory["observations"] for trajectory in trajectories], axis=1)
-        last_obs = _stack_dicts([trajectory["last_obs"] for trajectory in trajectories], axis=0)
-        comm, control, all_dones = stacked("comm"), stacked("control"), stacked("dones")
-        _check_finite(observations)
-        _check_finite(last_obs)
-        # The envs are at the rollout's end now, whether or not a callback stops on the way.
-        episode_starts = np.concatenate([np.asarray(self._last_episode_starts)[None], all_dones[:-1]])
-        self._last_obs, self._last_episode_starts = last_obs, all_dones[-1]  # type: ignore[assignment]
+        return Rollout(
+            _stack_dicts([trajectory["observations"] for trajectory in trajectories], axis=1),
+            stacked("comm"),
+            stacked("control"),
+            stacked("dones"),
+            [[trajectory["infos"][step] for trajectory in trajectories] for step in range(n_steps)],
+            _stack_dicts([trajectory["last_obs"] for trajectory in trajectories], axis=0),
+        )
+
+    def _record_rollout(
+        self, rollout: Rollout, env: VecEnv, callback: BaseCallback, buffer: HybridRolloutBuffer
+    ) -> bool:
+        """Take sampled steps into training, in order, whoever sampled them.
+
+        Per step: the learner's rewards (:class:`~sb3_detc.mappoc.rewards.RewardTransform`) and
+        the price of a broadcast, ``num_timesteps``, the callbacks, the episode statistics and
+        the truncated episodes; then, for the whole rollout in one batch, log-probabilities and
+        option values of the current policy, the bootstrap of truncated episodes with
+        ``V(s_T) = sum_o mu(o) Q(s_T, o)`` (as SB3 does for PPO), the buffer, GAE and
+        ``on_rollout_end``. The envs are at the rollout's end whether or not a callback stops
+        on the way.
+
+        :param rollout: the sampled steps
+        :param env: the training environment
+        :param callback: callback called at each step and at the end of the rollout
+        :param buffer: the buffer to fill
+        :return: True if the rollout was completed, False if a callback stopped it
+        """
+        n_steps, n_envs = rollout.dones.shape
+        episode_starts = np.concatenate([np.asarray(self._last_episode_starts)[None], rollout.dones[:-1]])
+        self._last_obs, self._last_episode_starts = rollout.last_obs, rollout.dones[-1]  # type: ignore[assignment]
         comm_cost = self._comm_costs(env)
         prices, all_rewards, truncated = [], [], []
-        for step in range(n_rollout_steps):
-            infos = [trajectory["infos"][step] for trajectory in trajectories]
-            dones = all_dones[step]
-            new_obs = last_obs if step == n_rollout_steps - 1 else {k: v[step + 1] for k, v in observations.items()}
-            prices.append(self._comm_prices(comm_cost))
-            rewards = self._step_rewards(infos, dones)
+        for step in range(n_steps):
+            infos, dones = rollout.infos[step], rollout.dones[step]
+            new_obs = (
+                rollout.last_obs if step == n_steps - 1 else {k: v[step + 1] for k, v in rollout.observations.items()}
+            )
+            prices.append(self.reward_transform.price(comm_cost))
+            rewards = self.reward_transform(agent_rewards(infos), dones)
             self.num_timesteps += n_envs
             callback.update_locals(locals())
             if not callback.on_step():
@@ -450,15 +587,14 @@ class MAPPOC(OnPolicyAlgorithm):
             all_rewards.append(rewards)
 
         price = np.stack(prices)
-        flat = n_rollout_steps * n_envs
+        flat = n_steps * n_envs
         with th.no_grad():
             evaluation = self.policy.evaluate_actions(
-                obs_as_tensor({k: v.reshape(flat, *v.shape[2:]) for k, v in observations.items()}, self.device),
-                th.as_tensor(comm.reshape(flat, -1), device=self.device),
-                th.as_tensor(control.reshape(flat, *control.shape[2:]), device=self.device),
+                obs_as_tensor({k: v.reshape(flat, *v.shape[2:]) for k, v in rollout.observations.items()}, self.device),
+                th.as_tensor(rollout.comm.reshape(flat, -1), device=self.device),
+                th.as_tensor(rollout.control.reshape(flat, *rollout.control.shape[2:]), device=self.device),
                 th.as_tensor(price.reshape(flat, -1), device=self.device),
             )
-            # Bootstrap truncated episodes with V(s_T) = sum_o mu(o) Q(s_T, o), as SB3 does for PPO.
             if truncated:
                 terminal = _stack_dicts([obs for _, _, obs in truncated], axis=0)
                 at = [(step, idx) for step, idx, _ in truncated]
@@ -468,28 +604,26 @@ class MAPPOC(OnPolicyAlgorithm):
                 )
                 for (step, idx), value in zip(at, values.cpu().numpy(), strict=True):
                     all_rewards[step][idx] += self.gamma * value
+            last_values = self.policy.state_values(
+                obs_as_tensor(rollout.last_obs, self.device),
+                th.as_tensor(self.reward_transform.price(comm_cost), device=self.device),
+            )
 
         def per_step(x: th.Tensor) -> np.ndarray:
-            return x.cpu().numpy().reshape(n_rollout_steps, n_envs, *x.shape[1:])
+            return x.cpu().numpy().reshape(n_steps, n_envs, *x.shape[1:])
 
-        option_values, log_prob_comm = per_step(evaluation.option_values), per_step(evaluation.log_prob_comm)
-        log_prob_control = per_step(evaluation.log_prob_control)
         buffer.extend(
-            observations,
-            comm,
-            control,
+            rollout.observations,
+            rollout.comm,
+            rollout.control,
             np.stack(all_rewards),
             episode_starts,
-            option_values,
-            log_prob_comm,
-            log_prob_control,
+            per_step(evaluation.option_values),
+            per_step(evaluation.log_prob_comm),
+            per_step(evaluation.log_prob_control),
             price,
         )
-        with th.no_grad():
-            last_values = self.policy.state_values(
-                obs_as_tensor(last_obs, self.device), th.as_tensor(self._comm_prices(comm_cost), device=self.device)
-            )
-        buffer.compute_returns_and_advantage(last_values=last_values.cpu().numpy(), dones=all_dones[-1])
+        buffer.compute_returns_and_advantage(last_values=last_values.cpu().numpy(), dones=rollout.dones[-1])
         callback.update_locals(locals())
         callback.on_rollout_end()
         return True
@@ -504,54 +638,38 @@ class MAPPOC(OnPolicyAlgorithm):
         clip_pi = FloatSchedule(self.clip_range)(progress)
         clip_mu = FloatSchedule(self.clip_range_option)(progress)
         zeta = FloatSchedule(self.option_ent_coef)(progress)
-        train_mu = self.train_option_policy and self.option_override is None
+        train_mu = self.train_option_policy and self.fixed_trigger is None
         # Networks sharing a batched chain with trained ones get zero gradients, but Adam's momentum
         # from earlier training would still move them: restore them after every step instead.
         frozen = [net for net, trained in (("pi", self.train_control_policy), ("mu", train_mu)) if not trained]
         frozen_views = [view for net in frozen for view in self.policy.net_parameters(net)]
         frozen_values = [view.clone() for view in frozen_views]
 
-        stats: dict[str, list[float]] = {name: [] for name in STEP_STATS}
-        continue_training = True
         rollout = self.rollout_buffer.tensors()
-        # The networks' inputs depend on stored observations and options only: build them once.
-        inputs = self.policy.training_inputs(rollout.observations, rollout.comm)
-        samples = rollout._replace(observations={})
         # probability of broadcasting with which the options were drawn (the centred critic's p_i)
         taken = rollout.old_log_prob_comm.exp()
-        p_broadcast = th.where(rollout.comm.bool(), taken, 1 - taken)
-        # Early stopping looks at a step's statistics before applying it: only the unfused path can.
-        fused = self._gradient_step is not None and self.target_kl is None
-        if fused:
-            optimizer = self.policy.optimizer
-            adam = (optimizer.param_groups[0]["params"], *adam_state(optimizer))
-            names = self._loss_module.names_of(adam[0])
-            lr = th.tensor(optimizer.param_groups[0]["lr"], device=self.device)
-        scalars = (clip_pi, clip_mu, zeta)
-        if fused:  # as tensors: a float would be compiled in, and every new value of a schedule recompile the step
-            scalars = tuple(th.tensor(value, dtype=th.float64, device=self.device) for value in scalars)
-        train_pi = self.train_control_policy
+        update = UpdateInputs(
+            # The networks' inputs depend on stored observations and options only: built once.
+            self.policy.training_inputs(rollout.observations, rollout.comm),
+            rollout._replace(observations={}),
+            th.where(rollout.comm.bool(), taken, 1 - taken),
+            clip_pi,
+            clip_mu,
+            zeta,
+            self.train_control_policy,
+            train_mu,
+        )
+        stats: dict[str, list[float]] = {name: [] for name in STEP_STATS}
+        continue_training = True
         for epoch in range(self.n_epochs):
             for idx in self.rollout_buffer.minibatch_indices(self.batch_size):
-                loss_args = (inputs, samples, p_broadcast, idx, *scalars, train_pi, train_mu)
-                if fused:
-                    step_stats = self._gradient_step(adam, names, lr, loss_args)  # type: ignore[misc]
-                else:
-                    loss, step_stats = self._step_losses(*loss_args)
+                step_stats, continue_training = self.gradient_step(update, idx)
                 for name, value in zip(STEP_STATS, step_stats.tolist(), strict=True):
                     stats[name].append(value)
-                if not fused:
-                    kl_pi = stats["kl_pi"][-1]
-                    if self.target_kl is not None and kl_pi > 1.5 * self.target_kl:
-                        continue_training = False
-                        if self.verbose >= 1:
-                            print(f"Early stopping at epoch {epoch} due to reaching max kl: {kl_pi:.2f}")
-                        break
-                    self.policy.optimizer.zero_grad(set_to_none=True)
-                    loss.backward()
-                    if self.max_grad_norm is not None:
-                        th.nn.utils.clip_grad_norm_(self.policy.parameters(), self.max_grad_norm)
-                    self.policy.optimizer.step()
+                if not continue_training:
+                    if self.verbose >= 1:
+                        print(f"Early stopping at epoch {epoch} due to reaching max kl: {stats['kl_pi'][-1]:.2f}")
+                    break
                 for view, value in zip(frozen_views, frozen_values, strict=True):
                     view.copy_(value)
             self._n_updates += 1
@@ -572,113 +690,10 @@ class MAPPOC(OnPolicyAlgorithm):
         self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
         self.logger.record("rollout/broadcast_rate", float(buffer.comm.mean()))
 
-    def _fused_gradient_step(
-        self,
-        adam: tuple[list[th.Tensor], list[th.Tensor], list[th.Tensor], list[th.Tensor]],
-        names: list[str],
-        lr: th.Tensor,
-        loss_args: tuple[Any, ...],
-    ) -> th.Tensor:
-        """One gradient step as one function, compiled whole (:mod:`sb3_detc.mappoc.fused`).
-
-        Equal to :meth:`_losses`, ``backward()``, optional gradient clipping and ``optimizer.step()``.
-
-        :param adam: the optimizer's parameters and their ``step``, ``exp_avg`` and ``exp_avg_sq``
-        :param names: the names of the parameters in :class:`_PolicyLoss`
-        :param lr: learning rate (0-d tensor)
-        :param loss_args: the arguments of :meth:`_losses`
-        :return: the statistics named in :data:`STEP_STATS`
-        """
-        params, steps, exp_avgs, exp_avg_sqs = adam
-
-        def loss_of(values: tuple[th.Tensor, ...]) -> tuple[th.Tensor, th.Tensor]:
-            return th.func.functional_call(self._loss_module, dict(zip(names, values, strict=True)), loss_args)
-
-        grads, (_, step_stats) = th.func.grad_and_value(loss_of, has_aux=True)(tuple(params))
-        if self.max_grad_norm is not None:
-            grads = clip_by_total_norm(grads, self.max_grad_norm)
-        group = self.policy.optimizer.param_groups[0]
-        adam_update_(params, grads, steps, exp_avgs, exp_avg_sqs, lr, group["betas"], group["eps"])
-        return step_stats
-
-    def _losses(
-        self,
-        inputs: list[ChainInput],
-        samples: HybridRolloutSamples,
-        p_broadcast: th.Tensor,
-        idx: th.Tensor,
-        clip_pi: float,
-        clip_mu: float,
-        zeta: float,
-        train_pi: bool,
-        train_mu: bool,
-    ) -> tuple[th.Tensor, th.Tensor]:
-        """The loss of one gradient step on the minibatch ``idx`` and its statistics (Sec. 3).
-
-        :param inputs: stacked network inputs of the whole rollout (:meth:`MlpHybridPolicy.training_inputs`)
-        :param samples: the rollout's tensors (observations not needed)
-        :param p_broadcast: probabilities of broadcasting with which the options were drawn (B, N)
-        :param idx: indices of the minibatch's samples
-        :param clip_pi: clip range of ``pi``
-        :param clip_mu: clip range of ``mu``
-        :param zeta: option entropy coefficient
-        :param train_pi: whether ``pi``'s loss is part of the loss
-        :param train_mu: whether ``mu``'s loss and entropy bonus are part of the loss
-        :return: the loss, and the statistics named in :data:`STEP_STATS` as one tensor
-        """
-        data = samples.select(idx)
-        evaluation = self.policy.evaluate_inputs(
-            [x.select(idx) for x in inputs], data.comm, data.control, data.comm_price, p_broadcast[idx]
-        )
-
-        # Control policy: PPO clipped surrogate on GAE advantages of the taken option.
-        advantages = self._normalized(data.advantages)
-        log_ratio_pi = evaluation.log_prob_control - data.old_log_prob_control
-        ratio_pi = th.exp(log_ratio_pi)
-        pi_loss = clipped_surrogate_loss(advantages, ratio_pi, clip_pi)
-
-        # Critic: squared error of Q(s, o_taken) against the lambda-return.
-        q = evaluation.option_values
-        q_taken = q.gather(-1, data.comm[..., None])[..., 0]
-        q_loss = (data.returns - q_taken).pow(2).mean(0).sum()
-        loss = self.vf_coef * q_loss
-        if train_pi:
-            loss = loss + pi_loss
-
-        # Options: PPO clipped surrogate on the greedy advantage Q(o) - max_o' Q(o'), no gradient into Q.
-        if self.option_advantage == "greedy":
-            advantages_mu = greedy_option_advantage(q, data.comm)
-            if self.normalize_option_advantage:
-                advantages_mu = advantages_mu / option_gap_scale(q)
-            advantages_mu = advantages_mu + self.option_advantage_offset
-        else:
-            advantages_mu = self._normalized(data.option_advantages) + self.option_advantage_offset
-        log_ratio_mu = evaluation.log_prob_comm - data.old_log_prob_comm
-        ratio_mu = th.exp(log_ratio_mu)
-        mu_loss = clipped_surrogate_loss(advantages_mu, ratio_mu, clip_mu)
-        entropy_mu = evaluation.entropy_comm.mean(0).sum()
-        if train_mu:
-            loss = loss + mu_loss - zeta * entropy_mu
-
-        with th.no_grad():
-            step_stats = th.stack(
-                [
-                    pi_loss,
-                    mu_loss,
-                    q_loss,
-                    entropy_mu / self.n_agents,
-                    ((ratio_pi - 1).abs() > clip_pi).float().mean(),
-                    ((ratio_mu - 1).abs() > clip_mu).float().mean(),
-                    ((ratio_pi - 1) - log_ratio_pi).mean(),
-                    ((ratio_mu - 1) - log_ratio_mu).mean(),
-                ]
-            )
-        return loss, step_stats
-
     def _comm_costs(self, env: VecEnv) -> np.ndarray:
         """The communication cost ``xi`` of every environment, (n_envs,); zeros unless the critic needs it."""
-        if self.policy.critic == "option_heads":
-            return np.zeros(env.num_envs, dtype=np.float32)  # the option heads learn it from the rewards
+        if not self.policy.option_critic.needs_price:
+            return np.zeros(env.num_envs, dtype=np.float32)  # such critics learn it from the rewards
         try:
             return np.asarray(env.get_attr("comm_cost"), dtype=np.float32)
         except AttributeError as err:
@@ -686,39 +701,6 @@ class MAPPOC(OnPolicyAlgorithm):
                 f"critic={self.policy.critic!r} needs the environment's communication cost (attribute "
                 "'comm_cost', as the sb3_detc envs have) to add it to its option values."
             ) from err
-
-    def _comm_prices(self, comm_cost: np.ndarray) -> np.ndarray:
-        """What an agent's own broadcast costs in the learner's reward units, (n_envs, N).
-
-        The communication cost through the same transformation as the rewards: scaled,
-        shared by the team (``team_reward``) and divided by the running return spread
-        (``normalize_reward``; the clipping to [-10, 10] is ignored).
-
-        :param comm_cost: communication cost of every environment (n_envs,)
-        """
-        price = np.repeat(comm_cost[:, None] * self.reward_scale, self.n_agents, axis=1)
-        if self.team_reward:
-            price = price / self.n_agents
-        if self.normalize_reward and self.reward_rms is not None:
-            price = price / np.sqrt(self.reward_rms.var + 1e-8)
-        return price.astype(np.float32)
-
-    def _normalized_rewards(self, rewards: np.ndarray, dones: np.ndarray) -> np.ndarray:
-        """Rewards divided by the running standard deviation of the discounted returns, per agent."""
-        if self.reward_rms is None:
-            self.reward_rms = RunningMeanStd(shape=(self.n_agents,))
-        if self._discounted_returns is None or self._discounted_returns.shape != rewards.shape:
-            self._discounted_returns = np.zeros_like(rewards, dtype=np.float64)
-        self._discounted_returns = self._discounted_returns * self.gamma + rewards
-        self.reward_rms.update(self._discounted_returns)
-        self._discounted_returns[np.asarray(dones, dtype=bool)] = 0.0
-        return np.clip(rewards / np.sqrt(self.reward_rms.var + 1e-8), -10.0, 10.0).astype(np.float32)
-
-    def _normalized(self, advantages: th.Tensor) -> th.Tensor:
-        """Standardise advantages per agent over the minibatch (if ``normalize_advantage``)."""
-        if self.normalize_advantage and len(advantages) > 1:
-            return (advantages - advantages.mean(0)) / (advantages.std(0) + 1e-8)
-        return advantages
 
     def learn(
         self: SelfMAPPOC,
@@ -776,7 +758,8 @@ class MAPPOC(OnPolicyAlgorithm):
         """Load a saved model, optionally with an environment (checked for the same number of agents).
 
         :param path: path to the saved file
-        :param env: environment to attach (must have the spaces the model was trained with)
+        :param env: environment to attach (must have the spaces the model was trained with); from
+            an env id, MAPPOC builds as many rollout workers as the model was trained with
         :param device: device on which the code runs
         :param custom_objects: objects to replace on load, see :meth:`BaseAlgorithm.load`
         :param print_system_info: print the system info of the saved model and the current one
@@ -789,6 +772,8 @@ class MAPPOC(OnPolicyAlgorithm):
         env = _as_joint_env(env)
         if env is not None:
             data, _, _ = load_from_zip_file(path, device="cpu", custom_objects=custom_objects, load_data=True)
+            if isinstance(env, str):  # the fast setting, with the saved number of envs (n_steps is per env)
+                env = make_rollout_workers(env, int((data or {}).get("n_envs", 1)))
             if data is not None and "action_space" in data:
                 _check_same_agents(env, len(data["action_space"]["comm"].nvec))  # type: ignore[arg-type]
         return super().load(  # type: ignore[return-value]
@@ -802,91 +787,36 @@ class MAPPOC(OnPolicyAlgorithm):
         )
 
 
-class _PolicyLoss(th.nn.Module):
-    """The loss of a gradient step as a module holding the policy, for :func:`torch.func.functional_call`.
-
-    :param policy: the policy whose parameters the loss depends on
-    :param losses: the loss function (:meth:`MAPPOC._losses`)
-    """
-
-    def __init__(self, policy: MlpHybridPolicy, losses: Callable[..., tuple[th.Tensor, th.Tensor]]) -> None:
-        super().__init__()
-        self.policy = policy
-        self._losses = losses
-
-    def names_of(self, params: list[th.Tensor]) -> list[str]:
-        """The names under which this module holds ``params``."""
-        names = {id(param): name for name, param in self.named_parameters()}
-        return [names[id(param)] for param in params]
-
-    def forward(self, *args: Any) -> tuple[th.Tensor, th.Tensor]:
-        """The loss and the statistics of :meth:`MAPPOC._losses`."""
-        return self._losses(*args)
-
-
-def greedy_option_advantage(option_values: th.Tensor, comm: th.Tensor, offset: float = 0.0) -> th.Tensor:
-    """Greedy advantage of the taken options, ``A_mu = Q(o) - max_o' Q(o') + offset`` (Sec. 3).
-
-    Evaluated with the current critic and detached: no gradient flows into ``Q``.
-
-    :param option_values: ``Q_i(s, o)`` for both options, (B, N, 2)
-    :param comm: taken options (B, N)
-    :param offset: constant added to the advantage (the paper's code: 0.1, the paper: 0)
-    :return: advantages (B, N), at most ``offset``
-    """
-    q = option_values.detach()
-    return q.gather(-1, comm.long()[..., None])[..., 0] - q.max(-1).values + offset
-
-
-def option_gap_scale(option_values: th.Tensor) -> th.Tensor:
-    """Every agent's root mean square option gap ``Q(1) - Q(0)`` over a batch, detached, (N,).
-
-    :param option_values: ``Q_i(s, o)`` for both options, (B, N, 2)
-    """
-    gap = option_values.detach()[..., 1] - option_values.detach()[..., 0]
-    return gap.pow(2).mean(0).sqrt() + 1e-8
-
-
-def clipped_surrogate_loss(advantages: th.Tensor, ratio: th.Tensor, clip: float) -> th.Tensor:
-    """PPO's clipped surrogate loss, averaged over the batch and summed over agents.
-
-    Summing over agents keeps every agent's gradient what it would be if it trained alone.
-
-    :param advantages: advantages (B, N)
-    :param ratio: probability ratios new / old (B, N)
-    :param clip: clipping parameter epsilon
-    :return: scalar loss
-    """
-    surrogate = th.min(advantages * ratio, advantages * th.clamp(ratio, 1 - clip, 1 + clip))
-    return -surrogate.mean(0).sum()
-
-
-def _agent_rewards(infos: list[dict[str, Any]]) -> np.ndarray:
-    try:
-        return np.stack([info["agent_rewards"] for info in infos]).astype(np.float32)
-    except KeyError as err:
-        raise ValueError(
-            "MAPPOC needs per-agent rewards in info['agent_rewards']: use a joint sb3_detc env (JointEnv)."
-        ) from err
-
-
-def _check_cxx_compiler() -> None:
-    """``torch.compile`` builds C++ code for the CPU: fail at once, and clearly, without a compiler."""
+def has_cxx_compiler() -> bool:
+    """Whether ``torch.compile`` finds a C++ compiler for CPU code."""
     from torch._inductor import cpp_builder, exc
 
     try:
         cpp_builder.get_cpp_compiler()
-    except exc.InvalidCxxCompiler as error:
+    except exc.InvalidCxxCompiler:
+        return False
+    return True
+
+
+def check_cxx_compiler() -> None:
+    """``torch.compile`` builds C++ code for the CPU: fail at once, and clearly, without a compiler.
+
+    :raises RuntimeError: if no C++ compiler is found
+    """
+    if not has_cxx_compiler():
         raise RuntimeError(
             "torch_compile=True needs a C++ compiler on the CPU (g++ or clang++ on PATH, or the CXX "
             "environment variable); install one or use torch_compile=False."
-        ) from error
+        )
 
 
-def _has_rollout_workers(env: VecEnv) -> bool:
+def has_rollout_workers(env: VecEnv) -> bool:
     """Whether ``env`` is a plain SB3 vector env of :class:`~sb3_detc.mappoc.workers.RolloutWorker` envs.
 
-    Vector env wrappers (e.g. ``VecNormalize``) change what the policy sees: those keep the step-by-step path.
+    Vector env wrappers (e.g. ``VecNormalize``) change what the policy sees: those keep the rollout in
+    the learner's process.
+
+    :param env: the training env
     """
     return isinstance(env, (DummyVecEnv, SubprocVecEnv)) and env.has_attr("collect_rollout")
 
@@ -901,17 +831,9 @@ def _truncated(infos: list[dict[str, Any]], dones: np.ndarray) -> list[tuple[int
     cut = []
     for idx, (info, done) in enumerate(zip(infos, dones, strict=True)):
         if done and info.get("TimeLimit.truncated", False) and "terminal_observation" in info:
-            _check_finite(info["terminal_observation"])
+            check_finite(info["terminal_observation"])
             cut.append((idx, info["terminal_observation"]))
     return cut
-
-
-def _check_finite(obs: dict[str, np.ndarray], rewards: np.ndarray | None = None) -> None:
-    if rewards is not None and not np.all(np.isfinite(rewards)):
-        raise ValueError(f"the environment returned non-finite rewards: {rewards.tolist()}.")
-    for key, value in obs.items():
-        if not np.all(np.isfinite(value)):
-            raise ValueError(f"the environment returned a non-finite observation in '{key}'.")
 
 
 def _check_same_agents(env: GymEnv, n_agents: int) -> None:

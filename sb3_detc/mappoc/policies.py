@@ -1,4 +1,4 @@
-"""Hybrid policies for MAPPOC: per agent a policy over options, a control policy and an option-value critic.
+"""MlpHybridPolicy: per agent a policy over options, a control policy and an option-value critic.
 
 For every agent ``i`` (Sec. 3 of the method reference):
 
@@ -8,19 +8,21 @@ For every agent ``i`` (Sec. 3 of the method reference):
   deviation, evaluated on the networked observation ``x^_i`` *after* this step's
   broadcasts (same-step delivery);
 * ``Q_i(s, o)``: option-value critic, centralised during training only (it also sees the
-  true messages of all agents), either with one output per option (the paper) or as an
-  afterstate critic ``Q_i(s, o) = W_i(s after the options)`` that values the network state
-  the options lead to (see :class:`MlpHybridPolicy`'s ``critic``).
+  true messages of all agents); how its network's outputs become both options' values is
+  one of the critics of :mod:`sb3_detc.mappoc.critics` (the paper's option heads, an
+  afterstate critic or a centred one).
 
-All networks of all agents are evaluated by agent-batched layers (one batched matmul per
-layer, weights shaped (groups, in, out)); no Python loop over agents on the hot path.
+This module builds the networks' features (the hold rule of :mod:`sb3_detc.network`
+applied to the options), samples and evaluates hybrid actions, and gives each agent's
+standalone controller (:class:`AgentController`). The networks of all agents are evaluated
+by agent-batched layers (:class:`~sb3_detc.mappoc.batched.AgentBatchedNetworks`: one batched
+matmul per layer, weights shaped (groups, in, out)); no Python loop over agents on the hot path.
 """
 
 from __future__ import annotations
 
 import inspect
 import math
-from collections.abc import Sequence
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -32,100 +34,21 @@ from torch import nn
 from torch.nn import functional as F
 
 from sb3_detc.envs.wrappers import JOINT_KEYS
+from sb3_detc.mappoc.batched import AgentBatchedNetworks, ChainInput, NetSpec
+from sb3_detc.mappoc.critics import CRITICS, OptionCritic
 from sb3_detc.network import advance_timer, hold, others_index, relative_views
 
-#: Order of the networks inside the batched chains: ``mu`` (and the option-heads critic) do
-#: not depend on this step's options and run before the options are sampled, ``pi`` (and the
-#: afterstate critic) run after.
+#: Order of the networks inside the batched chains: ``mu`` (and a critic that reads the state
+#: before the options) do not depend on this step's options and run before the options are
+#: sampled, ``pi`` (and a critic that reads the afterstate) run after.
 NETS = ("mu", "q", "pi")
-#: Kinds of option-value critic.
-CRITICS = ("option_heads", "afterstate", "centred")
+#: Orthogonal-init gains of the networks' output layers.
+OUTPUT_GAINS = {"mu": 0.01, "q": 1.0, "pi": 0.01}
 
 
 def broadcast_probability(logits: th.Tensor) -> th.Tensor:
     """Probability of broadcasting under ``mu`` from its logits (..., 2): ``sigmoid(logit_1 - logit_0)``."""
     return th.sigmoid(logits[..., 1] - logits[..., 0])
-
-
-class BatchedMLP(nn.Module):
-    """Independent MLPs of one hidden architecture, evaluated together with one ``baddbmm`` per layer.
-
-    Group ``g`` reads the first ``in_features[g]`` input columns and writes the first
-    ``out_features[g]`` output columns; the rest is zero padding whose weights stay zero
-    (their gradients are zero).
-
-    :param in_features: input width of every group
-    :param out_features: output width of every group
-    :param hidden: hidden layer sizes (common to all groups)
-    :param activation_fn: activation class applied after every hidden layer
-    :param output_gains: orthogonal-init gain of every group's output layer
-    :param hidden_gain: orthogonal-init gain of the hidden layers
-    """
-
-    def __init__(
-        self,
-        in_features: Sequence[int],
-        out_features: Sequence[int],
-        hidden: Sequence[int],
-        activation_fn: type[nn.Module],
-        output_gains: Sequence[float],
-        hidden_gain: float = math.sqrt(2),
-    ) -> None:
-        super().__init__()
-        self.in_features = list(in_features)
-        self.out_features = list(out_features)
-        self.activation = activation_fn()
-        self.activation_fn = activation_fn
-        sizes = [max(self.in_features), *hidden, max(self.out_features)]
-        n_groups, n_layers = len(self.in_features), len(sizes) - 1
-        self.weights = nn.ParameterList()
-        self.biases = nn.ParameterList()
-        for layer in range(n_layers):
-            weight = th.zeros(n_groups, sizes[layer], sizes[layer + 1])
-            for g in range(n_groups):
-                rows = self.in_features[g] if layer == 0 else sizes[layer]
-                cols = self.out_features[g] if layer == n_layers - 1 else sizes[layer + 1]
-                gain = output_gains[g] if layer == n_layers - 1 else hidden_gain
-                block = th.empty(cols, rows)
-                nn.init.orthogonal_(block, gain=gain)
-                weight[g, :rows, :cols] = block.T
-            self.weights.append(nn.Parameter(weight))
-            self.biases.append(nn.Parameter(th.zeros(n_groups, 1, sizes[layer + 1])))
-
-    def forward(self, x: th.Tensor, start: int = 0, stop: int | None = None) -> th.Tensor:
-        """Evaluate groups ``start:stop``.
-
-        :param x: inputs, shape (groups, batch, max input width)
-        :param start: first group
-        :param stop: one past the last group (None: all)
-        :return: outputs, shape (groups, batch, max output width)
-        """
-        last = len(self.weights) - 1
-        for layer, (weight, bias) in enumerate(zip(self.weights, self.biases, strict=True)):
-            x = th.baddbmm(bias[start:stop], x, weight[start:stop])
-            if layer < last:
-                x = self.activation(x)
-        return x
-
-    def extract(self, group: int) -> nn.Sequential:
-        """A standalone copy of one group's MLP made of ordinary ``nn.Linear`` layers.
-
-        :param group: index of the group
-        :return: the group's network, input width ``in_features[group]``
-        """
-        layers: list[nn.Module] = []
-        last = len(self.weights) - 1
-        for layer, (weight, bias) in enumerate(zip(self.weights, self.biases, strict=True)):
-            rows = self.in_features[group] if layer == 0 else weight.shape[1]
-            cols = self.out_features[group] if layer == last else weight.shape[2]
-            linear = nn.Linear(rows, cols)
-            with th.no_grad():
-                linear.weight.copy_(weight[group, :rows, :cols].T)
-                linear.bias.copy_(bias[group, 0, :cols])
-            layers.append(linear)
-            if layer < last:
-                layers.append(self.activation_fn())
-        return nn.Sequential(*layers)
 
 
 class HybridAction(NamedTuple):
@@ -145,28 +68,6 @@ class HybridEvaluation(NamedTuple):
     entropy_comm: th.Tensor  # (B, N)
     log_prob_control: th.Tensor  # (B, N)
     option_values: th.Tensor  # (B, N, 2)
-
-
-class ChainInput(NamedTuple):
-    """Inputs of some networks of one batched chain, stacked: (groups, B, variants x agents per group, width).
-
-    ``variants`` > 1 evaluates every network on several inputs per sample (the afterstate
-    critic's two own options).
-    """
-
-    chain: int  # index of the chain
-    nets: tuple[str, ...]  # consecutive networks of the chain these inputs feed, in chain order
-    x: th.Tensor
-    variants: int = 1
-
-    def select(self, idx: th.Tensor) -> ChainInput:
-        """The same inputs for the samples ``idx`` of the batch axis."""
-        return ChainInput(self.chain, self.nets, self.x[:, idx], self.variants)
-
-
-def _variants(features: th.Tensor) -> int:
-    """Inputs per sample of a network's features: (B, N, f) -> 1, (B, variants, N, f) -> variants."""
-    return features.shape[1] if features.dim() == 4 else 1
 
 
 def gaussian_log_prob(x: th.Tensor, mean: th.Tensor, log_std: th.Tensor) -> th.Tensor:
@@ -196,22 +97,13 @@ class MlpHybridPolicy(BasePolicy):
         options (through the bias of their output layer; 0.5: undecided). A low value lets
         training start where every broadcast carries information that would otherwise stay
         stale for several steps, so its value stands out from the noise of the returns
-    :param critic: ``"option_heads"`` (the paper: ``Q_i`` reads the state before the options
-        and has one output per option) or ``"afterstate"`` (one output ``W_i`` that reads the
-        held broadcasts *after* the options, with the ages before them;
-        ``Q_i(s, o) = W_i(after(s, o_i = o, o_-i)) - o price_i`` with the others' options as
-        taken, see :meth:`afterstate_features`). The
-        afterstate critic learns the value of stale information from every step, whichever
-        option led to it, so both options' values come from one function and the difference
-        between them has no per-head offset; or ``"centred"`` (two outputs on the state before
-        the options, a state value ``V_i(s)`` and an option gap ``D_i(s)``:
-        ``Q_i(s, o) = V_i(s) + (o - p_i(s)) (D_i(s) - price_i)`` with ``p_i`` the probability
-        of broadcasting under ``mu_i`` when the step was taken). The centred critic is fitted
-        by the same squared error as the others, which then is the R-learner of causal
-        inference (Nie and Wager, 2021) for the effect of a broadcast: because the options are
-        drawn with known probabilities, ``o - p`` is uncorrelated with every function of the
-        state, so the error of ``V_i``, the large part of the value, does not leak into the
-        option gap, the small part on which ``mu`` acts
+    :param critic: name of the option-value critic, a key of
+        :data:`~sb3_detc.mappoc.critics.CRITICS`: ``"option_heads"`` (the paper: one output per
+        option on the state before the options), ``"afterstate"`` (one output that values the
+        network state after the options, with the price of the own broadcast added
+        analytically) or ``"centred"`` (a state value and an option gap on the state before the
+        options, centred on the probabilities the options were drawn with); see the classes of
+        :mod:`sb3_detc.mappoc.critics`. The critic object is :attr:`option_critic`
     :param ortho_init: orthogonal initialisation (otherwise PyTorch's default init)
     :param use_sde: not supported, must be False (present for SB3 compatibility)
     :param optimizer_class: optimizer class
@@ -248,7 +140,7 @@ class MlpHybridPolicy(BasePolicy):
         if not (np.isfinite(age_scale) and age_scale >= 0):
             raise ValueError(f"age_scale must be a finite number >= 0 (0: the networks ignore ages), got {age_scale}.")
         if critic not in CRITICS:
-            raise ValueError(f"critic must be one of {CRITICS}, got {critic!r}.")
+            raise ValueError(f"critic must be one of {tuple(CRITICS)}, got {critic!r}.")
         if optimizer_kwargs is None:
             # The paper's epsilon (for optimizers that have one); the fused Adam kernel saves about
             # 12 % of an eager update step here.
@@ -273,6 +165,7 @@ class MlpHybridPolicy(BasePolicy):
         self.age_scale = age_scale
         self.broadcast_prob_init = broadcast_prob_init
         self.critic = critic
+        self.option_critic: OptionCritic = CRITICS[critic]()
         self.ortho_init = ortho_init
 
         n_local = observation_space["local"].shape[1]
@@ -284,17 +177,21 @@ class MlpHybridPolicy(BasePolicy):
         self.register_buffer("agent_id", th.eye(n), persistent=False)
         self.register_buffer("control_low", th.as_tensor(action_space["control"].low), persistent=False)
         self.register_buffer("control_high", th.as_tensor(action_space["control"].high), persistent=False)
-        n_id = n if share_parameters else 0
-        self.in_features = {
-            "mu": 2 * n_trig + n_id,
-            "q": n_local + n * (n_msg + 1) + (n - 1) * n_msg + n_id,
-            "pi": n_local + (n - 1) * (n_msg + 1) + n_id,
+        in_features = {
+            "mu": 2 * n_trig,
+            "q": n_local + n * (n_msg + 1) + (n - 1) * n_msg,
+            "pi": n_local + (n - 1) * (n_msg + 1),
         }
-        self.out_features = {"mu": 2, "q": 1 if critic == "afterstate" else 2, "pi": n_control}
-        self._build(lr_schedule)
+        out_features = {"mu": 2, "q": self.option_critic.outputs, "pi": n_control}
+        self._build(lr_schedule, in_features, out_features)
 
     # ------------------------------------------------------------------ building
     def _arch(self, net: str) -> tuple[int, ...]:
+        """Hidden layer sizes of network ``net`` from ``net_arch``.
+
+        :param net: one of :data:`NETS`
+        :raises ValueError: for a malformed ``net_arch``
+        """
         arch = self.net_arch
         if isinstance(arch, dict):
             if set(arch) != set(NETS):
@@ -304,33 +201,22 @@ class MlpHybridPolicy(BasePolicy):
             raise ValueError(f"net_arch must list positive layer sizes, got {arch!r}.")
         return tuple(arch)
 
-    def _build(self, lr_schedule: Schedule | None) -> None:
+    def _build(self, lr_schedule: Schedule | None, in_features: dict[str, int], out_features: dict[str, int]) -> None:
+        """Create the networks, the log standard deviation and the optimizer.
+
+        :param lr_schedule: learning rate schedule (None: learning rate 0)
+        :param in_features: input width of every network (without a one-hot agent id)
+        :param out_features: output width of every network
+        """
         groups = 1 if self.share_parameters else self.n_agents
-        gains = {"mu": 0.01, "q": 1.0, "pi": 0.01}
-        # Networks with the same hidden architecture share one batched chain.
-        by_arch: dict[tuple[int, ...], list[str]] = {}
-        for net in NETS:
-            by_arch.setdefault(self._arch(net), []).append(net)
-        self.chains = nn.ModuleList()
-        self._where: dict[str, tuple[int, int, int]] = {}  # net -> (chain, first group, stop)
-        for hidden, nets in by_arch.items():
-            ins, outs, out_gains = [], [], []
-            for net in nets:
-                self._where[net] = (len(self.chains), len(ins), len(ins) + groups)
-                ins += [self.in_features[net]] * groups
-                outs += [self.out_features[net]] * groups
-                out_gains += [gains[net] if self.ortho_init else 1.0] * groups
-            chain = BatchedMLP(ins, outs, hidden, self.activation_fn, out_gains)
-            if not self.ortho_init:
-                for weight in chain.weights:
-                    nn.init.normal_(weight, std=1.0 / math.sqrt(weight.shape[1]))
-            self.chains.append(chain)
+        specs = {net: NetSpec(in_features[net], out_features[net], self._arch(net), OUTPUT_GAINS[net]) for net in NETS}
+        self.chains = AgentBatchedNetworks(
+            specs, self.n_agents, self.share_parameters, self.activation_fn, self.ortho_init
+        )
         # mu's output layer: logit(broadcast) - logit(silent) = log(p / (1 - p)) at initialisation.
-        chain_idx, start, stop = self._where["mu"]
-        with th.no_grad():
-            self.chains[chain_idx].biases[-1][start:stop, 0, 1] = math.log(
-                self.broadcast_prob_init / (1.0 - self.broadcast_prob_init)
-            )
+        self.chains.agent_biases("mu")[-1][:, 0, 1] = math.log(
+            self.broadcast_prob_init / (1.0 - self.broadcast_prob_init)
+        )
         log_std = th.full((groups, self.n_control), float(self.log_std_init))
         self.log_std = nn.Parameter(log_std, requires_grad=self.learn_log_std)
         params = [p for p in self.parameters() if p.requires_grad]
@@ -360,9 +246,7 @@ class MlpHybridPolicy(BasePolicy):
         :param net: one of ``"mu"``, ``"q"``, ``"pi"``
         :return: detached views (writing into them changes the network)
         """
-        chain_idx, start, stop = self._where[net]
-        chain = self.chains[chain_idx]
-        views = [p.detach()[start:stop] for p in (*chain.weights, *chain.biases)]
+        views = [*self.chains.agent_weights(net), *self.chains.agent_biases(net)]
         return [*views, self.log_std.detach()] if net == "pi" else views
 
     # ------------------------------------------------------------------ features
@@ -396,7 +280,7 @@ class MlpHybridPolicy(BasePolicy):
         return th.cat([obs["local"], views, ages], dim=-1)
 
     def critic_features(self, obs: PyTorchObs) -> th.Tensor:
-        """Inputs of the option-heads critic ``Q_i``: the network state before this step's options.
+        """Inputs of a critic that reads the network state before this step's options (option heads, centred).
 
         Own local state, every agent's held broadcast (the own one included: what the
         others believe about agent ``i``) relative to the own message, every age, and the
@@ -450,104 +334,21 @@ class MlpHybridPolicy(BasePolicy):
     @property
     def critic_reads_afterstate(self) -> bool:
         """Whether the critic reads the network state after this step's options (else: before)."""
-        return self.critic == "afterstate"
+        return self.option_critic.reads_afterstate
 
     def option_values(
         self, q: th.Tensor, comm_price: th.Tensor | None = None, p_broadcast: th.Tensor | None = None
     ) -> th.Tensor:
-        """Both options' values from the critic's outputs.
+        """Both options' values from the critic's outputs: :meth:`.OptionCritic.option_values` of :attr:`option_critic`.
 
-        The own broadcast's cost in this step's reward is known exactly; the afterstate and
-        centred critics add it analytically instead of learning it. The afterstate critic
-        values the network state after the options, ``Q_i(s, o) = W_i(after(s, o)) - o price_i``.
-        The centred critic has a state value and an option gap,
-        ``Q_i(s, o) = V_i(s) + (o - p_i) (D_i(s) - price_i)``, so that
-        ``sum_o mu_i(o) Q_i(s, o) = V_i(s)`` and ``Q_i(s, 1) - Q_i(s, 0) = D_i(s) - price_i``.
-
-        :param q: option heads or centred outputs ``(V, D)`` (B, N, 2), or afterstate values of
-            both own options (B, 2, N, 1)
+        :param q: outputs of the critic network
         :param comm_price: what a broadcast costs agent ``i`` in the learner's reward units (B, N);
-            not used by the option heads (None: zero)
+            read by critics that add it analytically (None: zero)
         :param p_broadcast: probability of broadcasting ``p_i`` with which the options were
             drawn (B, N); needed by the centred critic only
         :return: ``Q_i(s, o)``, (B, N, 2)
         """
-        price = 0.0 if comm_price is None else comm_price
-        if self.critic == "option_heads":
-            return q
-        if self.critic == "afterstate":
-            values = q[..., 0].transpose(1, 2)
-            return th.stack([values[..., 0], values[..., 1] - price], dim=-1)
-        if p_broadcast is None:
-            raise ValueError("The centred critic needs the probabilities of broadcasting (p_broadcast).")
-        value, gap = q[..., 0], q[..., 1] - price
-        return th.stack([value - p_broadcast * gap, value + (1 - p_broadcast) * gap], dim=-1)
-
-    def stack_inputs(self, features: dict[str, th.Tensor]) -> list[ChainInput]:
-        """Arrange per-network features for the batched chains.
-
-        The result depends on no parameter, so training computes it once per rollout and
-        only indexes it (:meth:`ChainInput.select`) for every minibatch.
-
-        :param features: inputs of some of the networks ``mu``, ``q``, ``pi``, each (B, N, features)
-            or, for several inputs per sample, (B, variants, N, features)
-        :return: one :class:`ChainInput` per run of consecutive networks of a chain with the
-            same number of variants
-        """
-        stacked = []
-        for c, chain in enumerate(self.chains):
-            width = max(chain.in_features)
-            run: list[str] = []
-            for net in (*(net for net in NETS if self._where[net][0] == c), None):
-                variants = _variants(features[net]) if net in features else 0
-                if run and (variants != _variants(features[run[0]])):
-                    grouped = [self._to_groups(features[name]) for name in run]
-                    x = th.cat([F.pad(g, (0, width - g.shape[-1])) for g in grouped])
-                    stacked.append(ChainInput(c, tuple(run), x, _variants(features[run[0]])))
-                    run = []
-                if variants:
-                    run.append(net)
-        return stacked
-
-    def apply_chains(self, stacked: list[ChainInput]) -> dict[str, th.Tensor]:
-        """Evaluate the networks of all agents on stacked inputs.
-
-        :param stacked: inputs from :meth:`stack_inputs` (possibly indexed by :meth:`ChainInput.select`)
-        :return: outputs of every network in ``stacked``, each (B, N, outputs), or
-            (B, variants, N, outputs) for inputs with variants
-        """
-        outputs: dict[str, th.Tensor] = {}
-        for item in stacked:
-            groups, batch, rows, width = item.x.shape
-            start, stop = self._where[item.nets[0]][1], self._where[item.nets[-1]][2]
-            out = self.chains[item.chain](item.x.reshape(groups, batch * rows, width), start, stop)
-            size = self._where[item.nets[0]][2] - self._where[item.nets[0]][1]
-            for k, net in enumerate(item.nets):
-                block = out[k * size : (k + 1) * size, :, : self.out_features[net]]
-                block = self._from_groups(block, batch * item.variants)
-                outputs[net] = block if item.variants == 1 else block.unflatten(0, (batch, item.variants))
-        return outputs
-
-    def _to_groups(self, x: th.Tensor) -> th.Tensor:
-        """(B, [variants,] N, f) -> (groups, B, variants x agents per group, f).
-
-        One group per agent, or one shared group with a one-hot agent id appended.
-        """
-        batch = x.shape[0]
-        x = x.flatten(0, -3)
-        if self.share_parameters:
-            ids = self.agent_id.expand(x.shape[0], -1, -1)
-            return th.cat([x, ids], dim=-1)[None].reshape(1, batch, -1, x.shape[-1] + self.n_agents)
-        return x.transpose(0, 1).reshape(self.n_agents, batch, -1, x.shape[-1])
-
-    def _from_groups(self, y: th.Tensor, batch: int) -> th.Tensor:
-        """(groups, B * agents per group, outputs) -> (B, N, outputs)."""
-        if self.share_parameters:
-            return y.reshape(batch, self.n_agents, -1)
-        return y.transpose(0, 1)
-
-    def _run(self, features: dict[str, th.Tensor]) -> dict[str, th.Tensor]:
-        return self.apply_chains(self.stack_inputs(features))
+        return self.option_critic.option_values(q, comm_price, p_broadcast)
 
     def training_inputs(self, obs: PyTorchObs, comm: th.Tensor) -> list[ChainInput]:
         """Stacked inputs of all networks for stored observations and options (no parameters involved).
@@ -555,17 +356,13 @@ class MlpHybridPolicy(BasePolicy):
         :param obs: joint observations (B, N, ...) from before the options
         :param comm: stored options (B, N)
         """
-        return self.stack_inputs(
+        return self.chains.stack(
             {
                 "mu": self.option_features(obs),
-                "q": self._q_features(obs, comm),
+                "q": self.option_critic.features(self, obs, comm),
                 "pi": self.control_features(obs, comm),
             }
         )
-
-    def _q_features(self, obs: PyTorchObs, comm: th.Tensor) -> th.Tensor:
-        """The critic's inputs: before the options, or after them for both own options (afterstate)."""
-        return self.afterstate_features(obs, comm) if self.critic_reads_afterstate else self.critic_features(obs)
 
     # ------------------------------------------------------------------ acting
     def forward(
@@ -611,7 +408,7 @@ class MlpHybridPolicy(BasePolicy):
 
         :param obs: joint observation (B, N, ...)
         :param action_noise_std: extra Gaussian noise on the controls (see :meth:`forward`)
-        :param comm: options to use instead of sampling them (an option override)
+        :param comm: options to use instead of sampling them (a fixed trigger)
         :return: options (B, N) and controls (B, N, m)
         """
         _, comm, control = self._sample(obs, False, comm, action_noise_std, None, False)
@@ -636,19 +433,20 @@ class MlpHybridPolicy(BasePolicy):
         :param with_critic: whether to evaluate the critic too (output ``q``)
         :return: the outputs of ``mu``, ``pi`` (and ``q``), the options, the controls
         """
+        critic = self.option_critic
         before = {"mu": self.option_features(obs)}
-        if with_critic and not self.critic_reads_afterstate:
-            before["q"] = self.critic_features(obs)
-        out = self._run(before)
+        if with_critic and not critic.reads_afterstate:
+            before["q"] = critic.features(self, obs, None)
+        out = self.chains.run(before)
         if deterministic_options is None:
             deterministic_options = deterministic
         if comm is None:
             comm = self._sample_options(out["mu"], deterministic_options)
         comm = comm.long()
         after = {"pi": self.control_features(obs, comm)}
-        if with_critic and self.critic_reads_afterstate:
-            after["q"] = self.afterstate_features(obs, comm)
-        out.update(self._run(after))
+        if with_critic and critic.reads_afterstate:
+            after["q"] = critic.features(self, obs, comm)
+        out.update(self.chains.run(after))
         mean = out["pi"]
         control = mean
         if not deterministic:
@@ -701,7 +499,7 @@ class MlpHybridPolicy(BasePolicy):
         :param p_broadcast: probabilities of broadcasting with which ``comm`` was drawn (B, N),
             see :meth:`option_values` (None: those of the current ``mu``)
         """
-        out = self.apply_chains(stacked)
+        out = self.chains.evaluate(stacked)
         log_p = F.log_softmax(out["mu"], dim=-1)
         log_prob_comm = log_p.gather(-1, comm.long()[..., None])[..., 0]
         entropy = -(log_p.exp() * log_p).sum(-1)
@@ -715,18 +513,20 @@ class MlpHybridPolicy(BasePolicy):
     def state_values(self, obs: PyTorchObs, comm_price: th.Tensor | None = None) -> th.Tensor:
         """Option-value critic averaged under the policy over options, ``V_i(s) = sum_o mu_i(o) Q_i(s, o)``.
 
-        The afterstate critic takes the others' options from one sample of their policies.
+        A critic that reads the afterstate takes the others' options from one sample of their policies.
 
         :param obs: joint observation (B, N, ...)
         :param comm_price: cost of a broadcast in the learner's reward units (B, N), see :meth:`option_values`
         :return: values (B, N)
         """
-        if self.critic_reads_afterstate:
-            out = self._run({"mu": self.option_features(obs)})
+        critic = self.option_critic
+        before = {"mu": self.option_features(obs)}
+        if not critic.reads_afterstate:
+            before["q"] = critic.features(self, obs, None)
+        out = self.chains.run(before)
+        if critic.reads_afterstate:
             comm = self._sample_options(out["mu"], deterministic=False)
-            out["q"] = self._run({"q": self.afterstate_features(obs, comm)})["q"]
-        else:
-            out = self._run({"mu": self.option_features(obs), "q": self.critic_features(obs)})
+            out.update(self.chains.run({"q": critic.features(self, obs, comm)}))
         q = self.option_values(out["q"], comm_price, broadcast_probability(out["mu"]))
         return (F.softmax(out["mu"], dim=-1) * q).sum(-1)
 
@@ -777,13 +577,9 @@ class MlpHybridPolicy(BasePolicy):
         if not 0 <= agent < self.n_agents:
             raise ValueError(f"agent must be in [0, {self.n_agents}), got {agent}.")
         group = 0 if self.share_parameters else agent
-        nets = {}
-        for net in ("mu", "pi"):
-            chain_idx, start, _ = self._where[net]
-            nets[net] = self.chains[chain_idx].extract(start + group)
         return AgentController(
-            option_net=nets["mu"],
-            control_net=nets["pi"],
+            option_net=self.chains.extract("mu", group),
+            control_net=self.chains.extract("pi", group),
             log_std=self.log_std[group].detach().clone(),
             agent=agent,
             n_agents=self.n_agents,

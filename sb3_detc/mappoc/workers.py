@@ -26,6 +26,17 @@ import numpy as np
 import torch as th
 
 
+def check_finite(obs: dict[str, np.ndarray]) -> None:
+    """Refuse observations with NaN or infinite values (before a policy acts on them).
+
+    :param obs: an observation (dict of arrays)
+    :raises ValueError: naming the first key with a non-finite value
+    """
+    for key, value in obs.items():
+        if not np.all(np.isfinite(value)):
+            raise ValueError(f"the environment returned a non-finite observation in '{key}'.")
+
+
 class RolloutWorker(gym.Wrapper):
     """Collects whole rollouts of a joint sb3_detc env with a copy of MAPPOC's policy (see the module).
 
@@ -46,14 +57,21 @@ class RolloutWorker(gym.Wrapper):
     def reset(self, **kwargs: Any) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
         """Reset the env and remember the observation the next rollout starts from."""
         obs, info = self.env.reset(**kwargs)
+        check_finite(obs)
         self._obs = obs
         return obs, info
 
     def step(self, action: Any) -> tuple[dict[str, np.ndarray], float, bool, bool, dict[str, Any]]:
         """Step the env and remember the observation."""
         obs, reward, terminated, truncated, info = self.env.step(action)
+        check_finite(obs)
         self._obs = obs
         return obs, reward, terminated, truncated, info
+
+    @property
+    def observation(self) -> dict[str, np.ndarray] | None:
+        """The observation the env is in (None before the first reset)."""
+        return self._obs
 
     def set_worker_index(self, index: int) -> None:
         """Tell this env its index in the vector env (it picks its own seed of a rollout by it).
@@ -70,7 +88,7 @@ class RolloutWorker(gym.Wrapper):
         action_noise_std: float,
         seeds: list[int],
         torch_compile: bool = False,
-        overrides: list[bytes] | None = None,
+        triggers: list[bytes] | None = None,
     ) -> dict[str, Any]:
         """Sample ``n_steps`` steps with the policy, from the observation the env is in.
 
@@ -80,8 +98,8 @@ class RolloutWorker(gym.Wrapper):
         :param action_noise_std: extra Gaussian noise on the controls (curriculum)
         :param seeds: one seed of the sampling per env of the vector env (this env uses its own)
         :param torch_compile: whether to compile the policy's forward pass (once per policy)
-        :param overrides: one pickled option override per env of the vector env, forked for
-            it (see ``MAPPOC.option_override``); None: options sampled from the policy
+        :param triggers: one pickled fixed trigger per env of the vector env, forked for
+            it (see ``MAPPOC.set_fixed_trigger``); None: options sampled from the policy
         :return: ``observations`` before every step (dict of (n_steps, N, ...)), ``comm``
             (n_steps, N), ``control`` (n_steps, N, m; sampled, before clipping to the bounds),
             ``dones`` (n_steps,), ``infos`` (one dict per step) and ``last_obs`` (the observation
@@ -104,7 +122,7 @@ class RolloutWorker(gym.Wrapper):
         control = np.empty((n_steps, *space.shape), np.float32)
         dones = np.empty(n_steps, bool)
         infos = []
-        override = None if overrides is None else pickle.loads(overrides[self.worker_index])
+        trigger = None if triggers is None else pickle.loads(triggers[self.worker_index])
         threads = th.get_num_threads()
         # One thread: batches of one sample gain nothing from more, and several workers would fight over the cores.
         th.set_num_threads(1)
@@ -116,8 +134,8 @@ class RolloutWorker(gym.Wrapper):
                     for key, value in self._obs.items():
                         observations[key][t] = value
                     forced = None
-                    if override is not None:
-                        forced = th.as_tensor(override({key: value[t : t + 1] for key, value in observations.items()}))
+                    if trigger is not None:
+                        forced = th.as_tensor(trigger({key: value[t : t + 1] for key, value in observations.items()}))
                     with th.no_grad():
                         options, controls = self._act(
                             {key: value[t : t + 1] for key, value in as_tensors.items()}, action_noise_std, forced

@@ -197,12 +197,12 @@ def evaluate_policy_modes(
     if own_trigger is not None and hasattr(own_trigger, "fork"):
         own_trigger = own_trigger.fork(seed)
     learned = evaluate_episodes(
-        policy, env, seeds, deterministic=True, deterministic_options=False, option_override=own_trigger
+        policy, env, seeds, deterministic=True, deterministic_options=False, fixed_trigger=own_trigger
     )
     results = {"learned": learned}
     for mode, skip in (("random_same_rate", learned.savings), ("periodic", 0.0), ("never", 1.0)):
         trigger = RandomTrigger(float(np.clip(skip, 0.0, 1.0)), seed=seed)
-        results[mode] = evaluate_episodes(policy, env, seeds, deterministic=True, option_override=trigger)
+        results[mode] = evaluate_episodes(policy, env, seeds, deterministic=True, fixed_trigger=trigger)
     metrics: dict[str, float] = {
         "return": float(np.mean(learned.returns)),
         "control_return": float(np.mean(learned.control_returns)),

@@ -1,0 +1,191 @@
+"""MAPPOC's loss (Sec. 3 of the method reference): PPO on both policy levels and the critic's error.
+
+* control policy ``pi``: PPO's clipped surrogate on GAE advantages of the taken option;
+* critic ``Q``: squared error of the taken option's value against the lambda-return;
+* policy over options ``mu``: PPO's clipped surrogate on an option advantage (greedy:
+  ``Q(o) - max_o' Q(o')`` with the current critic, or sampled: the lambda-return minus the
+  state value at collection time), plus an entropy bonus.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import TYPE_CHECKING, NamedTuple
+
+import torch as th
+from torch import nn
+
+if TYPE_CHECKING:
+    from sb3_detc.mappoc.batched import ChainInput
+    from sb3_detc.mappoc.buffers import HybridRolloutSamples
+    from sb3_detc.mappoc.policies import HybridEvaluation, MlpHybridPolicy
+
+#: Statistics of every gradient step, in the order :class:`MAPPOCLoss` returns them (logged as ``train/<name>``).
+STEP_STATS = ("pi_loss", "mu_loss", "q_loss", "entropy_mu", "clip_pi", "clip_mu", "kl_pi", "kl_mu")
+
+#: Kinds of option advantage in ``mu``'s loss.
+OPTION_ADVANTAGES = ("greedy", "return")
+
+
+class UpdateInputs(NamedTuple):
+    """What every gradient step of one update needs besides the minibatch's indices."""
+
+    inputs: list[ChainInput]  # stacked network inputs of the whole rollout (MlpHybridPolicy.training_inputs)
+    samples: HybridRolloutSamples  # the rollout's tensors (observations not needed)
+    p_broadcast: th.Tensor  # (B, N) probabilities of broadcasting with which the options were drawn
+    clip_pi: float | th.Tensor  # clip range of pi
+    clip_mu: float | th.Tensor  # clip range of mu
+    zeta: float | th.Tensor  # option entropy coefficient
+    train_pi: bool  # whether pi's loss is part of the loss
+    train_mu: bool  # whether mu's loss and entropy bonus are part of the loss
+
+
+def clipped_surrogate_loss(advantages: th.Tensor, ratio: th.Tensor, clip: float | th.Tensor) -> th.Tensor:
+    """PPO's clipped surrogate loss, averaged over the batch and summed over agents.
+
+    Summing over agents keeps every agent's gradient what it would be if it trained alone.
+
+    :param advantages: advantages (B, N)
+    :param ratio: probability ratios new / old (B, N)
+    :param clip: clipping parameter epsilon
+    :return: scalar loss
+    """
+    surrogate = th.min(advantages * ratio, advantages * th.clamp(ratio, 1 - clip, 1 + clip))
+    return -surrogate.mean(0).sum()
+
+
+def greedy_option_advantage(option_values: th.Tensor, comm: th.Tensor, offset: float = 0.0) -> th.Tensor:
+    """Greedy advantage of the taken options, ``A_mu = Q(o) - max_o' Q(o') + offset`` (Sec. 3).
+
+    Evaluated with the current critic and detached: no gradient flows into ``Q``.
+
+    :param option_values: ``Q_i(s, o)`` for both options, (B, N, 2)
+    :param comm: taken options (B, N)
+    :param offset: constant added to the advantage (the paper's code: 0.1, the paper: 0)
+    :return: advantages (B, N), at most ``offset``
+    """
+    q = option_values.detach()
+    return q.gather(-1, comm.long()[..., None])[..., 0] - q.max(-1).values + offset
+
+
+def option_gap_scale(option_values: th.Tensor) -> th.Tensor:
+    """Every agent's root mean square option gap ``Q(1) - Q(0)`` over a batch, detached, (N,).
+
+    :param option_values: ``Q_i(s, o)`` for both options, (B, N, 2)
+    """
+    gap = option_values.detach()[..., 1] - option_values.detach()[..., 0]
+    return gap.pow(2).mean(0).sqrt() + 1e-8
+
+
+def unchanged(advantages: th.Tensor) -> th.Tensor:
+    """Advantages as they are (:class:`MAPPOCLoss` without ``normalize_advantage``).
+
+    :param advantages: advantages (B, N)
+    """
+    return advantages
+
+
+def standardized(advantages: th.Tensor) -> th.Tensor:
+    """Advantages standardised per agent over the batch, (B, N) (unchanged for a batch of one).
+
+    :param advantages: advantages (B, N)
+    """
+    if len(advantages) > 1:
+        return (advantages - advantages.mean(0)) / (advantages.std(0) + 1e-8)
+    return advantages
+
+
+class MAPPOCLoss(nn.Module):
+    """The loss of one gradient step on a minibatch, and its statistics (a module holding the policy).
+
+    A module, so that :func:`torch.func.functional_call` can evaluate it with other parameter
+    values (the fused gradient step, :mod:`sb3_detc.mappoc.steps`).
+
+    :param policy: the policy whose networks are trained
+    :param vf_coef: coefficient of the critic's squared error
+    :param option_advantage: ``"greedy"`` or ``"return"`` (see :class:`~sb3_detc.MAPPOC`)
+    :param option_advantage_offset: constant added to the option advantages
+    :param normalize_option_advantage: divide the greedy option advantages by every agent's
+        root mean square option gap over the minibatch (:func:`option_gap_scale`)
+    :param normalize_advantage: standardise the control advantages (and the sampled option
+        advantages) per agent and minibatch
+    :raises ValueError: for an unknown ``option_advantage``
+    """
+
+    def __init__(
+        self,
+        policy: MlpHybridPolicy,
+        vf_coef: float,
+        option_advantage: str,
+        option_advantage_offset: float,
+        normalize_option_advantage: bool,
+        normalize_advantage: bool,
+    ) -> None:
+        super().__init__()
+        if option_advantage not in OPTION_ADVANTAGES:
+            raise ValueError(f"option_advantage must be 'greedy' or 'return', got {option_advantage!r}.")
+        self.policy = policy
+        self.vf_coef = vf_coef
+        self.offset = option_advantage_offset
+        self.normalize_option_advantage = normalize_option_advantage
+        self.normalized: Callable[[th.Tensor], th.Tensor] = standardized if normalize_advantage else unchanged
+        self.option_advantages: Callable[[HybridEvaluation, HybridRolloutSamples], th.Tensor] = (
+            self._greedy if option_advantage == "greedy" else self._sampled
+        )
+
+    def _greedy(self, evaluation: HybridEvaluation, data: HybridRolloutSamples) -> th.Tensor:
+        advantages = greedy_option_advantage(evaluation.option_values, data.comm)
+        if self.normalize_option_advantage:
+            advantages = advantages / option_gap_scale(evaluation.option_values)
+        return advantages + self.offset
+
+    def _sampled(self, evaluation: HybridEvaluation, data: HybridRolloutSamples) -> th.Tensor:
+        return self.normalized(data.option_advantages) + self.offset
+
+    def forward(self, update: UpdateInputs, idx: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
+        """The loss of one gradient step on the minibatch ``idx`` and its statistics.
+
+        :param update: what every step of the update needs (:class:`UpdateInputs`)
+        :param idx: indices of the minibatch's samples
+        :return: the loss, and the statistics named in :data:`STEP_STATS` as one tensor
+        """
+        clip_pi, clip_mu = update.clip_pi, update.clip_mu
+        data = update.samples.select(idx)
+        evaluation = self.policy.evaluate_inputs(
+            [x.select(idx) for x in update.inputs], data.comm, data.control, data.comm_price, update.p_broadcast[idx]
+        )
+
+        # Control policy: PPO clipped surrogate on GAE advantages of the taken option.
+        log_ratio_pi = evaluation.log_prob_control - data.old_log_prob_control
+        ratio_pi = th.exp(log_ratio_pi)
+        pi_loss = clipped_surrogate_loss(self.normalized(data.advantages), ratio_pi, clip_pi)
+
+        # Critic: squared error of Q(s, o_taken) against the lambda-return.
+        q_taken = evaluation.option_values.gather(-1, data.comm[..., None])[..., 0]
+        q_loss = (data.returns - q_taken).pow(2).mean(0).sum()
+        loss = self.vf_coef * q_loss
+        if update.train_pi:
+            loss = loss + pi_loss
+
+        # Options: PPO clipped surrogate on the option advantage, no gradient into Q.
+        log_ratio_mu = evaluation.log_prob_comm - data.old_log_prob_comm
+        ratio_mu = th.exp(log_ratio_mu)
+        mu_loss = clipped_surrogate_loss(self.option_advantages(evaluation, data), ratio_mu, clip_mu)
+        entropy_mu = evaluation.entropy_comm.mean(0).sum()
+        if update.train_mu:
+            loss = loss + mu_loss - update.zeta * entropy_mu
+
+        with th.no_grad():
+            step_stats = th.stack(
+                [
+                    pi_loss,
+                    mu_loss,
+                    q_loss,
+                    entropy_mu / self.policy.n_agents,
+                    ((ratio_pi - 1).abs() > clip_pi).float().mean(),
+                    ((ratio_mu - 1).abs() > clip_mu).float().mean(),
+                    ((ratio_pi - 1) - log_ratio_pi).mean(),
+                    ((ratio_mu - 1) - log_ratio_mu).mean(),
+                ]
+            )
+        return loss, step_stats

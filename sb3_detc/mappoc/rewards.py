@@ -1,0 +1,100 @@
+"""What MAPPOC learns from: every agent's reward, and the price of its own broadcast, in the same units.
+
+The environments report every agent's reward in ``info["agent_rewards"]``. The learner
+scales them (the paper: by 0.1), may share them as the team's mean, and may divide them by
+a running standard deviation of each agent's discounted return (as SB3's ``VecNormalize``
+does for one agent). Critics that add the communication cost analytically need what a
+broadcast costs in exactly those units: :meth:`RewardTransform.price`.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from stable_baselines3.common.running_mean_std import RunningMeanStd
+
+
+def agent_rewards(infos: list[dict[str, Any]]) -> np.ndarray:
+    """Every env's per-agent rewards of one step, (n_envs, N), checked to be finite.
+
+    :param infos: the step's infos, one per env, each with ``agent_rewards`` (N,)
+    :raises ValueError: if an info lacks ``agent_rewards`` or a reward is not finite
+    """
+    try:
+        rewards = np.stack([info["agent_rewards"] for info in infos]).astype(np.float32)
+    except KeyError as err:
+        raise ValueError(
+            "MAPPOC needs per-agent rewards in info['agent_rewards']: use a joint sb3_detc env (JointEnv)."
+        ) from err
+    if not np.all(np.isfinite(rewards)):
+        raise ValueError(f"the environment returned non-finite rewards: {rewards.tolist()}.")
+    return rewards
+
+
+class RewardTransform:
+    """Per-agent rewards as the learner sees them: scaled, optionally shared, optionally normalised.
+
+    Stateful when normalising (the running statistics and every env's discounted return);
+    the statistics are saved with the model, the discounted returns start again at zero.
+
+    :param n_agents: number of agents N
+    :param gamma: discount factor of the returns whose spread normalises the rewards
+    :param scale: factor applied to every reward
+    :param team: every agent learns from the team's mean reward instead of its own
+    :param normalize: divide by the running standard deviation of every agent's discounted
+        return and clip to [-10, 10]
+    """
+
+    def __init__(self, n_agents: int, gamma: float, scale: float, team: bool, normalize: bool) -> None:
+        self.n_agents = n_agents
+        self.gamma = gamma
+        self.scale = scale
+        self.team = team
+        self.normalize = normalize
+        #: running mean and variance of every agent's discounted return (None until normalising starts)
+        self.return_rms: RunningMeanStd | None = None
+        #: every env's discounted return so far, (n_envs, N); not saved
+        self.discounted_returns: np.ndarray | None = None
+
+    def __call__(self, rewards: np.ndarray, dones: np.ndarray) -> np.ndarray:
+        """The learner's rewards of one step of all envs, (n_envs, N).
+
+        :param rewards: every env's per-agent rewards (n_envs, N)
+        :param dones: episode ends of the step (n_envs,)
+        """
+        rewards = self.scale * rewards
+        if self.team:
+            rewards = np.repeat(rewards.mean(axis=1, keepdims=True), self.n_agents, axis=1)
+        if not self.normalize:
+            return rewards.astype(np.float32)
+        if self.return_rms is None:
+            self.return_rms = RunningMeanStd(shape=(self.n_agents,))
+        if self.discounted_returns is None or self.discounted_returns.shape != rewards.shape:
+            self.discounted_returns = np.zeros_like(rewards, dtype=np.float64)
+        self.discounted_returns = self.discounted_returns * self.gamma + rewards
+        self.return_rms.update(self.discounted_returns)
+        self.discounted_returns[np.asarray(dones, dtype=bool)] = 0.0
+        return np.clip(rewards / self.spread(), -10.0, 10.0).astype(np.float32)
+
+    def spread(self) -> np.ndarray | float:
+        """What rewards are divided by when normalising: every agent's return standard deviation (1 before)."""
+        if not self.normalize or self.return_rms is None:
+            return 1.0
+        return np.sqrt(self.return_rms.var + 1e-8)
+
+    def price(self, comm_cost: np.ndarray) -> np.ndarray:
+        """What an agent's own broadcast costs in the learner's reward units, (n_envs, N).
+
+        The communication cost through the same transformation as the rewards (scaled,
+        shared by the team, divided by the return spread; the clipping is ignored).
+
+        :param comm_cost: communication cost of every env (n_envs,)
+        """
+        price = np.repeat(comm_cost[:, None] * self.scale, self.n_agents, axis=1)
+        if self.team:
+            price = price / self.n_agents
+        return (price / self.spread()).astype(np.float32)
+
+    def __getstate__(self) -> dict[str, Any]:
+        return {**self.__dict__, "discounted_returns": None}
