@@ -107,7 +107,7 @@ def critic_estimates(job: tuple[str, float, float, int, int, list[tuple[dict, np
         q = model.policy.evaluate_actions(obs, comm, control, p_broadcast=th.full(comm.shape, p)).option_values
     gap = (q[..., 1] - q[..., 0]).numpy()[np.arange(len(agent)), agent]
     # back from the learner's units (reward normalisation) to team-mean reward
-    return gap * np.sqrt(model.reward_rms.var[agent] + 1e-8) / model.reward_scale
+    return gap * np.sqrt(model.reward_transform.return_rms.var[agent] + 1e-8) / model.reward_scale
 
 
 def main() -> None:

@@ -30,7 +30,7 @@ from huggingface_sb3 import EnvironmentName  # noqa: E402
 
 from sb3_detc.zoo import InputError, run_cli  # noqa: E402
 
-__all__ = ["curriculum_phases", "find_runs", "main", "plot_runs", "read_progress", "smooth"]
+__all__ = ["curriculum_phases", "find_runs", "main", "plot_runs", "read_progress", "smooth", "symlog_threshold"]
 
 #: Logged values of the two panels: (column, axis label).
 PANELS = (("comm/ep_return", "return"), ("comm/savings", "communication savings"))
@@ -202,7 +202,7 @@ def plot_runs(
             if len(runs) > 1:
                 ax.fill_between(iterations, low, high, color=line.get_color(), alpha=0.25, linewidth=0)
     for ax, (_, name), curves in zip(axes, panels, drawn, strict=True):
-        scale = _symlog_threshold(np.concatenate(curves))
+        scale = symlog_threshold(np.concatenate(curves))
         if scale is not None:  # early returns can be orders of magnitude below the final ones
             ax.set_yscale("symlog", linthresh=scale)
             name = f"{name}, symmetric log scale"
@@ -231,7 +231,7 @@ def plot_runs(
     return out
 
 
-def _symlog_threshold(values: np.ndarray, span: float = 100.0) -> float | None:
+def symlog_threshold(values: np.ndarray, span: float = 100.0) -> float | None:
     """Linear range of a symmetric log axis for values spanning more than ``span`` in magnitude, else None.
 
     :param values: the plotted values (NaN allowed)

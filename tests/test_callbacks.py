@@ -280,7 +280,7 @@ def test_control_first_trains_pi_under_random_skips_then_mu_for_the_frozen_pi(un
     model.learn(n_steps * (n_iterations - switch), callback=[stages, metrics, levels], reset_num_timesteps=False)
 
     assert [row["curriculum/stage"] for row in capture.rows] == [1, 1, 2, 2]
-    assert [(override is stages.trigger, mu, pi) for override, mu, pi in levels.rows] == [
+    assert [(trigger is stages.trigger, mu, pi) for trigger, mu, pi in levels.rows] == [
         (True, False, True),
         (True, False, True),
         (False, True, False),
@@ -303,7 +303,7 @@ def test_control_first_without_a_learning_rate_keeps_the_models() -> None:
     levels = Stages()
     model.learn(8 * 3, callback=[ControlFirstCallback(1), levels])
     assert levels.learning_rates == [1e-3] * 3
-    assert [override is None for override, _, _ in levels.rows] == [False, True, True]
+    assert [trigger is None for trigger, _, _ in levels.rows] == [False, True, True]
     assert model.normalize_reward is False
 
 

@@ -66,7 +66,6 @@ def test_policy_holds_the_named_critic(name: str) -> None:
     policy = make_policy(name)
     assert policy.critic == name  # the constructor parameter, saved with the policy
     assert type(policy.option_critic) is CRITICS[name]
-    assert policy.critic_reads_afterstate is CRITICS[name].reads_afterstate
     obs, comm = joint_obs(), th.zeros(B, N, dtype=th.int64)
     q = policy.chains.run({"q": policy.option_critic.features(policy, obs, comm)})["q"]
     assert q.shape[-1] == CRITICS[name].outputs

@@ -873,7 +873,7 @@ def test_pettingzoo_network_is_adapted_to_the_joint_view() -> None:
     assert action[0]["comm"].shape == (3,) and action[0]["control"].shape == (3, 1)
 
 
-# ---------------------------------------------------- 9. frozen mu, option override
+# ---------------------------------------------------- 9. frozen mu, fixed trigger
 @pytest.mark.parametrize(("train_control_policy", "train_option_policy"), [(True, False), (False, True), (True, True)])
 def test_policy_level_switches(train_control_policy: bool, train_option_policy: bool) -> None:
     """A level that is switched off stays exactly as it was, also after it was trained (Adam's momentum)."""
@@ -897,7 +897,7 @@ def test_fixed_trigger_drives_the_rollouts() -> None:
     model.learn(32)
     buffer = model.rollout_buffer
     expected = (buffer.observations["local"][..., 0] > 0).astype(np.int64)
-    assert 0 < expected.mean() < 1  # the override is not constant
+    assert 0 < expected.mean() < 1  # the trigger is not constant
     np.testing.assert_array_equal(buffer.comm, expected)
     # The next stored observation shows the overridden options' timers (within episodes).
     age = buffer.observations["age"][..., 0]

@@ -1,4 +1,4 @@
-"""Rollouts sampled inside the envs (RolloutWorker) fill the buffer as the step-by-step path does."""
+"""Rollouts sampled inside the envs (RolloutWorker) fill the buffer as rollouts sampled in the learner do."""
 
 from __future__ import annotations
 
@@ -37,7 +37,7 @@ def make(workers: bool, vec_env_cls: type = DummyVecEnv, **kwargs: Any) -> MAPPO
 
 
 @pytest.mark.parametrize("normalize_reward, periodic", [(False, False), (True, False), (False, True)])
-def test_worker_rollouts_fill_the_buffer_like_step_by_step_rollouts(normalize_reward: bool, periodic: bool) -> None:
+def test_worker_rollouts_fill_the_buffer_like_rollouts_in_the_learner(normalize_reward: bool, periodic: bool) -> None:
     """Same observations, options, controls, rewards (with truncation bootstrap), values, returns, logs.
 
     The control noise differs (other random streams), and with it the log-probabilities of the
@@ -46,7 +46,7 @@ def test_worker_rollouts_fill_the_buffer_like_step_by_step_rollouts(normalize_re
     settings = {"normalize_reward": normalize_reward, "team_reward": True, "learning_rate": 0.0}
     models = [make(workers, **settings) for workers in (False, True)]
     assert [has_rollout_workers(model.get_env()) for model in models] == [False, True]
-    if periodic:  # an option override that the workers run themselves
+    if periodic:  # a fixed trigger that the workers run themselves
         for model in models:
             model.set_fixed_trigger(PeriodicTrigger(3))
     for model in models:
@@ -99,8 +99,8 @@ def test_random_skips_run_in_the_workers_with_one_fork_per_env_and_rollout() -> 
     assert 0.35 < np.mean(comms) < 0.65
 
 
-def test_other_overrides_and_vec_env_wrappers_keep_the_step_by_step_path() -> None:
-    """An override without fork() draws its options in the learner; a VecNormalize changes what the policy sees."""
+def test_other_triggers_and_vec_env_wrappers_keep_the_rollout_in_the_learner() -> None:
+    """A trigger without fork() draws its options in the learner; a VecNormalize changes what the policy sees."""
     model = make(True)
     model.set_fixed_trigger(lambda obs: np.ones((2, 3), np.int64))
     model.learn(48)

@@ -342,7 +342,7 @@ def test_curriculum_phases_from_the_logs() -> None:
 
 
 def test_return_axis_turns_logarithmic_only_over_orders_of_magnitude() -> None:
-    assert plot._symlog_threshold(np.array([-150000.0, -2000.0, -50.0, np.nan])) == 50.0
-    assert plot._symlog_threshold(np.array([-30.0, -20.0, -5.0])) is None
-    assert plot._symlog_threshold(np.array([0.55, 0.6, np.nan])) is None
-    assert plot._symlog_threshold(np.array([np.nan, 0.0])) is None
+    assert plot.symlog_threshold(np.array([-150000.0, -2000.0, -50.0, np.nan])) == 50.0
+    assert plot.symlog_threshold(np.array([-30.0, -20.0, -5.0])) is None
+    assert plot.symlog_threshold(np.array([0.55, 0.6, np.nan])) is None
+    assert plot.symlog_threshold(np.array([np.nan, 0.0])) is None

@@ -174,7 +174,7 @@ class MAPPOC(OnPolicyAlgorithm):
         when a C++ compiler is found, the device is the CPU and ``learn`` runs at least
         :data:`COMPILE_FROM_TIMESTEPS` steps
     :param n_envs: number of envs built from an env id (None: :func:`default_n_envs`, one
-        per CPU core); only for an env id
+        per CPU core, at most 8); only for an env id
     :param fixed_trigger: take the options from this trigger instead of ``mu`` (see
         :meth:`set_fixed_trigger`; None: from ``mu``)
     :param stats_window_size: window size of the rollout logging (episodes)
@@ -184,6 +184,11 @@ class MAPPOC(OnPolicyAlgorithm):
     :param seed: seed of the pseudo random generators
     :param device: device (cpu, cuda, ...) on which the code runs
     :param _init_setup_model: whether to build the network at the creation of the instance
+
+    The loss's and the rewards' settings (``vf_coef``, ``option_advantage*``,
+    ``normalize_advantage``, ``max_grad_norm``, ``target_kl``, ``gamma``, ``reward_scale``,
+    ``team_reward``) are read when the model is built or loaded (``MAPPOC.load(path, key=value)``
+    changes them); what callbacks switch during training goes through the ``set_*`` methods.
     """
 
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {"MlpHybridPolicy": MlpHybridPolicy}
@@ -301,13 +306,12 @@ class MAPPOC(OnPolicyAlgorithm):
         self.train_control_policy = train_control_policy
         self.train_option_policy = train_option_policy
         self.torch_compile = torch_compile
-        self.fixed_trigger: FixedTrigger | None = None
+        self.fixed_trigger: FixedTrigger | None = fixed_trigger  # checked by set_fixed_trigger in _setup_model
         self._action_noise_terms: dict[Hashable, float] = {}
         #: whether the last rollout was sampled inside rollout workers (None: no rollout yet)
         self.last_rollout_in_workers: bool | None = None
         if _init_setup_model:
             self._setup_model()
-            self.set_fixed_trigger(fixed_trigger)
 
     def _setup_model(self) -> None:
         self.n_agents, self.n_control = check_joint_spaces(self.observation_space, self.action_space)
@@ -326,12 +330,14 @@ class MAPPOC(OnPolicyAlgorithm):
             gae_lambda=self.gae_lambda,
             n_envs=self.n_envs,
         )
-        if getattr(self, "reward_transform", None) is None:  # a loaded model brings its own (with its statistics)
-            self.reward_transform = RewardTransform(
-                self.n_agents, self.gamma, self.reward_scale, self.team_reward, self.normalize_reward
-            )
-            # models saved by sb3-detc 0.1 kept the statistics as reward_rms
-            self.reward_transform.return_rms = self.__dict__.pop("reward_rms", None)
+        # The settings are the model's (load(..., normalize_reward=True) changes them); a loaded model brings the
+        # statistics: in its saved transform, or as reward_rms if it was saved before RewardTransform existed.
+        saved = self.__dict__.pop("reward_transform", None)
+        saved_rms = self.__dict__.pop("reward_rms", None)
+        self.reward_transform = RewardTransform(
+            self.n_agents, self.gamma, self.reward_scale, self.team_reward, self.normalize_reward
+        )
+        self.reward_transform.return_rms = saved.return_rms if saved is not None else saved_rms
         self.loss = MAPPOCLoss(
             self.policy,
             self.vf_coef,
@@ -342,27 +348,30 @@ class MAPPOC(OnPolicyAlgorithm):
         )
         control_space = self.action_space["control"]  # type: ignore[index]
         self._control_low, self._control_high = control_space.low, control_space.high
-        self._workers_hold: tuple[MlpHybridPolicy, VecEnv] | None = None  # what the rollout workers have
         self._setup_steps(self.torch_compile is True)
+        self.set_fixed_trigger(self.fixed_trigger)
 
     def _setup_steps(self, compiled: bool) -> None:
         """Choose the sampling function and the gradient step: eager, or compiled (and fused where it can be).
 
         :param compiled: whether to compile them
         """
+        if compiled and self.device.type == "cpu":
+            check_cxx_compiler()
         self._compiled = compiled
-        self._sample_actions: Callable[..., tuple[th.Tensor, th.Tensor]] = self.policy.sample_actions
+        # The rollout workers compile their copy of the policy (or not) when they receive it: send it again.
+        self._workers_hold: tuple[MlpHybridPolicy, VecEnv] | None = None
+        sample = self.policy.sample_actions
+        self._sample_actions: Callable[..., tuple[th.Tensor, th.Tensor]] = th.compile(sample) if compiled else sample
         optimizer = self.policy.optimizer
-        self.gradient_step: GradientStep | FusedGradientStep = GradientStep(
-            self.loss, optimizer, self.max_grad_norm, self.target_kl, compile_loss=compiled
-        )
-        if compiled:
-            if self.device.type == "cpu":
-                check_cxx_compiler()
-            self._sample_actions = th.compile(self.policy.sample_actions)
-            # Early stopping looks at a step's statistics before applying it: only the eager step can.
-            if fusable_adam(optimizer) and self.target_kl is None:
-                self.gradient_step = FusedGradientStep(self.loss, optimizer, self.max_grad_norm)
+        self.gradient_step: GradientStep | FusedGradientStep
+        # Early stopping looks at a step's statistics before applying it: only the unfused step can.
+        if compiled and fusable_adam(optimizer) and self.target_kl is None:
+            self.gradient_step = FusedGradientStep(self.loss, optimizer, self.max_grad_norm)
+        else:
+            self.gradient_step = GradientStep(
+                self.loss, optimizer, self.max_grad_norm, self.target_kl, compile_loss=compiled
+            )
 
     def _setup_learn(self, total_timesteps: int, *args: Any, **kwargs: Any) -> tuple[int, BaseCallback]:
         if self.torch_compile == "auto":
@@ -380,6 +389,7 @@ class MAPPOC(OnPolicyAlgorithm):
             "_sample_actions",
             "_workers_hold",
             "_action_noise_terms",
+            "_compiled",
         ]
 
     # ------------------------------------------------------------------ modes

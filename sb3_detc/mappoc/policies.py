@@ -331,11 +331,6 @@ class MlpHybridPolicy(BasePolicy):
         true = relative_views(obs["message"], obs["message"], self.others).flatten(2)
         return th.cat([obs["local"], views, age[..., 0] * self.age_scale, true], dim=-1)
 
-    @property
-    def critic_reads_afterstate(self) -> bool:
-        """Whether the critic reads the network state after this step's options (else: before)."""
-        return self.option_critic.reads_afterstate
-
     def option_values(
         self, q: th.Tensor, comm_price: th.Tensor | None = None, p_broadcast: th.Tensor | None = None
     ) -> th.Tensor:

@@ -190,7 +190,12 @@ class FusedGradientStep:
         self.compiled = th.compile(self.step)
 
     def __call__(self, update: UpdateInputs, idx: th.Tensor) -> tuple[th.Tensor, bool]:
-        """One step on the minibatch ``idx`` (see :meth:`GradientStep.__call__`); always applied."""
+        """One step on the minibatch ``idx``, always applied.
+
+        :param update: what the loss needs of the rollout and the update (:class:`UpdateInputs`)
+        :param idx: indices of the minibatch's samples
+        :return: the step's statistics (:data:`STEP_STATS`), and True
+        """
         params = self.optimizer.param_groups[0]["params"]
         names = {id(param): name for name, param in self.loss.named_parameters()}
         lr = th.tensor(self.optimizer.param_groups[0]["lr"], device=params[0].device)

@@ -97,7 +97,7 @@ class RolloutWorker(gym.Wrapper):
         :param n_steps: steps to collect
         :param action_noise_std: extra Gaussian noise on the controls (curriculum)
         :param seeds: one seed of the sampling per env of the vector env (this env uses its own)
-        :param torch_compile: whether to compile the policy's forward pass (once per policy)
+        :param torch_compile: whether to compile the policy's sampling (read when ``policy`` is sent)
         :param triggers: one pickled fixed trigger per env of the vector env, forked for
             it (see ``MAPPOC.set_fixed_trigger``); None: options sampled from the policy
         :return: ``observations`` before every step (dict of (n_steps, N, ...)), ``comm``
