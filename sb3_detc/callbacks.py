@@ -605,7 +605,9 @@ class CommMetricsCallback(BaseCallback):
       fraction that terminated rather than being truncated: falls and package drops in
       Multiwalker, but also reaching the end of the terrain) and, where the env reports
       ``package_x`` (Multiwalker), ``comm/package_travel`` (final minus initial package x,
-      the initial one from the VecEnv's ``reset_infos``); not logged in a rollout in which no
+      the initial one from the info of the reset before the episode: ``info["reset_info"]`` of
+      the step that ended the one before, which MAPPOC's rollouts add, else the VecEnv's
+      ``reset_infos``); not logged in a rollout in which no
       episode finished.
 
     :param histogram: record the inter-event times as a histogram (TensorBoard)
@@ -690,7 +692,11 @@ class CommMetricsCallback(BaseCallback):
         self._ep_control_return[e] = 0.0
         self._last_event[e] = -1
         self._ep_step[e] = 0
-        self._start_x[e] = self._reset_package_x(e)  # the VecEnv reset env e after this step
+        # the VecEnv reset env e after this step
+        reset_info = info.get("reset_info")
+        self._start_x[e] = (
+            float(reset_info.get("package_x", math.nan)) if reset_info is not None else self._reset_package_x(e)
+        )
 
     def _on_rollout_end(self) -> None:
         if self._n_agents is None or self._steps == 0:

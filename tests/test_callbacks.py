@@ -32,6 +32,7 @@ from sb3_detc.callbacks import (
 )
 from sb3_detc.envs import linear_etc_v0, multiwalker_etc_v0
 from sb3_detc.mappoc import MAPPOC
+from sb3_detc.mappoc.workers import RolloutWorker
 from sb3_detc.triggers import PeriodicTrigger, RandomTrigger, SendOnDelta
 
 ENV_ID = "sb3_detc/LinearETC-v0"
@@ -620,3 +621,22 @@ def test_paper_setup_runs_end_to_end_on_multiwalker() -> None:
     assert model.action_noise_std == pytest.approx(0.25 * (1 - 1 / 900))  # phase I, iteration 1
     assert 0.0 <= logged["comm/savings"] <= 1.0
     assert logged["train/option_ent_coef"] == pytest.approx(3.2)
+
+
+@pytest.mark.parametrize("workers", [False, True])
+def test_package_travel_starts_from_each_episodes_own_reset(workers: bool) -> None:
+    """Several episodes of one env end within a rollout: each is measured from the reset before it.
+
+    The shifted package starts one unit further in every episode, so a start taken from a later
+    reset would be off by a whole unit.
+    """
+    wrapper = RolloutWorker if workers else None
+    envs = make_vec_env(
+        lambda: ShiftedPackage(multiwalker_etc_v0.joint_env(max_cycles=10)), n_envs=2, seed=0, wrapper_class=wrapper
+    )
+    model = MAPPOC("MlpHybridPolicy", envs, n_steps=40, n_epochs=1, seed=0, policy_kwargs=TINY)
+    capture = capture_logger(model)
+    model.learn(80, callback=CommMetricsCallback())
+    assert model.last_rollout_in_workers is workers
+    assert all(row["comm/episodes"] >= 6 for row in capture.rows)
+    assert all(abs(row["comm/package_travel"]) < 0.5 for row in capture.rows)

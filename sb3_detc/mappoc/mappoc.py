@@ -57,7 +57,7 @@ class Rollout(NamedTuple):
     comm: np.ndarray  # (T, n_envs, N) options
     control: np.ndarray  # (T, n_envs, N, m) sampled controls (before clipping to the bounds)
     dones: np.ndarray  # (T, n_envs) episode ends
-    infos: list[list[dict[str, Any]]]  # T lists of n_envs infos, as a VecEnv returns them
+    infos: list[list[dict[str, Any]]]  # T lists of n_envs infos; at an episode end also "reset_info"
     last_obs: dict[str, np.ndarray]  # (n_envs, N, ...) after the last step
 
 
@@ -511,6 +511,9 @@ class MAPPOC(OnPolicyAlgorithm):
             clipped = np.clip(control, self._control_low, self._control_high)
             new_obs, _, dones, infos = env.step([{"comm": c, "control": u} for c, u in zip(comm, clipped, strict=True)])
             check_finite(new_obs)  # before the policy acts on them
+            reset_infos = getattr(env, "reset_infos", None)
+            for idx in np.flatnonzero(dones) if reset_infos is not None else ():
+                infos[idx]["reset_info"] = reset_infos[idx]  # as workers report it (the VecEnv keeps the latest only)
             steps.append((obs, comm, control, dones, infos))
             obs = new_obs
         observations, comm, control, dones, infos = zip(*steps, strict=True)

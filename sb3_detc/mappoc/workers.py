@@ -102,8 +102,9 @@ class RolloutWorker(gym.Wrapper):
             it (see ``MAPPOC.set_fixed_trigger``); None: options sampled from the policy
         :return: ``observations`` before every step (dict of (n_steps, N, ...)), ``comm``
             (n_steps, N), ``control`` (n_steps, N, m; sampled, before clipping to the bounds),
-            ``dones`` (n_steps,), ``infos`` (one dict per step) and ``last_obs`` (the observation
-            after the last step)
+            ``dones`` (n_steps,), ``infos`` (one dict per step; at an episode end with
+            ``terminal_observation`` and ``reset_info``, the info of the reset that followed) and
+            ``last_obs`` (the observation after the last step)
         """
         if self._obs is None:
             raise RuntimeError("Reset the env before collecting a rollout.")
@@ -148,7 +149,7 @@ class RolloutWorker(gym.Wrapper):
                     info["TimeLimit.truncated"] = truncated and not terminated
                     if dones[t]:
                         info["terminal_observation"] = obs
-                        self.reset()
+                        _, info["reset_info"] = self.reset()
                     infos.append(info)
         finally:
             th.set_num_threads(threads)
