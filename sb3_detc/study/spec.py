@@ -32,7 +32,6 @@ import hashlib
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from tempfile import TemporaryDirectory
 from typing import Any
 
 import yaml
@@ -208,21 +207,11 @@ def _algorithm(path: Path, env: str, label: Any, settings: Any, seeds: tuple[int
 def _checked_entry(
     path: Path, env: str, label: str, algo: str, conf: Path, hyperparams: dict[str, Any]
 ) -> dict[str, Any]:
-    """The entry with the overrides, checked as a whole (written to a scratch file as rl-zoo3 would read it)."""
+    """The entry with the overrides, checked as a whole (as rl-zoo3's ``-params`` would be)."""
     try:
-        entry = dict(check_hyperparams_file(conf, algo, env))
+        return check_hyperparams_file(conf, algo, env, hyperparams)
     except InputError as error:
         raise _fail(path, f"algorithm {label!r}: {error}") from None
-    merged = {**entry, **hyperparams}
-    try:
-        with TemporaryDirectory() as scratch:
-            merged_file = Path(scratch) / "entry.yml"
-            merged_file.write_text(yaml.safe_dump({env: merged}))
-            check_hyperparams_file(merged_file, algo, env)
-    except InputError as error:
-        message = str(error).split(": ", 1)[-1]
-        raise _fail(path, f"algorithm {label!r}: {message}") from None
-    return merged
 
 
 def load_study(path: str | os.PathLike) -> StudySpec:
