@@ -17,7 +17,7 @@ import yaml
 from sb3_detc.study.__main__ import main as study_main
 from sb3_detc.study.report import report_study, summarise
 from sb3_detc.study.spec import StudyError, load_study
-from sb3_detc.study.trial import MODES, read_status, trial_folder
+from sb3_detc.study.trial import MODES, drop_stale_segments, read_status, trial_folder
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -364,3 +364,13 @@ def test_an_interrupted_trial_says_so_and_the_next_run_finishes_it(tmp_path):
     assert json.loads((folder / "checkpoint.json").read_text())["timesteps"] == 2048
     status = run_trial(spec, trial, tmp_path / "out")
     assert status["status"] == "done" and status["timesteps"] == 4096
+
+
+def test_segments_of_lost_checkpoints_are_dropped(tmp_path):
+    for start in (0, 204800, 409600):
+        (tmp_path / "segments" / str(start)).mkdir(parents=True)
+    drop_stale_segments(tmp_path, 204800)  # resuming from 204800: the attempt from 409600 is stale
+    assert sorted(p.name for p in (tmp_path / "segments").iterdir()) == ["0"]
+    drop_stale_segments(tmp_path, 0)  # no checkpoint at all
+    assert list((tmp_path / "segments").iterdir()) == []
+    drop_stale_segments(tmp_path / "new", 0)  # a trial without segments

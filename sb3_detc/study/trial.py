@@ -268,12 +268,8 @@ def _train(spec: StudySpec, trial: Trial, folder: Path, on_progress: Callable[[i
         config=str(algorithm.conf),
         device="cpu",
     )
-    segments = folder / "segments"
-    if segments.is_dir():  # segments of attempts whose checkpoints are lost (from this step on) are stale
-        for stale in segments.iterdir():
-            if stale.name.isdigit() and int(stale.name) >= start:
-                shutil.rmtree(stale)
-    segment = segments / str(start)
+    drop_stale_segments(folder, start)
+    segment = folder / "segments" / str(start)
     manager.save_path = str(segment)
     manager.params_path = str(segment / "params")
     model, _ = manager.setup_experiment()
@@ -293,6 +289,23 @@ def _train(spec: StudySpec, trial: Trial, folder: Path, on_progress: Callable[[i
         raise KeyboardInterrupt(f"training of {trial.name} stopped at {model.num_timesteps} of {budget} steps")
     model.policy.save(str(folder / "policy.pt"))
     _write_progress(folder)
+
+
+def drop_stale_segments(folder: Path, start: int) -> None:
+    """Delete the logs of attempts that reached beyond the checkpoint a trial resumes from.
+
+    An attempt's segment ``segments/<step>`` starts at the checkpoint it resumed from; a
+    segment that starts at or after ``start`` belongs to an attempt whose later checkpoints
+    are lost, and would otherwise be merged into the trial's curves.
+
+    :param folder: the trial's folder
+    :param start: the step the trial resumes from (0 without a checkpoint)
+    """
+    segments = folder / "segments"
+    if segments.is_dir():
+        for stale in segments.iterdir():
+            if stale.name.isdigit() and int(stale.name) >= start:
+                shutil.rmtree(stale)
 
 
 def run_trial(
