@@ -374,3 +374,22 @@ def test_segments_of_lost_checkpoints_are_dropped(tmp_path):
     drop_stale_segments(tmp_path, 0)  # no checkpoint at all
     assert list((tmp_path / "segments").iterdir()) == []
     drop_stale_segments(tmp_path / "new", 0)  # a trial without segments
+
+
+def test_an_interrupted_trial_saves_where_it_stopped(tmp_path):
+    """Between periodic checkpoints, an interruption checkpoints the model as it is: nothing learned is lost."""
+    from sb3_detc.study.trial import run_trial
+
+    spec = load_study(write_study(tmp_path, {**TINY, "seeds": [0], "n_timesteps": 8192, "checkpoint_interval": 4096}))
+    trial = spec.trials()[0]
+    folder = trial_folder(tmp_path / "out", trial)
+
+    def stop_at_the_third_rollout(steps: int) -> None:
+        if steps >= 2048:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        run_trial(spec, trial, tmp_path / "out", on_progress=stop_at_the_third_rollout)
+    assert read_status(folder)["status"] == "interrupted"
+    assert json.loads((folder / "checkpoint.json").read_text())["timesteps"] == 2048
+    assert run_trial(spec, trial, tmp_path / "out")["timesteps"] == 8192

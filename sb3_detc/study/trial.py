@@ -85,7 +85,8 @@ class TrialCheckpoint(BaseCallback):
     At the start of a rollout the model has learned from every step it counted, so a run
     resumed from the checkpoint repeats nothing and loses nothing but the steps after it.
     The file is replaced atomically; ``checkpoint.json`` repeats its step count for readers. After every
-    save (and at every rollout start) ``on_progress`` gets the step count.
+    save (and at every rollout start) ``on_progress`` gets the step count. :meth:`save` saves
+    at any other moment (the trial does when it is interrupted).
 
     :param folder: the trial folder
     :param interval: environment steps between checkpoints
@@ -107,21 +108,27 @@ class TrialCheckpoint(BaseCallback):
         self.interval = interval
         self.on_progress = on_progress
         self.on_save = on_save
-        self._saved_at: int | None = None
+        #: step count of the latest checkpoint (at the start of training: where it started)
+        self.saved_at = 0
 
     def _on_training_start(self) -> None:
-        self._saved_at = self.model.num_timesteps
+        self.saved_at = self.model.num_timesteps
+
+    def save(self) -> None:
+        """Save the model now (replacing the checkpoint atomically) and call ``on_save``."""
+        steps = self.model.num_timesteps
+        scratch = self.folder / "checkpoint.tmp.zip"
+        self.model.save(scratch)
+        os.replace(scratch, self.folder / "checkpoint.zip")
+        _write_json(self.folder / "checkpoint.json", {"timesteps": steps})
+        self.saved_at = steps
+        if self.on_save is not None:
+            self.on_save(steps)
 
     def _on_rollout_start(self) -> None:
         steps = self.model.num_timesteps
-        if steps - self._saved_at >= self.interval:
-            scratch = self.folder / "checkpoint.tmp.zip"
-            self.model.save(scratch)
-            os.replace(scratch, self.folder / "checkpoint.zip")
-            _write_json(self.folder / "checkpoint.json", {"timesteps": steps})
-            self._saved_at = steps
-            if self.on_save is not None:
-                self.on_save(steps)
+        if steps - self.saved_at >= self.interval:
+            self.save()
         if self.on_progress is not None:
             self.on_progress(steps)
 
@@ -279,13 +286,20 @@ def _train(spec: StudySpec, trial: Trial, folder: Path, on_progress: Callable[[i
         status = read_status(folder)
         _write_json(folder / "status.json", {**status, "timesteps": steps})
 
-    manager.callbacks.append(TrialCheckpoint(folder, spec.checkpoint_interval, on_progress, saved))
+    checkpoints = TrialCheckpoint(folder, spec.checkpoint_interval, on_progress, saved)
+    manager.callbacks.append(checkpoints)
     began = time.monotonic()
-    manager.learn(model)
+    interrupted = False
+    try:
+        manager.learn(model)
+    except (KeyboardInterrupt, SystemExit):  # what rl-zoo3's learn() does not catch itself
+        interrupted = True
     status = read_status(folder)
     seconds = status.get("seconds", 0.0) + time.monotonic() - began
     _write_json(folder / "status.json", {**status, "timesteps": model.num_timesteps, "seconds": seconds})
-    if model.num_timesteps < budget:  # rl-zoo3's learn() ends quietly on a KeyboardInterrupt
+    if interrupted or model.num_timesteps < budget:  # rl-zoo3's learn() ends quietly on a KeyboardInterrupt
+        if model.num_timesteps > checkpoints.saved_at:
+            checkpoints.save()  # nothing is lost (stopped during an update, the rest of that update is)
         raise KeyboardInterrupt(f"training of {trial.name} stopped at {model.num_timesteps} of {budget} steps")
     model.policy.save(str(folder / "policy.pt"))
     _write_progress(folder)
