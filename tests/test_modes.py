@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import multiprocessing
+
 import numpy as np
 import pytest
 import torch as th
@@ -141,3 +143,12 @@ def test_a_saved_model_keeps_its_reward_statistics(tmp_path) -> None:
     loaded = MAPPOC.load(tmp_path / "model.zip")
     np.testing.assert_array_equal(loaded.reward_transform.return_rms.var, model.reward_transform.return_rms.var)
     assert loaded.reward_transform.discounted_returns is None  # the envs' episodes are not saved
+
+
+def test_bad_arguments_with_an_env_id_start_no_worker_processes() -> None:
+    before = set(multiprocessing.active_children())
+    with pytest.raises(ValueError, match="batch_size must be a positive integer"):
+        MAPPOC("MlpHybridPolicy", ENV_ID, batch_size=0)
+    with pytest.raises(ValueError, match="option_advantage must be"):
+        MAPPOC("MlpHybridPolicy", ENV_ID, option_advantage="best")
+    assert set(multiprocessing.active_children()) == before

@@ -235,6 +235,8 @@ class MAPPOC(OnPolicyAlgorithm):
     ) -> None:
         if torch_compile not in (True, False, "auto"):
             raise ValueError(f"torch_compile must be True, False or 'auto', got {torch_compile!r}.")
+        if option_advantage not in OPTION_ADVANTAGES:
+            raise ValueError(f"option_advantage must be 'greedy' or 'return', got {option_advantage!r}.")
         if n_envs is not None:
             if not isinstance(env, str):
                 raise ValueError(
@@ -242,11 +244,11 @@ class MAPPOC(OnPolicyAlgorithm):
                 )
             if isinstance(n_envs, bool) or not isinstance(n_envs, int) or n_envs < 1:
                 raise ValueError(f"n_envs must be a positive integer, got {n_envs!r}.")
-        if isinstance(env, str):
-            env = make_rollout_workers(env, n_envs or default_n_envs(), seed)
         env = _as_joint_env(env)
+        if isinstance(env, str):
+            n_envs = n_envs or default_n_envs()
         if n_steps is None:
-            n_envs_given = env.num_envs if isinstance(env, VecEnv) else 1
+            n_envs_given = n_envs if isinstance(env, str) else env.num_envs if isinstance(env, VecEnv) else 1
             n_steps = max(1, PAPER_ITERATION // n_envs_given)
         check_hyperparameters(
             n_steps=n_steps,
@@ -261,6 +263,8 @@ class MAPPOC(OnPolicyAlgorithm):
             target_kl=target_kl,
             normalize_advantage=normalize_advantage,
         )
+        if isinstance(env, str):  # after the checks: no worker processes for a model that cannot be built
+            env = make_rollout_workers(env, n_envs, seed)  # type: ignore[arg-type]
         policy_kwargs = dict(policy_kwargs or {})
         policy_kwargs.setdefault("share_parameters", share_parameters)
         super().__init__(
@@ -293,8 +297,6 @@ class MAPPOC(OnPolicyAlgorithm):
         self.clip_range_option = clip_range_option
         self.option_ent_coef = option_ent_coef
         self.action_noise_std = action_noise_std
-        if option_advantage not in OPTION_ADVANTAGES:
-            raise ValueError(f"option_advantage must be 'greedy' or 'return', got {option_advantage!r}.")
         self.option_advantage = option_advantage
         self.option_advantage_offset = option_advantage_offset
         self.normalize_option_advantage = normalize_option_advantage
