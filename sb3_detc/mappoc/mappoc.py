@@ -89,8 +89,9 @@ def make_rollout_workers(env_id: str, n_envs: int, seed: int | None = None) -> V
         except (EOFError, ConnectionError) as error:  # a worker died while making its env
             warnings.warn(
                 f"worker processes could not make {env_id!r} ({type(error).__name__}; the worker's traceback is "
-                f"above), so its {n_envs} envs run in this process. Register the id in a module that the workers "
-                "import: the main script, or name the module in the id ('module:namespace/Name-v0').",
+                f"above), so its {n_envs} envs run in this process. A script that starts training when it is "
+                "imported needs `if __name__ == '__main__':` (worker processes import the main script); an id "
+                "registered in another module needs that module named in the id ('module:namespace/Name-v0').",
                 stacklevel=3,
             )
     return make_vec_env(env_id, n_envs=n_envs, seed=seed, vec_env_cls=DummyVecEnv, wrapper_class=RolloutWorker)
