@@ -46,7 +46,8 @@ FixedTrigger = Callable[[dict[str, np.ndarray]], np.ndarray]
 #: Environment steps per iteration of the paper (all envs together), MAPPOC's default.
 PAPER_ITERATION = 2048
 
-#: With ``torch_compile="auto"``: the shortest ``learn`` that compiles (compiling takes some tens of seconds).
+#: With ``torch_compile="auto"``: the shortest ``learn`` that compiles (compiling takes tens of
+#: seconds, minutes with a cold compile cache).
 COMPILE_FROM_TIMESTEPS = 200_000
 
 
@@ -170,8 +171,9 @@ class MAPPOC(OnPolicyAlgorithm):
         ``target_kl``, a gradient step (loss, gradients, clipping, Adam update) is one
         compiled graph (:mod:`sb3_detc.mappoc.steps`). On a CPU about twice the gradient
         steps per second and faster rollouts (benchmarks/README.md), for a one-off
-        compilation of some tens of seconds (and a few seconds whenever a new variant
-        appears, e.g. a first fixed trigger), so worth it for long runs. ``"auto"``: compile
+        compilation of tens of seconds with a warm compile cache, minutes with a cold one (and a
+        few seconds whenever a new variant appears, e.g. a first fixed trigger), so worth it for
+        long runs. ``"auto"``: compile
         when a C++ compiler is found, the device is the CPU and ``learn`` runs at least
         :data:`COMPILE_FROM_TIMESTEPS` steps
     :param n_envs: number of envs built from an env id (None: :func:`default_n_envs`, one
