@@ -298,6 +298,8 @@ def _train(spec: StudySpec, trial: Trial, folder: Path, on_progress: Callable[[i
     seconds = status.get("seconds", 0.0) + time.monotonic() - began
     _write_json(folder / "status.json", {**status, "timesteps": model.num_timesteps, "seconds": seconds})
     if interrupted or model.num_timesteps < budget:  # rl-zoo3's learn() ends quietly on a KeyboardInterrupt
+        # said first: Ray may end the process before the checkpoint is written
+        _write_json(folder / "status.json", {**read_status(folder), "status": "interrupted"})
         if model.num_timesteps > checkpoints.saved_at:
             checkpoints.save()  # nothing is lost (stopped during an update, the rest of that update is)
         raise KeyboardInterrupt(f"training of {trial.name} stopped at {model.num_timesteps} of {budget} steps")
