@@ -187,6 +187,9 @@ class FusedGradientStep:
         self.loss = loss
         self.optimizer = optimizer
         self.max_grad_norm = max_grad_norm
+        names = {id(param): name for name, param in loss.named_parameters()}
+        #: the loss module's names of the optimizer's parameters, in the optimizer's order
+        self.names = [names[id(param)] for param in optimizer.param_groups[0]["params"]]
         self.compiled = th.compile(self.step)
 
     def __call__(self, update: UpdateInputs, idx: th.Tensor) -> tuple[th.Tensor, bool]:
@@ -197,7 +200,6 @@ class FusedGradientStep:
         :return: the step's statistics (:data:`STEP_STATS`), and True
         """
         params = self.optimizer.param_groups[0]["params"]
-        names = {id(param): name for name, param in self.loss.named_parameters()}
         lr = th.tensor(self.optimizer.param_groups[0]["lr"], device=params[0].device)
         # Scheduled numbers as tensors: a float would be compiled in, and each new value recompile the step.
         scalars = {
@@ -205,7 +207,7 @@ class FusedGradientStep:
             for name in ("clip_pi", "clip_mu", "zeta")
         }
         adam_tensors = (params, *adam_state(self.optimizer))
-        return self.compiled(adam_tensors, [names[id(p)] for p in params], lr, update._replace(**scalars), idx), True
+        return self.compiled(adam_tensors, self.names, lr, update._replace(**scalars), idx), True
 
     def step(
         self,
