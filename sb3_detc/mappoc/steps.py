@@ -5,8 +5,8 @@ clipping and ``optimizer.step()``; it can stop an update early when the control 
 approximate KL divergence grows too large (``target_kl``).
 
 :class:`FusedGradientStep` computes the gradients with :func:`torch.func.grad_and_value`
-inside one compiled function and applies :class:`torch.optim.Adam`'s update (its functional
-form) to the parameters and to the optimizer's own state tensors (``step``, ``exp_avg``,
+inside one compiled function and applies :class:`torch.optim.Adam`'s arithmetic
+(:func:`adam_update_`) to the parameters and to the optimizer's own state tensors (``step``, ``exp_avg``,
 ``exp_avg_sq``), so that ``optimizer.state_dict()``, saving and loading, and a later switch
 back to ``optimizer.step()`` see exactly what ``optimizer.step()`` would have left. For
 networks this small, most of a gradient step is the cost of launching kernels and running
@@ -18,7 +18,6 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import torch as th
-from torch.optim.adam import adam
 
 from sb3_detc.mappoc.losses import STEP_STATS, MAPPOCLoss, UpdateInputs
 
@@ -82,48 +81,59 @@ def clip_by_total_norm(grads: Sequence[th.Tensor], max_norm: float) -> list[th.T
     return [g * scale for g in grads]
 
 
+def adam_scalars(steps: Sequence[th.Tensor], lr: float, betas: tuple[float, float]) -> tuple[th.Tensor, th.Tensor]:
+    """Every parameter's step size and square root of the second bias correction in the coming Adam step.
+
+    What ``optimizer.step()`` computes from Python floats (in double precision) before it
+    touches a tensor. Computed outside the compiled step and passed in: inside, the compiler
+    inlines scalar arithmetic into the loops over parameter elements and evaluates two powers
+    per eight elements.
+
+    :param steps: step counters before the step, one per parameter
+    :param lr: learning rate
+    :param betas: decay rates of the moments
+    :return: ``lr / (1 - beta1 ** t)`` and ``sqrt(1 - beta2 ** t)`` per parameter, float32,
+        with ``t`` the counter after the step
+    """
+    t = th.stack(list(steps)).double() + 1
+    step_sizes = lr / (1 - betas[0] ** t)
+    bias_correction2_sqrts = (1 - betas[1] ** t).sqrt()
+    return step_sizes.float(), bias_correction2_sqrts.float()
+
+
 def adam_update_(
     params: Sequence[th.Tensor],
     grads: Sequence[th.Tensor],
-    steps: Sequence[th.Tensor],
-    exp_avgs: Sequence[th.Tensor],
-    exp_avg_sqs: Sequence[th.Tensor],
-    lr: th.Tensor,
+    adam_tensors: tuple[Sequence[th.Tensor], Sequence[th.Tensor], Sequence[th.Tensor]],
+    step_sizes: th.Tensor,
+    bias_correction2_sqrts: th.Tensor,
     betas: tuple[float, float],
     eps: float,
 ) -> None:
-    """One step of :class:`torch.optim.Adam` in place, through its functional form (``torch.optim.adam.adam``).
+    """One step of :class:`torch.optim.Adam` (without weight decay or AMSGrad) in place.
 
-    ``capturable=True`` keeps the step counters and the bias corrections as tensors, so that
-    the step compiles into the same graph as the gradients.
+    The arithmetic of ``optimizer.step()`` on one parameter, with its scalars from
+    :func:`adam_scalars`.
 
     :param params: parameters (updated in place, without autograd)
     :param grads: their gradients
-    :param steps: step counters (incremented in place)
-    :param exp_avgs: first moments (updated in place)
-    :param exp_avg_sqs: second moments (updated in place)
-    :param lr: learning rate (a 0-d tensor, so that schedules do not recompile)
+    :param adam_tensors: step counters (incremented in place), first moments and second
+        moments (updated in place), in the order of ``params``
+    :param step_sizes: every parameter's step size (:func:`adam_scalars`)
+    :param bias_correction2_sqrts: every parameter's square root of the second bias correction
     :param betas: decay rates of the moments
     :param eps: term added to the denominator
     """
+    steps, exp_avgs, exp_avg_sqs = adam_tensors
     with th.no_grad():
-        adam(
-            list(params),
-            list(grads),
-            list(exp_avgs),
-            list(exp_avg_sqs),
-            [],
-            list(steps),
-            foreach=False,
-            capturable=True,
-            amsgrad=False,
-            beta1=betas[0],
-            beta2=betas[1],
-            lr=lr,
-            weight_decay=0.0,
-            eps=eps,
-            maximize=False,
-        )
+        for i, (param, grad, step, exp_avg, exp_avg_sq) in enumerate(
+            zip(params, grads, steps, exp_avgs, exp_avg_sqs, strict=True)
+        ):
+            step.add_(1)
+            exp_avg.lerp_(grad, 1 - betas[0])
+            exp_avg_sq.mul_(betas[1]).addcmul_(grad, grad, value=1 - betas[1])
+            denom = (exp_avg_sq.sqrt() / bias_correction2_sqrts[i]).add_(eps)
+            param.sub_(step_sizes[i] * exp_avg / denom)
 
 
 class GradientStep:
@@ -199,34 +209,35 @@ class FusedGradientStep:
         :param idx: indices of the minibatch's samples
         :return: the step's statistics (:data:`STEP_STATS`), and True
         """
-        params = self.optimizer.param_groups[0]["params"]
-        lr = th.tensor(self.optimizer.param_groups[0]["lr"], device=params[0].device)
+        group = self.optimizer.param_groups[0]
+        params = group["params"]
         # Scheduled numbers as tensors: a float would be compiled in, and each new value recompile the step.
         scalars = {
             name: th.tensor(getattr(update, name), dtype=th.float64, device=params[0].device)
             for name in ("clip_pi", "clip_mu", "zeta")
         }
-        adam_tensors = (params, *adam_state(self.optimizer))
-        return self.compiled(adam_tensors, self.names, lr, update._replace(**scalars), idx), True
+        state = adam_state(self.optimizer)
+        adam_tensors = (params, *state, *adam_scalars(state[0], group["lr"], group["betas"]))
+        return self.compiled(adam_tensors, self.names, update._replace(**scalars), idx), True
 
     def step(
         self,
-        adam_tensors: tuple[list[th.Tensor], list[th.Tensor], list[th.Tensor], list[th.Tensor]],
+        adam_tensors: tuple[list[th.Tensor], list[th.Tensor], list[th.Tensor], list[th.Tensor], th.Tensor, th.Tensor],
         names: list[str],
-        lr: th.Tensor,
         update: UpdateInputs,
         idx: th.Tensor,
     ) -> th.Tensor:
         """The function that is compiled: loss, gradients, clipping and the Adam update.
 
-        :param adam_tensors: the optimizer's parameters and their ``step``, ``exp_avg`` and ``exp_avg_sq``
+        :param adam_tensors: the optimizer's parameters, their ``step``, ``exp_avg`` and
+            ``exp_avg_sq``, and their step sizes and square roots of the second bias correction
+            (:func:`adam_scalars`)
         :param names: the names of the parameters in the loss module
-        :param lr: learning rate (0-d tensor)
         :param update: what the loss needs (:class:`UpdateInputs`)
         :param idx: indices of the minibatch's samples
         :return: the statistics named in :data:`STEP_STATS`
         """
-        params, steps, exp_avgs, exp_avg_sqs = adam_tensors
+        params, steps, exp_avgs, exp_avg_sqs, step_sizes, bias_correction2_sqrts = adam_tensors
 
         def loss_of(values: tuple[th.Tensor, ...]) -> tuple[th.Tensor, th.Tensor]:
             return th.func.functional_call(self.loss, dict(zip(names, values, strict=True)), (update, idx))
@@ -235,5 +246,13 @@ class FusedGradientStep:
         if self.max_grad_norm is not None:
             grads = clip_by_total_norm(grads, self.max_grad_norm)
         group = self.optimizer.param_groups[0]
-        adam_update_(params, grads, steps, exp_avgs, exp_avg_sqs, lr, group["betas"], group["eps"])
+        adam_update_(
+            params,
+            grads,
+            (steps, exp_avgs, exp_avg_sqs),
+            step_sizes,
+            bias_correction2_sqrts,
+            group["betas"],
+            group["eps"],
+        )
         return step_stats
