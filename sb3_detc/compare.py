@@ -39,6 +39,7 @@ from sb3_detc.mappoc.mappoc import FixedTrigger
 from sb3_detc.study.report import report_study, summarise
 from sb3_detc.study.runner import run_study
 from sb3_detc.study.spec import load_study
+from sb3_detc.triggers import FixedControl
 from sb3_detc.zoo import InputError, check_env, run_cli
 
 #: The compared algorithms (rl-zoo3 names): learned communication and the random-skip baseline.
@@ -109,8 +110,31 @@ def table(reports: dict[str, list[CommunicationReport]]) -> str:
     return "\n".join(lines)
 
 
+def controls_fixed(env_id: str) -> bool:
+    """Whether the env sets the controls itself (a :class:`~sb3_detc.triggers.FixedControl` wrapper).
+
+    Then the random-skip baseline has nothing to learn: its options are random and its
+    controls are the env's.
+
+    :param env_id: environment id
+    """
+    env = gym.make(env_id)
+    try:
+        while isinstance(env, gym.Wrapper):
+            if isinstance(env, FixedControl):
+                return True
+            env = env.env
+        return False
+    finally:
+        env.close()
+
+
 def comparison_study(env_id: str, seeds: Sequence[int], timesteps: int | None, episodes: int) -> dict[str, Any]:
     """The study that :mod:`sb3_detc.compare` runs: both algorithms' entries of ``env_id`` over ``seeds``.
+
+    Where the env fixes the controls (:func:`controls_fixed`), the random-skip baseline
+    trains one iteration only (a budget of one step): more would change nothing it is
+    evaluated with.
 
     :param env_id: environment id
     :param seeds: the seeds
@@ -119,11 +143,15 @@ def comparison_study(env_id: str, seeds: Sequence[int], timesteps: int | None, e
     :return: the study file's content
     """
     study: dict[str, Any] = {"env": env_id, "seeds": list(seeds)}
-    if timesteps is not None:
-        study["n_timesteps"] = timesteps
     study["checkpoint_interval"] = 100_000
     study["evaluation"] = {"episodes": episodes, "seed": EVAL_SEED}
-    study["algorithms"] = {algo: {"algo": algo} for algo in ALGOS}
+    budgets = dict.fromkeys(ALGOS, timesteps)
+    if controls_fixed(env_id):
+        budgets["ppo_random_skip"] = 1
+    study["algorithms"] = {
+        algo: {"algo": algo} if budget is None else {"algo": algo, "hyperparams": {"n_timesteps": budget}}
+        for algo, budget in budgets.items()
+    }
     return study
 
 
@@ -181,6 +209,11 @@ def _main() -> None:
     folder.mkdir(parents=True, exist_ok=True)
     path.write_text(text)
     print(f"Training mappoc and ppo_random_skip on {args.env}, seeds {', '.join(map(str, args.seeds))}")
+    if controls_fixed(args.env):
+        print(
+            f"{args.env} sets the controls and ppo_random_skip's options are random: the baseline has nothing "
+            "to learn, so it trains one iteration and is evaluated as it is"
+        )
     statuses = run_study(load_study(path), folder, address=args.address)
     if any(status != "done" for status in statuses.values()):
         raise SystemExit(1)

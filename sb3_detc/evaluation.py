@@ -104,17 +104,17 @@ def evaluate_episodes(
         while not done:
             batch = {key: value[None] for key, value in obs.items()}
             with th.no_grad():
-                comm = None
+                forced = None
                 if fixed_trigger is not None:
-                    comm = th.as_tensor(fixed_trigger(batch), device=policy.device)
-                action = policy(
+                    forced = th.as_tensor(fixed_trigger(batch), device=policy.device)
+                comm, control = policy.sample_actions(
                     obs_as_tensor(batch, policy.device),
+                    comm=forced,
                     deterministic=deterministic,
-                    comm=comm,
                     deterministic_options=deterministic_options,
                 )
-            options = action.comm[0].cpu().numpy()
-            control = np.clip(action.control[0].cpu().numpy(), low, high)
+            options = comm[0].cpu().numpy()
+            control = np.clip(control[0].cpu().numpy(), low, high)
             obs, reward, terminated, truncated, info = env.step({"comm": options, "control": control})
             total += reward
             control_total += float(np.mean(info["control_rewards"]))

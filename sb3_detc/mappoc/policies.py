@@ -394,19 +394,28 @@ class MlpHybridPolicy(BasePolicy):
         )
 
     def sample_actions(
-        self, obs: PyTorchObs, action_noise_std: float = 0.0, comm: th.Tensor | None = None
+        self,
+        obs: PyTorchObs,
+        action_noise_std: float = 0.0,
+        comm: th.Tensor | None = None,
+        deterministic: bool = False,
+        deterministic_options: bool | None = None,
     ) -> tuple[th.Tensor, th.Tensor]:
         """The options and controls :meth:`forward` samples, without evaluating the critic.
 
-        What a :class:`~sb3_detc.mappoc.workers.RolloutWorker` needs: it draws the same random
-        numbers as :meth:`forward`; the learner evaluates probabilities and values later.
+        What a :class:`~sb3_detc.mappoc.workers.RolloutWorker` and an evaluation need: it
+        draws the same random numbers as :meth:`forward`; the learner evaluates
+        probabilities and values later.
 
         :param obs: joint observation (B, N, ...)
         :param action_noise_std: extra Gaussian noise on the controls (see :meth:`forward`)
         :param comm: options to use instead of sampling them (a fixed trigger)
+        :param deterministic: mode of ``mu`` and mean of ``pi`` instead of samples
+        :param deterministic_options: mode (True) or sample (False) of ``mu`` regardless of
+            ``deterministic`` (None: as ``deterministic``)
         :return: options (B, N) and controls (B, N, m)
         """
-        _, comm, control = self._sample(obs, False, comm, action_noise_std, None, False)
+        _, comm, control = self._sample(obs, deterministic, comm, action_noise_std, deterministic_options, False)
         return comm, control
 
     def _sample(

@@ -235,6 +235,12 @@ def _markdown(directory: Path, spec: Any, summary: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+def _logged_iterations(run: Path) -> int:
+    """Rows of a run's ``progress.csv`` (one per logged iteration)."""
+    with open(run / "progress.csv") as file:
+        return max(0, sum(1 for line in file if line.strip()) - 1)
+
+
 def report_study(directory: str | Path, plot: bool = True) -> str:
     """Write ``summary.json`` (and ``curves.png``) into a study folder and return the Markdown report.
 
@@ -252,13 +258,17 @@ def report_study(directory: str | Path, plot: bool = True) -> str:
     (directory / "summary.json").write_text(json.dumps(summary, indent=1, default=str) + "\n")
     text = _markdown(directory, spec, summary)
     if plot:
-        groups = {}
+        groups, single = {}, []
         for algorithm in spec.algorithms:
             runs = [trial_folder(directory, t) for t in spec.trials() if t.algorithm is algorithm]
             runs = [run for run in runs if (run / "progress.csv").is_file()]
-            if runs:
+            if runs and all(_logged_iterations(run) < 2 for run in runs):
+                single.append(algorithm.label)  # no curve to draw
+            elif runs:
                 groups[algorithm.label] = runs
         if groups:
             figure = plot_runs(groups, directory / "curves.png", title=spec.env, panels=CURVE_PANELS)
             text += f"\nCurves: {figure}\n"
+        if single:
+            text += f"\nNot drawn (trained one iteration): {', '.join(single)}.\n"
     return text

@@ -227,6 +227,8 @@ def run_study(
     folder = prepare_folder(spec, directory).resolve()
     trials = spec.trials()
     todo = [t for t in trials if read_status(trial_folder(folder, t))["status"] != "done"]
+    # Longest first (stable): short trials fill the cores at the end instead of a long one running alone.
+    todo.sort(key=lambda t: -spec.budget(t.algorithm))
     stream = stream or sys.stdout
     if not todo:
         print(f"[study] all {len(trials)} trials are done; see python -m sb3_detc.study report {folder}", file=stream)
