@@ -8,7 +8,8 @@ same 50 seeded evaluation episodes with the training communication cost, with it
 options (MAPPOC sampling from its policy over options, the baseline with its random
 trigger), with random skips at its own rate, always and never broadcasting. The default
 environment is ``sb3_detc/LinearETC-LQR-v0``: the controls are LQR on held broadcasts, so
-the comparison is between a learned and a random trigger for the same controller. The table
+the comparison is between a learned and a random trigger for the same controller, and the
+baseline, random options for a controller it cannot change, trains one iteration only. The table
 gives the team-mean return per agent and episode (communication cost included), the control
 return (without it) and the communication savings ``1 - broadcasts / agent-steps``, each as
 the mean over seeds with a 95 % bootstrap interval, and the paired difference between the
@@ -227,7 +228,8 @@ def _main() -> None:
     print(comparison_table(summarise(folder)))
     print()
     print(f"Full report: python -m sb3_detc.study report {folder} ({len(report.splitlines())} lines)")
-    print(f"Figure: {folder / 'curves.png'}")
+    if (folder / "curves.png").is_file():  # not when every run trained one iteration
+        print(f"Figure: {folder / 'curves.png'}")
 
 
 def main(argv: Sequence[str] | None = None) -> None:

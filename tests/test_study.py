@@ -31,6 +31,15 @@ TINY = {
     "algorithms": {"learned": {"algo": "mappoc"}, "random": {"algo": "ppo_random_skip"}},
 }
 
+#: The tiny study with a budget per algorithm: the random-skip baseline trains one iteration (1024 steps).
+TINY_BUDGETS = {
+    **{key: value for key, value in TINY.items() if key != "n_timesteps"},
+    "algorithms": {
+        "learned": {"algo": "mappoc", "hyperparams": {"n_timesteps": 2048}},
+        "random": {"algo": "ppo_random_skip", "hyperparams": {"n_timesteps": 1}},
+    },
+}
+
 
 def write_study(folder: Path, content: dict | str, name: str = "study.yml") -> Path:
     path = folder / name
@@ -94,7 +103,7 @@ def test_a_study_file_names_entries_overrides_and_seeds(tmp_path):
     )
     learned, random = spec.algorithms
     assert learned.seeds == (3,) and random.seeds == (0, 1)
-    assert learned.entry["learning_rate"] == 5e-4 and learned.entry["n_envs"] == 2  # the rest from the entry
+    assert learned.entry["learning_rate"] == 5e-4 and learned.entry["n_envs"] == 8  # the rest from the entry
     assert learned.cpus == 1  # no rollout workers
     assert [t.name for t in spec.trials()] == ["learned/seed3", "random/seed0", "random/seed1"]
     assert spec.budget(learned) == 2048
@@ -147,9 +156,9 @@ def test_an_address_that_does_not_answer_is_reported(tmp_path, capsys):
 # ----------------------------------------------------------------------------- running and reporting
 @pytest.fixture(scope="module")
 def finished_study(tmp_path_factory):
-    """The tiny study, run once through the command line."""
+    """The tiny study with a budget per algorithm, run once through the command line."""
     folder = tmp_path_factory.mktemp("study")
-    path = write_study(folder, TINY, "tiny.yml")
+    path = write_study(folder, TINY_BUDGETS, "tiny.yml")
     result = run_command("run", str(path), "--dir", str(folder / "out"))
     assert result.returncode == 0, result.stdout + result.stderr
     return path, folder / "out", result
@@ -158,11 +167,15 @@ def finished_study(tmp_path_factory):
 def test_a_study_runs_every_trial_through_ray_and_evaluates_it(finished_study):
     path, out, result = finished_study
     assert "[study] 4 done, 0 running, 0 pending, 0 failed" in result.stdout
+    # the longest trials first: both seeds of the 2048-step algorithm start before the baseline's
+    first_pair = next(line for line in result.stdout.splitlines() if " 2 running (" in line)
+    assert "learned/seed0" in first_pair and "learned/seed1" in first_pair, result.stdout
     spec = load_study(path)
     for trial in spec.trials():
         folder = trial_folder(out, trial)
         status = read_status(folder)
-        assert status["status"] == "done" and status["timesteps"] == 2048
+        budget = 2048 if trial.algorithm.label == "learned" else 1024  # one iteration of 1024 steps
+        assert status["status"] == "done" and status["timesteps"] == budget
         assert (folder / "policy.pt").is_file() and (folder / "progress.csv").is_file()
         assert not (folder / "checkpoint.zip").exists()  # only the final policy stays
         evaluation = json.loads((folder / "evaluation.json").read_text())
@@ -230,6 +243,7 @@ def test_the_report_equals_a_hand_computation_from_the_evaluation_files(finished
         )
         assert f"## {algorithm.label} ({algorithm.algo}): 2 of 2 seeds finished" in text
     assert (out / "curves.png").stat().st_size > 0
+    assert "Not drawn (trained one iteration): random." in text  # a single point is no curve
     pairs = {(row["better"], row["than"]) for row in summary["comparisons"]}
     assert pairs == {("learned", "random"), ("random", "learned")}
     result = run_command("report", str(out), "--no-plot")

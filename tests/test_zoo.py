@@ -190,7 +190,7 @@ def test_rendered_frames_mark_who_broadcast() -> None:
 
 def test_compare_reports_over_seeds_with_intervals_and_a_figure(tmp_path: Path) -> None:
     folder = tmp_path / "compare"
-    command = [sys.executable, "-m", "sb3_detc.compare", "-n", "1024", "--seeds", "0", "1", "--dir", str(folder)]
+    command = [sys.executable, "-m", "sb3_detc.compare", "-n", "2048", "--seeds", "0", "1", "--dir", str(folder)]
     result = subprocess.run([*command, "--eval-episodes", "2"], capture_output=True, text=True, timeout=600)
     assert result.returncode == 0, result.stdout + result.stderr
     out = result.stdout
@@ -200,7 +200,9 @@ def test_compare_reports_over_seeds_with_intervals_and_a_figure(tmp_path: Path) 
         and "| ppo_random_skip at mappoc's rate | 2 |" in out
     )
     assert "learned better in" in out and "of 2 seeds" in out
+    assert "the baseline has nothing to learn, so it trains one iteration" in out
     assert (folder / "curves.png").is_file() and (folder / "summary.json").is_file()
+    assert f"Figure: {folder / 'curves.png'}" in out
     # the same settings again: nothing trains; other settings in the same folder: refused
     again = subprocess.run([*command, "--eval-episodes", "2"], capture_output=True, text=True, timeout=600)
     assert again.returncode == 0 and "all 4 trials are done" in again.stdout
@@ -346,3 +348,11 @@ def test_return_axis_turns_logarithmic_only_over_orders_of_magnitude() -> None:
     assert plot.symlog_threshold(np.array([-30.0, -20.0, -5.0])) is None
     assert plot.symlog_threshold(np.array([0.55, 0.6, np.nan])) is None
     assert plot.symlog_threshold(np.array([np.nan, 0.0])) is None
+
+
+def test_the_comparison_trains_a_baseline_with_nothing_to_learn_one_iteration() -> None:
+    fixed = compare.comparison_study(LINEAR_LQR, [0, 1], None, 5)["algorithms"]
+    assert compare.controls_fixed(LINEAR_LQR) and not compare.controls_fixed(LINEAR)
+    assert fixed["ppo_random_skip"]["hyperparams"] == {"n_timesteps": 1} and "hyperparams" not in fixed["mappoc"]
+    learned = compare.comparison_study(LINEAR, [0], 4096, 5)["algorithms"]
+    assert all(algorithm["hyperparams"] == {"n_timesteps": 4096} for algorithm in learned.values())
