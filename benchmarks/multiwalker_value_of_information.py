@@ -1,0 +1,210 @@
+"""What a message is worth on Multiwalker: the final controllers of a study under fixed triggers.
+
+Every finished trial of a study folder (``policy.pt``) runs the study's seeded evaluation
+episodes (the same for every controller and trigger) with its deterministic control policy
+and, instead of its own options, random skips at several rates and periodic communication
+every ``k`` steps. Its learned trigger comes from the trial's ``evaluation.json`` (the same
+episodes, options sampled from its policy over options). For every algorithm of the study and
+every trigger: control return (without the communication cost), package travel, savings and
+fall rate, mean over seeds with a 95 % bootstrap interval (:func:`sb3_detc.study.report.interval_estimates`).
+
+Results are written after every (trial, trigger) to ``--out`` (JSON); running the command
+again skips what is there, so an interrupted sweep goes on where it stopped. ``--plot`` draws
+control return and package travel against savings.
+
+    python benchmarks/multiwalker_value_of_information.py benchmarks/studies/multiwalker_paper \\
+        --out benchmarks/results/multiwalker_value_of_information.json --plot
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import time
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+import torch as th
+
+from sb3_detc.evaluation import evaluate_episodes
+from sb3_detc.mappoc.policies import MlpHybridPolicy
+from sb3_detc.study.report import interval_estimates
+from sb3_detc.study.spec import load_study
+from sb3_detc.study.trial import read_status, trial_folder
+from sb3_detc.triggers import PeriodicTrigger, RandomTrigger
+
+#: Skip probabilities of the random triggers.
+RATES = (0.0, 0.25, 0.5, 0.75, 0.85, 0.9, 0.95, 1.0)
+#: Periods of the periodic triggers (savings 1 - 1/k).
+PERIODS = (2, 4, 8)
+
+
+def triggers(rates: list[float], periods: list[int], seed: int) -> dict[str, Any]:
+    """The fixed triggers of the sweep by name (random ones seeded with ``seed``)."""
+    named: dict[str, Any] = {f"random {rate:g}": RandomTrigger(rate, seed=seed) for rate in rates}
+    named.update({f"periodic {k}": PeriodicTrigger(k) for k in periods})
+    return named
+
+
+def row(control_returns: Any, package_travel: Any, failed: Any, savings: float) -> dict[str, float]:
+    """Means of one controller's episodes under one trigger (package travel None or NaN where not reported)."""
+    travel = [math.nan if x is None else x for x in package_travel]
+    return {
+        "control_return": float(np.mean(control_returns)),
+        "package_travel": float(np.mean(travel)),
+        "fall_rate": float(np.mean(failed)),
+        "savings": float(savings),
+    }
+
+
+def sweep(folder: Path, out: Path, rates: list[float], periods: list[int]) -> dict[str, Any]:
+    """Evaluate every finished trial under every trigger not in ``out`` yet; return all results.
+
+    :param folder: the study folder
+    :param out: the JSON file of results (read first, written after every evaluation)
+    :param rates: skip probabilities of the random triggers
+    :param periods: periods of the periodic triggers
+    :return: trial name -> trigger name -> metrics
+    """
+    spec = load_study(folder / "study.yml")
+    results: dict[str, Any] = json.loads(out.read_text()) if out.is_file() else {}
+    for trial in spec.trials():
+        trial_dir = trial_folder(folder, trial)
+        if read_status(trial_dir)["status"] != "done" or not (trial_dir / "policy.pt").is_file():
+            continue
+        done = results.setdefault(trial.name, {})
+        evaluation = json.loads((trial_dir / "evaluation.json").read_text())
+        learned = evaluation["modes"]["learned"]
+        done["learned"] = row(
+            learned["control_return"], learned["package_travel"], learned["failed"], learned["savings"]
+        )
+        todo = {name: t for name, t in triggers(rates, periods, spec.eval_seed).items() if name not in done}
+        if not todo:
+            continue
+        policy = MlpHybridPolicy.load(str(trial_dir / "policy.pt"), device="cpu")
+        env = gym.make(spec.env, **(trial.algorithm.entry.get("env_kwargs") or {}))
+        seeds = [spec.eval_seed + k for k in range(spec.episodes)]
+        for name, trigger in todo.items():
+            began = time.monotonic()
+            episodes = evaluate_episodes(policy, env, seeds, deterministic=True, fixed_trigger=trigger)
+            done[name] = row(episodes.control_returns, episodes.package_travel, episodes.failed, episodes.savings)
+            out.write_text(json.dumps(results, indent=1) + "\n")
+            print(
+                f"{trial.name} {name}: control return {done[name]['control_return']:.1f}, package travel "
+                f"{done[name]['package_travel']:.2f}, savings {done[name]['savings']:.3f} "
+                f"({time.monotonic() - began:.0f} s)",
+                flush=True,
+            )
+        env.close()
+    out.write_text(json.dumps(results, indent=1) + "\n")
+    return results
+
+
+def summary(folder: Path, results: dict[str, Any]) -> dict[str, dict[str, dict[str, list[float]]]]:
+    """Algorithm -> trigger -> metric -> [mean, low, high] over the seeds that have it."""
+    spec = load_study(folder / "study.yml")
+    table: dict[str, dict[str, dict[str, list[float]]]] = {}
+    metrics = ("control_return", "package_travel", "savings", "fall_rate")
+    for algorithm in spec.algorithms:
+        names = [t.name for t in spec.trials() if t.algorithm is algorithm and t.name in results]
+        if not names:
+            continue
+        table[algorithm.label] = {}
+        for trigger in results[names[0]]:
+            values = np.array([[results[n][trigger][m] for m in metrics] for n in names if trigger in results[n]])
+            means, intervals = interval_estimates({"x": values})
+            table[algorithm.label][trigger] = {
+                m: [float(means["x"][k]), float(intervals["x"][0, k]), float(intervals["x"][1, k])]
+                for k, m in enumerate(metrics)
+            } | {"seeds": [float(len(values))]}
+    return table
+
+
+def markdown(table: dict[str, dict[str, dict[str, list[float]]]]) -> str:
+    """One Markdown table per algorithm: trigger, seeds, savings, control return, package travel, fall rate."""
+    lines = []
+    for label, rows in table.items():
+        lines += [
+            f"### {label}",
+            "",
+            "| trigger | seeds | savings | control return | package travel | fall rate |",
+            "|---|---:|---|---|---|---|",
+        ]
+        for trigger, values in sorted(rows.items(), key=lambda item: item[1]["savings"][0]):
+
+            def cell(metric: str, digits: int, values: dict[str, list[float]] = values) -> str:
+                mean, low, high = values[metric]
+                return f"{mean:.{digits}f} [{low:.{digits}f}, {high:.{digits}f}]"
+
+            lines.append(
+                f"| {trigger} | {int(values['seeds'][0])} | {cell('savings', 3)} | {cell('control_return', 1)} "
+                f"| {cell('package_travel', 2)} | {cell('fall_rate', 2)} |"
+            )
+        lines.append("")
+    return "\n".join(lines)
+
+
+def plot(table: dict[str, dict[str, dict[str, list[float]]]], path: Path) -> None:
+    """Control return and package travel against savings: random skips as lines, periodic and learned as markers."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+    for (label, rows), color in zip(table.items(), plt.rcParams["axes.prop_cycle"].by_key()["color"], strict=False):
+        for ax, metric, name in zip(
+            axes, ("control_return", "package_travel"), ("control return", "package travel"), strict=True
+        ):
+            kinds = {
+                "random": sorted((v for k, v in rows.items() if k.startswith("random")), key=lambda v: v["savings"][0]),
+                "periodic": [v for k, v in rows.items() if k.startswith("periodic")],
+                "learned": [rows["learned"]] if "learned" in rows else [],
+            }
+            for kind, style in (("random", "-o"), ("periodic", "s"), ("learned", "*")):
+                values = kinds[kind]
+                if not values:
+                    continue
+                x = [v["savings"][0] for v in values]
+                y = np.array([v[metric] for v in values])
+                ax.errorbar(
+                    x,
+                    y[:, 0],
+                    yerr=[y[:, 0] - y[:, 1], y[:, 2] - y[:, 0]],
+                    fmt=style,
+                    color=color,
+                    markersize=10 if kind == "learned" else 5,
+                    capsize=2,
+                    label=f"{label}: {kind}",
+                )
+            ax.set_xlabel("communication savings")
+            ax.set_ylabel(name)
+    axes[0].legend(fontsize=7)
+    fig.suptitle("Multiwalker: final controllers under fixed triggers (mean over seeds, 95 % CI)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("folder", type=Path, help="a study folder with finished trials")
+    parser.add_argument("--out", type=Path, required=True, help="JSON file of the results (resumed if present)")
+    parser.add_argument("--rates", type=float, nargs="+", default=list(RATES), help="skip probabilities")
+    parser.add_argument("--periods", type=int, nargs="+", default=list(PERIODS), help="periods in steps")
+    parser.add_argument("--plot", action="store_true", help="draw <out>.png")
+    args = parser.parse_args()
+    th.set_num_threads(1)
+    results = sweep(args.folder, args.out, args.rates, args.periods)
+    table = summary(args.folder, results)
+    print(markdown(table))
+    if args.plot and table:
+        plot(table, args.out.with_suffix(".png"))
+        print(f"Figure: {args.out.with_suffix('.png')}")
+
+
+if __name__ == "__main__":
+    main()
