@@ -130,7 +130,9 @@ def controls_fixed(env_id: str) -> bool:
         env.close()
 
 
-def comparison_study(env_id: str, seeds: Sequence[int], timesteps: int | None, episodes: int) -> dict[str, Any]:
+def comparison_study(
+    env_id: str, seeds: Sequence[int], timesteps: int | None, episodes: int, fixed: bool | None = None
+) -> dict[str, Any]:
     """The study that :mod:`sb3_detc.compare` runs: both algorithms' entries of ``env_id`` over ``seeds``.
 
     Where the env fixes the controls (:func:`controls_fixed`), the random-skip baseline
@@ -141,13 +143,16 @@ def comparison_study(env_id: str, seeds: Sequence[int], timesteps: int | None, e
     :param seeds: the seeds
     :param timesteps: training steps per run (None: the hyperparameter files')
     :param episodes: evaluation episodes per mode
+    :param fixed: whether the env fixes the controls (None: :func:`controls_fixed`)
     :return: the study file's content
     """
     study: dict[str, Any] = {"env": env_id, "seeds": list(seeds)}
     study["checkpoint_interval"] = 100_000
     study["evaluation"] = {"episodes": episodes, "seed": EVAL_SEED}
     budgets = dict.fromkeys(ALGOS, timesteps)
-    if controls_fixed(env_id):
+    if fixed is None:
+        fixed = controls_fixed(env_id)
+    if fixed:
         budgets["ppo_random_skip"] = 1
     study["algorithms"] = {
         algo: {"algo": algo} if budget is None else {"algo": algo, "hyperparams": {"n_timesteps": budget}}
@@ -203,14 +208,16 @@ def _main() -> None:
     if args.eval_episodes < 1:
         raise InputError(f"--eval-episodes must be >= 1, got {args.eval_episodes}")
     folder = Path(args.dir)
-    text = yaml.safe_dump(comparison_study(args.env, args.seeds, args.n_timesteps, args.eval_episodes), sort_keys=False)
+    fixed = controls_fixed(args.env)
+    study = comparison_study(args.env, args.seeds, args.n_timesteps, args.eval_episodes, fixed)
+    text = yaml.safe_dump(study, sort_keys=False)
     path = folder / "study.yml"
     if path.is_file() and yaml.safe_load(path.read_text()) != yaml.safe_load(text):
         raise InputError(f"{folder} holds a comparison with other settings; give another --dir")
     folder.mkdir(parents=True, exist_ok=True)
     path.write_text(text)
     print(f"Training mappoc and ppo_random_skip on {args.env}, seeds {', '.join(map(str, args.seeds))}")
-    if controls_fixed(args.env):
+    if fixed:
         print(
             f"{args.env} sets the controls and ppo_random_skip's options are random: the baseline has nothing "
             "to learn, so it trains one iteration and is evaluated as it is"

@@ -96,6 +96,33 @@ def assert_padding_is_zero(policy: MlpHybridPolicy) -> None:
 
 # ------------------------------------------------------------------ 1. shapes, sharing
 @pytest.mark.parametrize("critic", CRITICS)
+@pytest.mark.parametrize(
+    "modes",
+    [
+        {},
+        {"deterministic": True},
+        {"deterministic": True, "deterministic_options": False},
+        {"deterministic_options": True},
+    ],
+)
+def test_sample_actions_draws_what_forward_draws_in_every_mode(critic: str, modes: dict[str, bool]) -> None:
+    env = linear_etc_v0.joint_env(n_agents=3, max_cycles=50)
+    policy = make_policy(env, critic=critic)
+    obs = joint_obs_batch(env, steps=64)
+    with th.no_grad():
+        th.manual_seed(5)
+        action = policy(obs, **modes)
+        th.manual_seed(5)
+        comm, control = policy.sample_actions(obs, **modes)
+        th.manual_seed(6)
+        again, _ = policy.sample_actions(obs, **modes)
+    assert th.equal(comm, action.comm)
+    th.testing.assert_close(control, action.control)
+    deterministic_options = modes.get("deterministic_options", modes.get("deterministic", False))
+    assert th.equal(again, comm) == deterministic_options  # modes repeat, 64 x 3 samples do not
+
+
+@pytest.mark.parametrize("critic", CRITICS)
 @pytest.mark.parametrize(("n_agents", "share"), CONFIGS)
 def test_forward_and_evaluate_shapes(n_agents: int, share: bool, critic: str) -> None:
     env = linear_etc_v0.joint_env(n_agents=n_agents, max_cycles=50)
