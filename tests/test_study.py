@@ -96,7 +96,7 @@ def test_a_study_file_names_entries_overrides_and_seeds(tmp_path):
                 **TINY,
                 "algorithms": {
                     "learned": {"algo": "mappoc", "seeds": [3], "hyperparams": {"learning_rate": 5e-4}},
-                    "random": {"algo": "ppo_random_skip"},
+                    "random": {"algo": "ppo_random_skip", "cpus": 2},
                 },
             },
         )
@@ -104,7 +104,8 @@ def test_a_study_file_names_entries_overrides_and_seeds(tmp_path):
     learned, random = spec.algorithms
     assert learned.seeds == (3,) and random.seeds == (0, 1)
     assert learned.entry["learning_rate"] == 5e-4 and learned.entry["n_envs"] == 8  # the rest from the entry
-    assert learned.cpus == 1  # no rollout workers
+    assert learned.cpus == 1 and learned.learner_threads == 1  # no rollout workers
+    assert random.cpus == 2 and random.learner_threads == 2  # the cores it asked for, all in the learner
     assert [t.name for t in spec.trials()] == ["learned/seed3", "random/seed0", "random/seed1"]
     assert spec.budget(learned) == 2048
 
@@ -122,6 +123,7 @@ def test_the_shipped_study_files_load():
         "random_skip_paper": 2,
         "control_first": 2,
     }
+    assert all(a.learner_threads == 1 for a in paper.algorithms)  # the workers take the cores
     assert all(paper.budget(a) == 6_144_000 for a in paper.algorithms)
 
 
