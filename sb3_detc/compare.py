@@ -235,8 +235,10 @@ def _main() -> None:
     print(comparison_table(summarise(folder)))
     print()
     print(f"Full report: python -m sb3_detc.study report {folder} ({len(report.splitlines())} lines)")
-    if (folder / "curves.png").is_file():  # not when every run trained one iteration
+    if (folder / "curves.png").is_file():
         print(f"Figure: {folder / 'curves.png'}")
+    else:
+        print("No figure: every run trained one iteration, and a curve needs two")
 
 
 def main(argv: Sequence[str] | None = None) -> None:

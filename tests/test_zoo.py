@@ -210,6 +210,16 @@ def test_compare_reports_over_seeds_with_intervals_and_a_figure(tmp_path: Path) 
     assert other.returncode == 2 and "other settings" in other.stderr
 
 
+def test_compare_without_curves_says_so(tmp_path: Path) -> None:
+    folder = tmp_path / "compare"
+    command = [sys.executable, "-m", "sb3_detc.compare", "-n", "1024", "--seeds", "0", "--eval-episodes", "1"]
+    result = subprocess.run([*command, "--dir", str(folder)], capture_output=True, text=True, timeout=600)
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert "| mappoc | 1 |" in result.stdout  # one iteration of 8 x 128 steps each: nothing to draw
+    assert "No figure: every run trained one iteration" in result.stdout and "Figure:" not in result.stdout
+    assert not (folder / "curves.png").exists()
+
+
 # ----------------------------------------------------------------------------- bad input
 def bad(main, argv: list[str], capsys: pytest.CaptureFixture) -> str:
     """Run a command line that must fail; return its single error line."""
