@@ -427,8 +427,10 @@ class ControlFirstCallback(_Schedule):
     * stage 2 (from ``switch`` on): the options come from ``mu`` again, ``mu`` and the critic
       learn, ``pi`` stays as stage 1 left it (``model.set_trained_policies``), with
       ``trigger_learning_rate`` if given, and rewards normalised if ``trigger_normalize_reward``
-      (``model.set_reward_normalization(True)``: the scale that suits option values can spoil a
-      controller's learning, so each stage may have its own).
+      with a spread measured in stage 2 only (``model.set_reward_normalization(True,
+      fresh_statistics=True)``: the returns of a controller that still learns to stabilise can be
+      orders of magnitude larger than those of the finished controller, and the scale that suits
+      option values can spoil a controller's learning, so each stage has its own).
 
     Why: a trigger can only be learned for a controller that already controls, and while
     ``pi`` still changes, the value of a broadcast changes with it. Random options in stage 1
@@ -442,7 +444,8 @@ class ControlFirstCallback(_Schedule):
     :param skip_prob: probability of staying silent in stage 1 (in [0, 1])
     :param trigger_learning_rate: learning rate (a number or a schedule of the remaining
         progress, as SB3's ``learning_rate``) from stage 2 on; None: the model's own
-    :param trigger_normalize_reward: normalise the rewards from stage 2 on (False: the model's own setting)
+    :param trigger_normalize_reward: normalise the rewards from stage 2 on, by the spread of stage 2's
+        returns (False: the model's own setting, and its statistics continue)
     :param seed: seed of stage 1's random options (None: the model's seed at training start)
     :param unit: ``"iterations"`` (rollouts) or ``"timesteps"`` (environment steps)
     :param verbose: verbosity level
@@ -484,7 +487,9 @@ class ControlFirstCallback(_Schedule):
         if stage == 2 and self.trigger_learning_rate is not None:
             self.model.set_learning_rate(self.trigger_learning_rate)
         if stage == 2 and self.trigger_normalize_reward:
-            self.model.set_reward_normalization(True)
+            step = 1 if self.unit == "iterations" else self.model.n_steps * self.model.n_envs
+            # Fresh at the first rollout of stage 2, decided by the position: the same when a run resumes there.
+            self.model.set_reward_normalization(True, fresh_statistics=self.value(t - step) == 1)
         self.logger.record("curriculum/stage", stage)
 
 

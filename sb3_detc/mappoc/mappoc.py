@@ -455,13 +455,19 @@ class MAPPOC(OnPolicyAlgorithm):
         self.learning_rate = learning_rate
         self._setup_lr_schedule()
 
-    def set_reward_normalization(self, normalize: bool) -> None:
+    def set_reward_normalization(self, normalize: bool, fresh_statistics: bool = False) -> None:
         """Switch the normalisation of the learner's rewards (see ``normalize_reward``) on or off.
 
         :param normalize: whether to divide rewards by the running spread of the returns
+        :param fresh_statistics: forget the spread measured so far, so that it is measured on the
+            rewards from now on (e.g. when the policies that learn change and their returns are of
+            another size than the earlier ones)
         """
         self.normalize_reward = bool(normalize)
         self.reward_transform.normalize = self.normalize_reward
+        if fresh_statistics:
+            self.reward_transform.return_rms = None
+            self.reward_transform.discounted_returns = None
 
     # ------------------------------------------------------------------ rollouts
     def collect_rollouts(
