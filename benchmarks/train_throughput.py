@@ -286,7 +286,7 @@ def main() -> None:
             results[name].append(json.loads(output.strip().splitlines()[-1]))
 
     cpu = next((line.split(":", 1)[1].strip() for line in open("/proc/cpuinfo") if "model name" in line), "?")
-    threads = "1 torch thread in the learner (2 where named)"
+    threads = "1 torch thread in the learner (2 where named; the one-liner: torch's default)"
     print(f"machine: {cpu}, {threads}, python {platform.python_version()}, torch {th.__version__}")
     print()
     print(
