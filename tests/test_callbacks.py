@@ -325,10 +325,12 @@ def test_control_first_normalises_the_rewards_of_stage_two_only() -> None:
     np.testing.assert_array_equal(np.sign(normalised_2), np.sign(raw_2))
 
 
-def test_control_first_measures_the_spread_of_stage_two_on_its_own_returns() -> None:
+@pytest.mark.parametrize("unit", ["iterations", "timesteps"])
+def test_control_first_measures_the_spread_of_stage_two_on_its_own_returns(unit: str) -> None:
     model = make_model(n_steps=8, comm_cost=0.0, normalize_reward=True)  # normalised in both stages
-    stages = ControlFirstCallback(2, trigger_normalize_reward=True)
     samples = 8 * model.n_envs  # returns measured per iteration
+    switch = 2 if unit == "iterations" else 2 * samples - 3  # within the second rollout of stage 1
+    stages = ControlFirstCallback(switch, trigger_normalize_reward=True, unit=unit)
     model.learn(16, callback=stages)  # stage 1
     assert model.reward_transform.return_rms.count == pytest.approx(2 * samples, abs=1e-3)
     for iterations in (1, 2):  # stage 2: measured anew at its first rollout, then continued
