@@ -135,6 +135,14 @@ def test_command_line_bad_input_is_one_line_with_exit_code_2(tmp_path):
     assert len(result.stderr.strip().splitlines()) == 1
     result = run_command("report", str(tmp_path / "nowhere"))
     assert result.returncode == 2 and "not a study folder" in result.stderr
+    path = write_study(tmp_path, TINY)
+    for extra, message in (
+        (["--cpus", "0"], "cpus must be a positive integer"),
+        (["--cpus", "2", "--address", "auto"], "not both"),
+    ):
+        result = run_command("run", str(path), "--dir", str(tmp_path / "out"), *extra)
+        assert result.returncode == 2 and message in result.stderr, result.stderr
+        assert len(result.stderr.strip().splitlines()) == 1
 
 
 def test_a_folder_of_another_study_is_refused(tmp_path):
@@ -263,8 +271,9 @@ def test_a_failing_trial_is_kept_with_its_traceback_and_the_others_go_on(tmp_pat
         },
     }
     out = tmp_path / "out"
-    result = run_command("run", str(write_study(tmp_path, study)), "--dir", str(out))
+    result = run_command("run", str(write_study(tmp_path, study)), "--dir", str(out), "--cpus", "3")
     assert result.returncode == 1
+    assert "2 to run on 3 cores" in result.stdout  # Ray hands out the cores it is told, not the machine's
     broken = out / "trials" / "broken" / "seed0"
     assert read_status(broken)["status"] == "failed"
     assert "Traceback" in (broken / "error.txt").read_text() and "net_arch" in (broken / "error.txt").read_text()

@@ -35,6 +35,12 @@ def _main() -> None:
     run.add_argument("study", help=f"study file (or the name of one in {STUDIES_DIR})")
     run.add_argument("--dir", required=True, type=Path, help="study folder (made if needed)")
     run.add_argument("--address", default=None, help="address of a running Ray cluster, e.g. auto (default: local)")
+    run.add_argument(
+        "--cpus",
+        type=int,
+        default=None,
+        help="cores Ray hands out on this machine (default: all); more than it has runs more trials at once",
+    )
     report = commands.add_parser("report", help="tables, curves.png and summary.json of a study folder")
     report.add_argument("dir", type=Path, help="study folder")
     report.add_argument("--no-plot", action="store_true", help="do not draw curves.png")
@@ -42,7 +48,7 @@ def _main() -> None:
     if args.command == "run":
         from sb3_detc.study.runner import run_study
 
-        statuses = run_study(load_study(_study_path(args.study)), args.dir, address=args.address)
+        statuses = run_study(load_study(_study_path(args.study)), args.dir, address=args.address, cpus=args.cpus)
         if any(status != "done" for status in statuses.values()):
             raise SystemExit(1)
         print(f"[study] done: python -m sb3_detc.study report {args.dir}")

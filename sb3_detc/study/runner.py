@@ -212,7 +212,11 @@ def _trainable(config: dict[str, Any]) -> None:
 
 
 def run_study(
-    spec: StudySpec, directory: str | os.PathLike, address: str | None = None, stream: Any = None
+    spec: StudySpec,
+    directory: str | os.PathLike,
+    address: str | None = None,
+    stream: Any = None,
+    cpus: int | None = None,
 ) -> dict[str, str]:
     """Run every unfinished trial of a study on Ray Tune.
 
@@ -221,9 +225,18 @@ def run_study(
     :param address: address of a running Ray cluster (``auto`` for the one this machine
         belongs to); None: start Ray on this machine with all its cores
     :param stream: where progress lines go (default: stdout)
+    :param cpus: cores that Ray hands out to trials on this machine (default: all of them). More
+        than the machine has runs more trials at once: worth it where a trial leaves cores idle,
+        e.g. its rollout workers wait while its one-thread learner updates. Not with ``address``
+        (the cluster knows its cores).
     :return: trial name -> final status (``done`` or ``failed``) of every trial of the study
-    :raises StudyError: if the folder belongs to another study or the cluster does not answer
+    :raises StudyError: if the folder belongs to another study, the cluster does not answer, or
+        ``cpus`` is not a positive integer or comes with ``address``
     """
+    if cpus is not None and (isinstance(cpus, bool) or not isinstance(cpus, int) or cpus < 1):
+        raise StudyError(f"cpus must be a positive integer, got {cpus!r}")
+    if cpus is not None and address is not None:
+        raise StudyError("give cpus or address, not both: a cluster's cores are its own")
     folder = prepare_folder(spec, directory).resolve()
     trials = spec.trials()
     todo = [t for t in trials if read_status(trial_folder(folder, t))["status"] != "done"]
@@ -243,7 +256,7 @@ def run_study(
         if address is None:
             ray.init(
                 address="local",  # a Ray of its own, even where another one runs
-                num_cpus=os.cpu_count(),
+                num_cpus=cpus or os.cpu_count(),
                 include_dashboard=False,
                 log_to_driver=False,
                 logging_level=logging.WARNING,
