@@ -104,8 +104,8 @@ def test_a_study_file_names_entries_overrides_and_seeds(tmp_path):
     learned, random = spec.algorithms
     assert learned.seeds == (3,) and random.seeds == (0, 1)
     assert learned.entry["learning_rate"] == 5e-4 and learned.entry["n_envs"] == 8  # the rest from the entry
-    assert learned.cpus == 1 and learned.learner_threads == 1  # no rollout workers
-    assert random.cpus == 2 and random.learner_threads == 2  # the cores it asked for, all in the learner
+    assert learned.cpus == 1  # no rollout workers
+    assert random.cpus == 2  # the cores it asked for
     assert [t.name for t in spec.trials()] == ["learned/seed3", "random/seed0", "random/seed1"]
     assert spec.budget(learned) == 2048
 
@@ -123,7 +123,6 @@ def test_the_shipped_study_files_load():
         "random_skip_paper": 2,
         "control_first": 2,
     }
-    assert all(a.learner_threads == 1 for a in paper.algorithms)  # the workers take the cores
     assert all(paper.budget(a) == 6_144_000 for a in paper.algorithms)
 
 
@@ -281,6 +280,41 @@ def test_a_failing_trial_is_kept_with_its_traceback_and_the_others_go_on(tmp_pat
     summary = summarise(out)
     assert summary["broken"]["unfinished"][0].startswith("failed")
     assert "seed 0: failed" in report_study(out, plot=False)
+
+
+def test_ctrl_c_stops_a_study_with_a_checkpoint_at_the_last_rollout(tmp_path):
+    # One core: the second trial waits while the first trains; checkpoints only on request.
+    study = {**TINY, "seeds": [0, 1], "n_timesteps": 10**6, "checkpoint_interval": 10**6}
+    study["algorithms"] = {"learned": {"algo": "mappoc"}}
+    path, out = write_study(tmp_path, study), tmp_path / "out"
+    process = subprocess.Popen(
+        [sys.executable, "-m", "sb3_detc.study", "run", str(path), "--dir", str(out), "--cpus", "1"],
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+    )
+    first, second = out / "trials" / "learned" / "seed0", out / "trials" / "learned" / "seed1"
+    try:
+        deadline = time.monotonic() + 300
+        while not (first / "segments" / "0" / "progress.csv").is_file():  # an iteration is trained
+            assert process.poll() is None, process.communicate()
+            assert time.monotonic() < deadline, "no iteration within 5 minutes"
+            time.sleep(0.2)
+        process.send_signal(signal.SIGINT)
+        stdout, stderr = process.communicate(timeout=120)
+    finally:
+        if process.poll() is None:
+            os.killpg(process.pid, signal.SIGKILL)
+    assert process.returncode == 1, stdout + stderr
+    assert "[study] stopping" in stdout and "1 stopped" in stdout, stdout
+    status = read_status(first)
+    assert status["status"] == "interrupted"
+    assert 0 < status["timesteps"] < 10**6
+    assert json.loads((first / "checkpoint.json").read_text())["timesteps"] == status["timesteps"]  # nothing lost
+    assert read_status(second)["status"] != "running" and not (second / "segments").exists()  # never started
+    assert not (out / ".stop").exists()
 
 
 def test_a_killed_study_resumes_from_its_checkpoints(tmp_path):

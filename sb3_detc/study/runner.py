@@ -8,11 +8,14 @@ its entry needs. Ray's own bookkeeping goes to ``<study dir>/.ray`` and is never
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import os
+import signal
 import socket
 import sys
+import threading
 import time
 from collections import deque
 from pathlib import Path
@@ -30,6 +33,11 @@ PROGRESS_EVERY = 60.0
 
 #: Seconds of recent progress from which the rate of a trial is estimated.
 RATE_WINDOW = 600.0
+
+#: A file in the study folder that asks the study to stop: running trials save a checkpoint at
+#: the start of their next rollout and end, pending trials do not start. ``run`` writes it on
+#: the first Ctrl-C (SIGINT) and removes it when it starts and ends.
+STOP_FILE = ".stop"
 
 
 def prepare_folder(spec: StudySpec, directory: str | os.PathLike) -> Path:
@@ -57,7 +65,7 @@ def prepare_folder(spec: StudySpec, directory: str | os.PathLike) -> Path:
     folder.mkdir(parents=True, exist_ok=True)
     if not copy.is_file():
         copy.write_text(spec.text)
-    (folder / ".gitignore").write_text(".ray/\n*.tmp\n*.tmp.zip\n*.tmp.csv\n!checkpoint.zip\n")
+    (folder / ".gitignore").write_text(f".ray/\n{STOP_FILE}\n*.tmp\n*.tmp.zip\n*.tmp.csv\n!checkpoint.zip\n")
     return folder
 
 
@@ -82,7 +90,7 @@ def _make_progress_callback(tune: Any) -> type:
             self.progress.result(trial.config["trial"], int(result.get("timesteps", 0)))
 
         def on_trial_complete(self, iteration: int, trials: list, trial: Any, **info: Any) -> None:
-            self.progress.finished(trial.config["trial"], failed=False)
+            self.progress.finished(trial.config["trial"], failed=False, stopped=bool(trial.last_result.get("stopped")))
 
         def on_trial_error(self, iteration: int, trials: list, trial: Any, **info: Any) -> None:
             self.progress.finished(trial.config["trial"], failed=True)
@@ -105,6 +113,7 @@ class StudyProgress:
         self.budgets = budgets
         self.done = done
         self.failed = 0
+        self.stopped = 0
         self.stream = stream or sys.stdout
         self.steps: dict[str, int] = {}
         self.history: dict[str, deque[tuple[float, int]]] = {}
@@ -141,7 +150,9 @@ class StudyProgress:
         return (
             f"[study] {self.done} done, {len(self.running)} running"
             + (f" ({running})" if running else "")
-            + f", {self.pending} pending, {self.failed} failed; time left: {_format_duration(self.seconds_left())}"
+            + f", {self.pending} pending, {self.failed} failed"
+            + (f", {self.stopped} stopped" if self.stopped else "")
+            + f"; time left: {_format_duration(self.seconds_left())}"
         )
 
     def show(self, force: bool = False) -> None:
@@ -166,12 +177,14 @@ class StudyProgress:
             samples.popleft()
         self.show()
 
-    def finished(self, name: str, failed: bool) -> None:
-        """A trial ended (trained and evaluated, or failed)."""
+    def finished(self, name: str, failed: bool, stopped: bool = False) -> None:
+        """A trial ended: trained and evaluated, failed, or stopped on request before its budget."""
         self.running.discard(name)
         self.finished_names.add(name)
         if failed:
             self.failed += 1
+        elif stopped:
+            self.stopped += 1
         else:
             self.done += 1
             self.steps[name] = self.budgets[name]
@@ -203,12 +216,61 @@ def _trainable(config: dict[str, Any]) -> None:
     spec = load_study(config["study"])
     trial = next(t for t in spec.trials() if t.name == config["trial"])
     budget = spec.budget(trial.algorithm)
+    stop_file = Path(config["directory"]) / STOP_FILE
 
     def report(steps: int) -> None:
+        if stop_file.exists():  # at the start of a rollout: the checkpoint then loses nothing
+            raise KeyboardInterrupt("the study was asked to stop")
         tune.report({"timesteps": steps, "budget": budget})
 
-    status = run_trial(spec, trial, config["directory"], on_progress=report)
-    tune.report({"timesteps": status.get("timesteps", budget), "budget": budget, "done": 1})
+    if not stop_file.exists():
+        try:
+            status = run_trial(spec, trial, config["directory"], on_progress=report)
+            tune.report({"timesteps": status.get("timesteps", budget), "budget": budget, "done": 1})
+            return
+        except KeyboardInterrupt:
+            if not stop_file.exists():
+                raise
+    # Stopped on request (checkpoint saved, status "interrupted"), or not started: a clean end for Ray.
+    steps = read_status(trial_folder(config["directory"], trial)).get("timesteps", 0)
+    tune.report({"timesteps": steps, "budget": budget, "stopped": 1})
+
+
+@contextlib.contextmanager
+def _stop_on_first_interrupt(stop_file: Path, stream: Any) -> Any:
+    """Within the context, the first Ctrl-C (SIGINT) writes ``stop_file``; the next one interrupts at once.
+
+    Ray Tune's own handler is switched off: it ends running trials about ten seconds after the
+    signal, which cuts off a checkpoint that is being written.
+    """
+    if threading.current_thread() is not threading.main_thread():  # signals reach the main thread only
+        yield
+        return
+    previous = signal.getsignal(signal.SIGINT)
+
+    def stop(signum: int, frame: Any) -> None:
+        stop_file.touch()
+        signal.signal(signal.SIGINT, previous)
+        print(
+            "[study] stopping: running trials save a checkpoint at the start of their next rollout, pending "
+            "trials do not start (Ctrl-C again stops at once, losing what each trial trained since its last "
+            "checkpoint)",
+            file=stream,
+            flush=True,
+        )
+
+    switch = "TUNE_DISABLE_SIGINT_HANDLER"
+    before = os.environ.get(switch)
+    os.environ[switch] = "1"
+    signal.signal(signal.SIGINT, stop)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+        if before is None:
+            os.environ.pop(switch, None)
+        else:
+            os.environ[switch] = before
 
 
 def run_study(
@@ -238,6 +300,7 @@ def run_study(
     if cpus is not None and address is not None:
         raise StudyError("give cpus or address, not both: a cluster's cores are its own")
     folder = prepare_folder(spec, directory).resolve()
+    (folder / STOP_FILE).unlink(missing_ok=True)  # left by a run that was killed while stopping
     trials = spec.trials()
     todo = [t for t in trials if read_status(trial_folder(folder, t))["status"] != "done"]
     # Longest first (stable): short trials fill the cores at the end instead of a long one running alone.
@@ -252,6 +315,9 @@ def run_study(
     import ray
     from ray import tune
 
+    # A learner thread that waits for a core sleeps instead of spinning: with OpenMP's default a
+    # busy process next to a two-thread learner slows its updates many times, not twice.
+    runtime_env = {"env_vars": {"OMP_WAIT_POLICY": os.environ.get("OMP_WAIT_POLICY", "PASSIVE")}}
     try:
         if address is None:
             ray.init(
@@ -260,9 +326,10 @@ def run_study(
                 include_dashboard=False,
                 log_to_driver=False,
                 logging_level=logging.WARNING,
+                runtime_env=runtime_env,
             )
         else:
-            ray.init(address=address, log_to_driver=False, logging_level=logging.WARNING)
+            ray.init(address=address, log_to_driver=False, logging_level=logging.WARNING, runtime_env=runtime_env)
     except (ConnectionError, RuntimeError, ValueError) as error:
         raise StudyError(f"cannot reach the Ray cluster at {address!r}: {' '.join(str(error).split())}") from None
     try:
@@ -292,9 +359,11 @@ def run_study(
                 failure_config=tune.FailureConfig(max_failures=0, fail_fast=False),
             ),
         )
-        tuner.fit()
+        with _stop_on_first_interrupt(folder / STOP_FILE, stream):
+            tuner.fit()
     finally:
         ray.shutdown()
+        (folder / STOP_FILE).unlink(missing_ok=True)
     statuses = {t.name: read_status(trial_folder(folder, t))["status"] for t in trials}
     failed = [name for name, status in statuses.items() if status == "failed"]
     progress.show(force=True)

@@ -23,8 +23,8 @@ A study file is YAML::
 The entry of ``env`` is taken from the package's hyperparameter file of the algorithm
 (``sb3_detc/hyperparams/<algo>.yml``) unless ``conf`` names another one. A trial uses as
 many cores as its entry's rollout workers (``n_envs`` with
-:class:`~sb3_detc.mappoc.workers.RolloutWorker` envs), otherwise one; its learner uses one
-torch thread with rollout workers, otherwise ``cpus`` (see ``AlgorithmSpec.learner_threads``).
+:class:`~sb3_detc.mappoc.workers.RolloutWorker` envs), otherwise one; its learner uses as many
+torch threads (the workers wait while it updates, and it waits while they collect).
 """
 
 from __future__ import annotations
@@ -79,17 +79,6 @@ class AlgorithmSpec:
     seeds: tuple[int, ...]
     cpus: int
     entry: dict[str, Any]
-
-    @property
-    def learner_threads(self) -> int:
-        """Torch threads of a trial's learner: one where rollout workers use the cores, else ``cpus``.
-
-        The workers sample in parallel and the learner waits for them, so a second learner thread
-        would only speed up the updates, by a few per cent on idle cores. Next to any other busy
-        process it slows them down many times instead: every parallel kernel waits for the thread
-        that the scheduler took off its core.
-        """
-        return 1 if uses_rollout_workers(self.entry) else self.cpus
 
 
 @dataclass(frozen=True)

@@ -349,7 +349,7 @@ def run_trial(
     budget = spec.budget(trial.algorithm)
     _write_json(folder / "status.json", {**status, "status": "running", "budget": budget})
     threads = th.get_num_threads()
-    th.set_num_threads(trial.algorithm.learner_threads)
+    th.set_num_threads(trial.algorithm.cpus)
     try:
         if not (folder / "policy.pt").is_file():
             _train(spec, trial, folder, on_progress)
