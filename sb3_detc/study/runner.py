@@ -252,9 +252,9 @@ def _stop_on_first_interrupt(stop_file: Path, stream: Any) -> Any:
         stop_file.touch()
         signal.signal(signal.SIGINT, previous)
         print(
-            "[study] stopping: running trials save a checkpoint at the start of their next rollout, pending "
-            "trials do not start (Ctrl-C again stops at once, losing what each trial trained since its last "
-            "checkpoint)",
+            "[study] stopping: training trials save a checkpoint at the start of their next rollout, evaluating "
+            "ones finish, pending ones do not start (Ctrl-C again stops at once, losing what each trial trained "
+            "since its last checkpoint)",
             file=stream,
             flush=True,
         )
