@@ -393,6 +393,24 @@ def test_progress_counts_trials_and_estimates_the_time_left_from_recent_progress
     assert lines[-1].startswith("[study] 4 done, 0 running, 0 pending, 1 failed")
 
 
+def test_progress_counts_stopped_trials_as_unfinished(monkeypatch):
+    from sb3_detc.study import runner
+
+    clock = [0.0]
+    monkeypatch.setattr(runner.time, "monotonic", lambda: clock[0])
+    progress = runner.StudyProgress({"a/seed0": 10_000, "b/seed0": 10_000}, stream=None)
+    progress.show = lambda force=False: None
+    progress.started("a/seed0")
+    for t, steps in ((0, 0), (100, 1000)):
+        clock[0] = t
+        progress.result("a/seed0", steps)
+    progress.finished("a/seed0", failed=False, stopped=True)
+    progress.started("b/seed0")
+    progress.finished("b/seed0", failed=False, stopped=True)
+    assert progress.line() == "[study] 0 done, 0 running, 0 pending, 0 failed, 2 stopped; time left: unknown"
+    assert progress.pending == 0 and progress.done == 0
+
+
 def test_intervals_are_the_same_on_every_call_and_leave_numpys_generator_alone():
     from sb3_detc.study.report import interval_estimates
 

@@ -113,12 +113,12 @@ class StudyProgress:
         self.budgets = budgets
         self.done = done
         self.failed = 0
-        self.stopped = 0
         self.stream = stream or sys.stdout
         self.steps: dict[str, int] = {}
         self.history: dict[str, deque[tuple[float, int]]] = {}
         self.running: set[str] = set()
         self.finished_names: set[str] = set()
+        self.stopped_names: set[str] = set()
         self._last_line = 0.0
 
     @property
@@ -138,7 +138,9 @@ class StudyProgress:
     def seconds_left(self) -> float:
         """Estimated seconds until every trial has trained (evaluation not counted)."""
         left = sum(
-            budget - self.steps.get(name, 0) for name, budget in self.budgets.items() if name not in self.finished_names
+            budget - self.steps.get(name, 0)
+            for name, budget in self.budgets.items()
+            if name not in self.finished_names or name in self.stopped_names
         )
         return left / self.rate() if left > 0 else 0.0
 
@@ -151,7 +153,7 @@ class StudyProgress:
             f"[study] {self.done} done, {len(self.running)} running"
             + (f" ({running})" if running else "")
             + f", {self.pending} pending, {self.failed} failed"
-            + (f", {self.stopped} stopped" if self.stopped else "")
+            + (f", {len(self.stopped_names)} stopped" if self.stopped_names else "")
             + f"; time left: {_format_duration(self.seconds_left())}"
         )
 
@@ -184,7 +186,7 @@ class StudyProgress:
         if failed:
             self.failed += 1
         elif stopped:
-            self.stopped += 1
+            self.stopped_names.add(name)
         else:
             self.done += 1
             self.steps[name] = self.budgets[name]
