@@ -180,7 +180,12 @@ class StudyProgress:
         self.show()
 
     def finished(self, name: str, failed: bool, stopped: bool = False) -> None:
-        """A trial ended: trained and evaluated, failed, or stopped on request before its budget."""
+        """A trial ended: trained and evaluated, failed, or stopped on request before its budget.
+
+        :param name: the trial's name
+        :param failed: it raised an error
+        :param stopped: it ended on a stop request (unfinished; its remaining steps still count)
+        """
         self.running.discard(name)
         self.finished_names.add(name)
         if failed:
