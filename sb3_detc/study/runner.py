@@ -294,10 +294,9 @@ def run_study(
     :param address: address of a running Ray cluster (``auto`` for the one this machine
         belongs to); None: start Ray on this machine with all its cores
     :param stream: where progress lines go (default: stdout)
-    :param cpus: cores that Ray hands out to trials on this machine (default: all of them). More
-        than the machine has runs more trials at once: worth it where a trial leaves cores idle,
-        e.g. its rollout workers wait while its one-thread learner updates. Not with ``address``
-        (the cluster knows its cores).
+    :param cpus: cores that Ray hands out to trials on this machine (default: all of them); fewer
+        leave cores to other work, more run more trials at once (two Multiwalker trials on two
+        cores were no faster together than one). Not with ``address`` (the cluster knows its cores).
     :return: trial name -> final status (``done`` or ``failed``) of every trial of the study
     :raises StudyError: if the folder belongs to another study, the cluster does not answer, or
         ``cpus`` is not a positive integer or comes with ``address``
