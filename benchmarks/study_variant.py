@@ -13,25 +13,18 @@ bootstrap interval (rliable, as ``python -m sb3_detc.study report``).
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
 import numpy as np
 
-from sb3_detc.study.report import interval_estimates
-from sb3_detc.study.spec import StudyError, load_study
-from sb3_detc.study.trial import read_status, trial_folder
+from sb3_detc.study.report import interval_estimates, read_trials
+from sb3_detc.study.spec import StudyError
 
 
 def finished_evaluations(folder: Path) -> tuple[dict, dict[str, dict[int, dict]]]:
-    """The study file's settings and label -> seed -> evaluation of every finished trial of a study folder."""
-    spec = load_study(folder / "study.yml")
-    found: dict[str, dict[int, dict]] = {}
-    for trial in spec.trials():
-        path = trial_folder(folder, trial)
-        if read_status(path)["status"] == "done" and (path / "evaluation.json").is_file():
-            found.setdefault(trial.algorithm.label, {})[trial.seed] = json.loads((path / "evaluation.json").read_text())
-    return {"env": spec.env, "episodes": spec.episodes, "seed": spec.eval_seed}, found
+    """The study's environment and evaluation settings, and label -> seed -> evaluation of its finished trials."""
+    spec, evaluations, _ = read_trials(folder)
+    return {"env": spec.env, "episodes": spec.episodes, "seed": spec.eval_seed}, evaluations
 
 
 def compare(base: Path, variant: Path) -> str:

@@ -27,7 +27,15 @@ from sb3_detc.plot import plot_runs
 from sb3_detc.study.spec import StudyError, load_study
 from sb3_detc.study.trial import read_status, trial_folder
 
-__all__ = ["BOOTSTRAP_REPS", "CURVE_PANELS", "METRICS", "interval_estimates", "report_study", "summarise"]
+__all__ = [
+    "BOOTSTRAP_REPS",
+    "CURVE_PANELS",
+    "METRICS",
+    "interval_estimates",
+    "read_trials",
+    "report_study",
+    "summarise",
+]
 
 #: Resamples of the bootstrap intervals.
 BOOTSTRAP_REPS = 10_000
@@ -92,21 +100,36 @@ def _bootstrap(
         np.random.set_state(state)
 
 
-def _trials(directory: Path) -> tuple[Any, dict[str, dict[int, dict[str, Any]]], dict[str, dict[int, str]]]:
+def read_trials(directory: str | Path) -> tuple[Any, dict[str, dict[int, dict[str, Any]]], dict[str, dict[int, str]]]:
+    """The evaluations of a study folder's finished trials and the states of the others.
+
+    :param directory: the study folder
+    :return: the study, label -> seed -> ``evaluation.json`` of every finished trial, and
+        label -> seed -> state (e.g. ``running, 2048 steps`` or ``failed (...)``) of the others
+    """
+    directory = Path(directory)
     spec = load_study(directory / "study.yml")
-    results: dict[str, dict[int, dict[str, Any]]] = {a.label: {} for a in spec.algorithms}
+    evaluations: dict[str, dict[int, dict[str, Any]]] = {a.label: {} for a in spec.algorithms}
     states: dict[str, dict[int, str]] = {a.label: {} for a in spec.algorithms}
     for trial in spec.trials():
         folder = trial_folder(directory, trial)
         status = read_status(folder)
         state = status["status"]
         if state == "done" and (folder / "evaluation.json").is_file():
-            evaluation = json.loads((folder / "evaluation.json").read_text())
-            results[trial.algorithm.label][trial.seed] = {"timesteps": evaluation["timesteps"], **evaluation["metrics"]}
+            evaluations[trial.algorithm.label][trial.seed] = json.loads((folder / "evaluation.json").read_text())
         elif state == "failed":
             states[trial.algorithm.label][trial.seed] = f"failed ({status.get('error', 'see error.txt')})"
         else:
             states[trial.algorithm.label][trial.seed] = f"{state}, {status.get('timesteps', 0)} steps"
+    return spec, evaluations, states
+
+
+def _trials(directory: Path) -> tuple[Any, dict[str, dict[int, dict[str, Any]]], dict[str, dict[int, str]]]:
+    spec, evaluations, states = read_trials(directory)
+    results = {
+        label: {seed: {"timesteps": e["timesteps"], **e["metrics"]} for seed, e in seeds.items()}
+        for label, seeds in evaluations.items()
+    }
     return spec, results, states
 
 
