@@ -187,6 +187,10 @@ def test_a_study_runs_every_trial_through_ray_and_evaluates_it(finished_study):
         assert status["status"] == "done" and status["timesteps"] == budget
         assert (folder / "policy.pt").is_file() and (folder / "progress.csv").is_file()
         assert not (folder / "checkpoint.zip").exists()  # only the final policy stays
+        # where it trained; Ray's workers get OpenMP's passive waiting unless the caller chose a policy
+        machine = json.loads((folder / "segments" / "0" / "machine.json").read_text())
+        assert machine["omp_wait_policy"] == os.environ.get("OMP_WAIT_POLICY", "PASSIVE")
+        assert machine["torch_threads"] == 1 and machine["cores"] == os.cpu_count()
         evaluation = json.loads((folder / "evaluation.json").read_text())
         assert set(evaluation["modes"]) == set(MODES)
         for mode in MODES:

@@ -8,8 +8,9 @@ A trial's folder (``<study dir>/trials/<label>/seed<seed>/``) holds plain files:
   model, optimizer included) and its step count, written atomically every
   ``checkpoint_interval`` steps at the start of a rollout;
 * ``segments/<first step>/``: rl-zoo3's files of every attempt (``config.yml``, monitor
-  files, the logger's ``progress.csv``); ``progress.csv`` in the trial folder merges them,
-  cut at each checkpoint an attempt resumed from;
+  files, the logger's ``progress.csv``) and ``machine.json`` (where it trained:
+  :func:`machine_record`); ``progress.csv`` in the trial folder merges them, cut at each
+  checkpoint an attempt resumed from;
 * when done: ``policy.pt`` (the final policy only, :meth:`MlpHybridPolicy.load`) and
   ``evaluation.json`` (:func:`evaluate_policy_modes`); the checkpoint is removed;
 * ``error.txt``: the traceback of the last failure.
@@ -21,6 +22,7 @@ import argparse
 import json
 import math
 import os
+import platform
 import shutil
 import time
 import traceback
@@ -47,6 +49,7 @@ __all__ = [
     "MODES",
     "TrialCheckpoint",
     "evaluate_policy_modes",
+    "machine_record",
     "merged_progress",
     "read_status",
     "run_trial",
@@ -161,6 +164,31 @@ def _write_progress(folder: Path) -> None:
         scratch = folder / "progress.tmp.csv"
         rows.to_csv(scratch, index=False)
         os.replace(scratch, folder / "progress.csv")
+
+
+def machine_record() -> dict[str, Any]:
+    """Where and how this process trains: what a segment's steps per second depend on.
+
+    :return: host name, processor model, cores, torch's threads, ``OMP_WAIT_POLICY`` (None
+        if unset), versions of Python and torch, and the time (UTC, ISO 8601)
+    """
+    processor = platform.processor()
+    cpuinfo = Path("/proc/cpuinfo")
+    if cpuinfo.is_file():
+        models = [
+            line.split(":", 1)[1].strip() for line in cpuinfo.read_text().splitlines() if line.startswith("model name")
+        ]
+        processor = models[0] if models else processor
+    return {
+        "host": platform.node(),
+        "processor": processor,
+        "cores": os.cpu_count(),
+        "torch_threads": th.get_num_threads(),
+        "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"),
+        "python": platform.python_version(),
+        "torch": th.__version__,
+        "started": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+    }
 
 
 def _episodes_json(episodes: Episodes) -> dict[str, Any]:
@@ -280,6 +308,8 @@ def _train(spec: StudySpec, trial: Trial, folder: Path, on_progress: Callable[[i
     manager.save_path = str(segment)
     manager.params_path = str(segment / "params")
     model, _ = manager.setup_experiment()
+    segment.mkdir(parents=True, exist_ok=True)
+    _write_json(segment / "machine.json", machine_record())
 
     def saved(steps: int) -> None:
         _write_progress(folder)
