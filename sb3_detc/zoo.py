@@ -1,7 +1,8 @@
 """rl-baselines3-zoo integration: algorithm names, hyperparameter files, run logs and input checks.
 
-Importing this module (:func:`register`) adds sb3-detc's algorithms to rl-zoo3 (``rl_zoo3.utils.ALGOS``) together
-with Optuna samplers for ``--optimize``:
+:func:`register` adds sb3-detc's algorithms to rl-zoo3 (``rl_zoo3.utils.ALGOS``) together with
+Optuna samplers for ``--optimize``; the command lines (:func:`run_cli`) and :class:`ExperimentManager`
+call it, importing this module does not:
 
 * ``mappoc``: :class:`~sb3_detc.MAPPOC`, hyperparameters in ``hyperparams/mappoc.yml``;
 * ``ppo_random_skip``: the paper's random-skip baseline, also :class:`~sb3_detc.MAPPOC`
@@ -54,6 +55,7 @@ __all__ = [
     "CSVLogCallback",
     "ExperimentManager",
     "InputError",
+    "algorithm_class",
     "check_hyperparams_file",
     "check_model_arguments",
     "check_train_arguments",
@@ -152,14 +154,22 @@ def convert_mappoc_params(sampled_params: dict[str, Any]) -> dict[str, Any]:
 
 
 def register() -> None:
-    """Add sb3-detc's algorithms and their Optuna samplers to rl-zoo3 (idempotent; done on import)."""
+    """Add sb3-detc's algorithms and their Optuna samplers to rl-zoo3 (idempotent)."""
     ALGOS.update(ALGORITHMS)
     for name in ALGORITHMS:
         HYPERPARAMS_SAMPLER[name] = sample_mappoc_params
         HYPERPARAMS_CONVERTER[name] = convert_mappoc_params
 
 
-register()
+def algorithm_class(algo: str) -> type[BaseAlgorithm]:
+    """The class of an algorithm name: sb3-detc's (registered or not) or rl-zoo3's.
+
+    :param algo: the algorithm name
+    :return: its class
+    :raises InputError: for a name that neither knows
+    """
+    check_algorithm(algo)
+    return ALGORITHMS.get(algo) or ALGOS[algo]
 
 
 # ----------------------------------------------------------------------------- run logs
@@ -209,8 +219,15 @@ class ExperimentManager(rl_zoo3.exp_manager.ExperimentManager):
     Every run's log folder gets the logger's ``progress.csv``. rl-zoo3 restarts the step count
     of a model loaded to continue training (``-i``) at zero, which would restart the
     curriculum, the schedules and the checkpoint numbering; here ``-n`` steps are added to
-    where the saved model stopped.
+    where the saved model stopped. Registers sb3-detc's algorithms (:func:`register`).
+
+    :param args: rl-zoo3's arguments, then its experiment manager's (see ``rl_zoo3.exp_manager``)
+    :param kwargs: as rl-zoo3's experiment manager takes them
     """
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        register()
+        super().__init__(*args, **kwargs)
 
     def _preprocess_hyperparams(self, hyperparams: dict[str, Any]) -> Any:
         """rl-zoo3's preprocessing; an entry with rollout-worker envs (:data:`ROLLOUT_WORKER`) gets worker processes.
@@ -258,12 +275,13 @@ def _closest(word: str, choices: Sequence[str]) -> str:
 
 
 def check_algorithm(algo: str) -> None:
-    """Raise :class:`InputError` unless ``algo`` is an rl-zoo3 algorithm name (after :func:`register`).
+    """Raise :class:`InputError` unless ``algo`` is one of sb3-detc's or rl-zoo3's algorithm names.
 
     :param algo: the algorithm name
     """
-    if algo not in ALGOS:
-        raise InputError(f"unknown algorithm {algo!r}{_closest(algo, list(ALGOS))}; known: {', '.join(ALGOS)}")
+    known = [*ALGORITHMS, *(name for name in ALGOS if name not in ALGORITHMS)]
+    if algo not in known:
+        raise InputError(f"unknown algorithm {algo!r}{_closest(algo, known)}; known: {', '.join(known)}")
 
 
 def check_env(env_id: str) -> None:
@@ -390,7 +408,7 @@ def _policy_class(policy: Any, algo: str, where: str) -> type:
             return get_class_by_name(policy)
         except (ImportError, AttributeError) as error:
             raise InputError(f"{where}: unknown policy {policy!r} ({error})") from None
-    aliases = getattr(ALGOS[algo], "policy_aliases", {})
+    aliases = getattr(algorithm_class(algo), "policy_aliases", {})
     if policy not in aliases:
         known = ", ".join(aliases)
         raise InputError(f"{where}: unknown policy {policy!r}{_closest(policy, list(aliases))}; known: {known}")
@@ -445,8 +463,9 @@ def _check_values(entry: dict[str, Any], algo: str, where: str) -> None:
     if "callback" in entry:
         _check_classes(entry["callback"], where, "callback", build=True)
     normalize = _python_value(entry.get("normalize", False), "normalize", where)
-    if issubclass(ALGOS[algo], MAPPOC):
-        defaults = {name: p.default for name, p in inspect.signature(ALGOS[algo].__init__).parameters.items()}
+    algorithm = algorithm_class(algo)
+    if issubclass(algorithm, MAPPOC):
+        defaults = {name: p.default for name, p in inspect.signature(algorithm.__init__).parameters.items()}
         try:
             check_hyperparameters(**{**defaults, **entry})
             if normalize:  # rl-zoo3 wraps the envs in VecNormalize(**normalize) or VecNormalize()
@@ -498,7 +517,7 @@ def check_hyperparams_file(
     if not isinstance(entry, dict):
         raise InputError(f"{where}: expected a mapping of hyperparameters, got {entry!r}")
     entry = {**entry, **(overrides or {})}
-    arguments = set(inspect.signature(ALGOS[algo].__init__).parameters) - COMMAND_LINE_KEYS
+    arguments = set(inspect.signature(algorithm_class(algo).__init__).parameters) - COMMAND_LINE_KEYS
     allowed = arguments | ZOO_KEYS
     for key in entry:
         if key not in allowed:
@@ -660,7 +679,7 @@ def _argv(argv: Sequence[str]) -> Iterator[None]:
 
 
 def run_cli(prog: str, main: Callable[[], None], argv: Sequence[str] | None = None) -> None:
-    """Run a command line with ``argv`` as ``sys.argv``; bad input ends it with one line.
+    """Run a command line with ``argv`` as ``sys.argv`` after :func:`register`; bad input ends it with one line.
 
     Bad input is what the checks before the run find (:class:`InputError`: an unknown
     algorithm or environment, a malformed hyperparameter file, a missing model, a bad
@@ -674,6 +693,7 @@ def run_cli(prog: str, main: Callable[[], None], argv: Sequence[str] | None = No
     :raises SystemExit: with code 2 after printing the message of an :class:`InputError` on stderr
     """
     argv = list(sys.argv[1:] if argv is None else argv)
+    register()
     try:
         with _argv(argv):
             main()

@@ -7,13 +7,21 @@ import multiprocessing
 import numpy as np
 import pytest
 import torch as th
+from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
 
 import sb3_detc  # noqa: F401  (registers the env ids)
 from sb3_detc.mappoc import MAPPOC
-from sb3_detc.mappoc.mappoc import PAPER_ITERATION, default_n_envs, has_rollout_workers
+from sb3_detc.mappoc.mappoc import (
+    COMPILE_FROM_TIMESTEPS,
+    PAPER_ITERATION,
+    default_n_envs,
+    has_cxx_compiler,
+    has_rollout_workers,
+)
 from sb3_detc.mappoc.rewards import RewardTransform
+from sb3_detc.mappoc.steps import FusedGradientStep, GradientStep
 
 ENV_ID = "sb3_detc/LinearETC-v0"
 TINY = {"net_arch": [8]}
@@ -33,9 +41,32 @@ def test_the_one_liner_builds_the_fast_setting() -> None:
         assert has_rollout_workers(env) and model.n_envs == default_n_envs()
         assert isinstance(env, SubprocVecEnv if model.n_envs > 1 else DummyVecEnv)
         assert model.n_steps * model.n_envs == PAPER_ITERATION == 2048
-        assert model.torch_compile == "auto"
+        # compiled and fused for a long run where a C++ compiler exists, eager for a short one
+        assert type(gradient_step_of_learn(model, COMPILE_FROM_TIMESTEPS)) is (
+            FusedGradientStep if has_cxx_compiler() else GradientStep
+        )
+        assert type(gradient_step_of_learn(model, COMPILE_FROM_TIMESTEPS - 1)) is GradientStep
     finally:
         env.close()
+
+
+class LearnStarted(Exception):
+    """Ends a ``learn`` call before its first rollout."""
+
+
+def gradient_step_of_learn(model: MAPPOC, total_timesteps: int) -> object:
+    """The gradient step that ``model.learn(total_timesteps)`` trains with (stopped before it collects anything)."""
+
+    class Peek(BaseCallback):
+        def _on_training_start(self) -> None:
+            raise LearnStarted(self.model.gradient_step)
+
+        def _on_step(self) -> bool:
+            return True
+
+    with pytest.raises(LearnStarted) as started:
+        model.learn(total_timesteps, callback=Peek())
+    return started.value.args[0]
 
 
 def test_envs_built_from_an_id_on_request(tmp_path) -> None:

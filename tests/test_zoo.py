@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from rl_zoo3.utils import ALGOS, get_callback_list
+from rl_zoo3.utils import get_callback_list
 from stable_baselines3.common.env_util import make_vec_env
 
 from sb3_detc import MAPPOC, compare, enjoy, plot, record_video, train, zoo
@@ -70,12 +70,19 @@ def test_linear_entry_trains_control_first_then_the_trigger_within_the_budget() 
     assert eval(entry["policy_kwargs"])["age_scale"] == 0.0
 
 
-def test_register_adds_algorithms_and_samplers() -> None:
-    zoo.register()
-    assert ALGOS["mappoc"] is MAPPOC and ALGOS["ppo_random_skip"] is MAPPOC
-    from rl_zoo3.hyperparams_opt import HYPERPARAMS_SAMPLER
-
-    assert HYPERPARAMS_SAMPLER["mappoc"] is zoo.sample_mappoc_params
+def test_register_adds_algorithms_and_samplers_and_importing_does_not() -> None:
+    script = (
+        "from rl_zoo3.hyperparams_opt import HYPERPARAMS_SAMPLER\n"
+        "from rl_zoo3.utils import ALGOS\n"
+        "from sb3_detc import MAPPOC, zoo\n"
+        "assert 'mappoc' not in ALGOS and 'mappoc' not in HYPERPARAMS_SAMPLER\n"
+        "assert zoo.algorithm_class('mappoc') is MAPPOC  # the checks know the names without registering\n"
+        "zoo.register()\n"
+        "assert ALGOS['mappoc'] is MAPPOC and ALGOS['ppo_random_skip'] is MAPPOC\n"
+        "assert HYPERPARAMS_SAMPLER['mappoc'] is zoo.sample_mappoc_params\n"
+    )
+    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0, result.stderr
 
 
 def test_sampled_parameters_build_a_model() -> None:
