@@ -18,8 +18,8 @@ physical lower bound. Savings are ``1 - broadcasts / agent-steps``.
 
 With ``--from-zoo`` the settings and callbacks are those of the ``sb3_detc/LinearETC-v0``
 entry of ``sb3_detc/hyperparams/mappoc.yml`` (what ``python -m sb3_detc.train`` trains);
-without it, the script's own settings below (the variations of benchmarks/README.md, section
-"control and communication learned jointly").
+without it, the script's own settings below (the one-stage run of benchmarks/README.md, section
+"Linear system: control and communication learned jointly").
 """
 
 from __future__ import annotations

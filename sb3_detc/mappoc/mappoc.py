@@ -170,7 +170,7 @@ class MAPPOC(OnPolicyAlgorithm):
         ``torch.compile`` (needs a C++ compiler); with the default Adam optimizer and no
         ``target_kl``, a gradient step (loss, gradients, clipping, Adam update) is one
         compiled graph (:mod:`sb3_detc.mappoc.steps`). On a CPU about twice the gradient
-        steps per second and faster rollouts (benchmarks/README.md), for a one-off
+        steps per second and faster rollouts (``benchmarks/results/train_throughput.log``), for a one-off
         compilation of tens of seconds with a warm compile cache, minutes with a cold one (and a
         few seconds whenever a new variant appears, e.g. a first fixed trigger), so worth it for
         long runs. ``"auto"``: compile
