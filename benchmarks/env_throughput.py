@@ -5,13 +5,13 @@ What is measured (all three with 3 walkers, each env's default settings):
 1. ``joint``: the joint Gymnasium env ``gymnasium.make("sb3_detc/MultiwalkerETC-v0")``, as
    returned by ``gymnasium.make`` (NOT ``.unwrapped``: its default wrappers, order
    enforcing and the passive env checker, stay on, just as the stock env keeps its own
-   PettingZoo wrappers); action ``{"comm": (3,), "control": (3, 4)}``;
+   PettingZoo wrappers); action ``{"broadcast": (3,), "control": (3, 4)}``;
 2. ``pettingzoo (ours)``: ``sb3_detc.envs.multiwalker_etc_v0.parallel_env()``, per-agent dict
-   actions ``{agent: {"comm": 0 or 1, "control": (4,)}}``;
+   actions ``{agent: {"broadcast": 0 or 1, "control": (4,)}}``;
 3. ``pettingzoo stock``: ``pettingzoo.sisl.multiwalker_v9.parallel_env()``, per-agent actions
    ``{agent: (4,)}``.
 
-How: uniformly random actions (comm in {0, 1}, control uniform in the control box; shapes
+How: uniformly random actions (broadcast in {0, 1}, control uniform in the control box; shapes
 and bounds read from each env's action space). Actions are drawn with NumPy in blocks of
 :data:`BLOCK` steps and packed into each env's action format *outside* the timed section,
 so action sampling costs nothing in any of the three measurements. The timed section is
@@ -88,15 +88,15 @@ class Bench:
         """Step once; return True if the episode ended."""
         raise NotImplementedError
 
-    def pack(self, comm: np.ndarray, control: np.ndarray) -> list[Any]:
+    def pack(self, broadcast: np.ndarray, control: np.ndarray) -> list[Any]:
         """Turn arrays of shape (T, N) and (T, N, m) into T actions of this env."""
         raise NotImplementedError
 
     def sample(self, rng: np.random.Generator, n_steps: int) -> list[Any]:
-        comm = rng.integers(0, 2, size=(n_steps, self.n_agents))
+        broadcast = rng.integers(0, 2, size=(n_steps, self.n_agents))
         shape = (n_steps, self.n_agents, *self.control_low.shape)
         control = rng.uniform(self.control_low, self.control_high, size=shape).astype(np.float32)
-        return self.pack(comm, control)
+        return self.pack(broadcast, control)
 
 
 class JointBench(Bench):
@@ -104,27 +104,27 @@ class JointBench(Bench):
         _, _, terminated, truncated, _ = self.env.step(action)
         return terminated or truncated
 
-    def pack(self, comm: np.ndarray, control: np.ndarray) -> list[Any]:
-        return [{"comm": c, "control": u} for c, u in zip(comm, control, strict=True)]
+    def pack(self, broadcast: np.ndarray, control: np.ndarray) -> list[Any]:
+        return [{"broadcast": c, "control": u} for c, u in zip(broadcast, control, strict=True)]
 
 
 class ParallelBench(Bench):
     """A PettingZoo parallel env; the episode has ended when no agent is left."""
 
-    def __init__(self, *args: Any, with_comm: bool, **kwargs: Any) -> None:
+    def __init__(self, *args: Any, with_broadcast: bool, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
-        self.with_comm = with_comm
+        self.with_broadcast = with_broadcast
         self.agents = list(self.env.possible_agents)
 
     def step(self, action: dict[str, Any]) -> bool:
         self.env.step(action)
         return not self.env.agents
 
-    def pack(self, comm: np.ndarray, control: np.ndarray) -> list[Any]:
-        if self.with_comm:
+    def pack(self, broadcast: np.ndarray, control: np.ndarray) -> list[Any]:
+        if self.with_broadcast:
             return [
-                {a: {"comm": int(c[i]), "control": u[i]} for i, a in enumerate(self.agents)}
-                for c, u in zip(comm, control, strict=True)
+                {a: {"broadcast": int(c[i]), "control": u[i]} for i, a in enumerate(self.agents)}
+                for c, u in zip(broadcast, control, strict=True)
             ]
         return [{a: u[i] for i, a in enumerate(self.agents)} for u in control]
 
@@ -153,7 +153,7 @@ def make_benches() -> list[Bench]:
             len(ours.possible_agents),
             ours_control.low,
             ours_control.high,
-            with_comm=True,
+            with_broadcast=True,
         ),
         ParallelBench(
             "pettingzoo stock multiwalker_v9",
@@ -161,7 +161,7 @@ def make_benches() -> list[Bench]:
             len(stock.possible_agents),
             stock_control.low,
             stock_control.high,
-            with_comm=False,
+            with_broadcast=False,
         ),
     ]
 

@@ -39,7 +39,7 @@ from stable_baselines3.common.env_util import make_vec_env
 
 import sb3_detc
 from sb3_detc import MAPPOC
-from sb3_detc.callbacks import ControlFirstCallback, OptionEntropySchedule
+from sb3_detc.callbacks import BroadcastEntropySchedule, ControlFirstCallback
 from sb3_detc.envs.linear import LinearSystem, lqr_episode_cost
 from sb3_detc.evaluation import evaluate_communication
 from sb3_detc.mappoc.critics import CRITICS
@@ -88,23 +88,23 @@ def zoo_recipe() -> dict[str, Any]:
 def run(job: dict[str, Any]) -> dict[str, Any]:
     """Train one model and evaluate it at equal communication; returns one table row.
 
-    :param job: ``comm_cost``, ``seed``, ``timesteps``, ``eval_episodes``, ``changes`` (settings
-        to change) and either ``recipe`` (:func:`zoo_recipe`) or ``option_advantage``,
+    :param job: ``broadcast_cost``, ``seed``, ``timesteps``, ``eval_episodes``, ``changes`` (settings
+        to change) and either ``recipe`` (:func:`zoo_recipe`) or ``broadcast_advantage``,
         ``critic`` and ``control_first`` (None for the option entropy schedule, or the
         arguments of :class:`~sb3_detc.callbacks.ControlFirstCallback` for two stages)
     """
-    comm_cost, seed, changes, recipe = job["comm_cost"], job["seed"], job["changes"], job.get("recipe")
+    broadcast_cost, seed, changes, recipe = job["broadcast_cost"], job["seed"], job["changes"], job.get("recipe")
     th.set_num_threads(1)
     if recipe is not None:
         base, n_envs = recipe["settings"], recipe["n_envs"]
-        env_kwargs = {**recipe["env_kwargs"], "comm_cost": comm_cost}
+        env_kwargs = {**recipe["env_kwargs"], "broadcast_cost": broadcast_cost}
         callbacks: list[BaseCallback] = get_callback_list({"callback": recipe["callback"]})
     else:
-        base = {**HYPERPARAMS, "option_advantage": job["option_advantage"]}
+        base = {**HYPERPARAMS, "broadcast_advantage": job["broadcast_advantage"]}
         base["policy_kwargs"] = {**HYPERPARAMS["policy_kwargs"], "critic": job["critic"]}
-        n_envs, env_kwargs = 2, {"comm_cost": comm_cost}
+        n_envs, env_kwargs = 2, {"broadcast_cost": broadcast_cost}
         control_first = job["control_first"]
-        schedule = OptionEntropySchedule(**ENTROPY_SCHEDULE)
+        schedule = BroadcastEntropySchedule(**ENTROPY_SCHEDULE)
         callbacks = [schedule if control_first is None else ControlFirstCallback(**control_first)]
     env = make_vec_env(ENV_ID, n_envs=n_envs, seed=seed, env_kwargs=env_kwargs)
     policy_kwargs = {**base.get("policy_kwargs", {}), **changes.get("policy_kwargs", {})}
@@ -122,14 +122,14 @@ def run(job: dict[str, Any]) -> dict[str, Any]:
         )
         return -report.mean_control_return / bound, report.savings
 
-    cost_learned, savings = evaluate(deterministic_options=False)
+    cost_learned, savings = evaluate(deterministic_broadcast=False)
     cost_random, _ = evaluate(fixed_trigger=RandomTrigger(savings, seed=seed))
     cost_periodic, _ = evaluate(fixed_trigger=RandomTrigger(0.0))
     return {
-        "comm_cost": comm_cost,
+        "broadcast_cost": broadcast_cost,
         "seed": seed,
         "recipe": "zoo entry" if recipe is not None else "script",
-        "option_advantage": model.option_advantage,
+        "broadcast_advantage": model.broadcast_advantage,
         "critic": model.policy.critic,
         "changes": changes,
         "control_first": job.get("control_first"),
@@ -144,7 +144,7 @@ def run(job: dict[str, Any]) -> dict[str, Any]:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--comm-costs", type=float, nargs="+", default=[0.03])
+    parser.add_argument("--broadcast-costs", type=float, nargs="+", default=[0.03])
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3])
     parser.add_argument("--from-zoo", action="store_true", help="settings and callbacks of the mappoc.yml entry")
     parser.add_argument("--option-advantages", nargs="+", help="(not with --from-zoo; default: greedy)")
@@ -166,7 +166,7 @@ def main() -> None:
     args = parser.parse_args()
     common = {"eval_episodes": args.eval_episodes, "changes": args.set}
     if args.from_zoo:
-        if args.option_advantages or args.critics or args.control_first is not None:
+        if args.broadcast_advantages or args.critics or args.control_first is not None:
             parser.error("--from-zoo takes the option advantage, critic and stages from the entry (use --set)")
         recipe = zoo_recipe()
         common.update(recipe=recipe, timesteps=args.timesteps or recipe["n_timesteps"])
@@ -174,13 +174,13 @@ def main() -> None:
     else:
         common.update(timesteps=args.timesteps or 300_000, control_first=args.control_first)
         variants = [
-            {"option_advantage": adv, "critic": critic}
-            for adv in args.option_advantages or ["greedy"]
+            {"broadcast_advantage": adv, "critic": critic}
+            for adv in args.broadcast_advantages or ["greedy"]
             for critic in args.critics or ["option_heads"]
         ]
     jobs = [
-        {**common, **variant, "comm_cost": xi, "seed": seed}
-        for xi in args.comm_costs
+        {**common, **variant, "broadcast_cost": xi, "seed": seed}
+        for xi in args.broadcast_costs
         for variant in variants
         for seed in args.seeds
     ]
@@ -195,13 +195,13 @@ def main() -> None:
         print(f"two stages: ControlFirstCallback({args.control_first})")
     print()
     print(
-        "| comm cost | option advantage | critic | seed | savings | cost learned | cost random, same rate "
+        "| broadcast cost | option advantage | critic | seed | savings | cost learned | cost random, same rate "
         "| cost periodic |"
     )
     print("|---|---|---|---|---|---|---|---|")
     for row in rows:
         print(
-            f"| {row['comm_cost']} | {row['option_advantage']} | {row['critic']} | {row['seed']} | "
+            f"| {row['broadcast_cost']} | {row['broadcast_advantage']} | {row['critic']} | {row['seed']} | "
             f"{row['savings']:.2f} | "
             f"{row['cost_learned']:.2f} | {row['cost_random_same_rate']:.2f} | {row['cost_periodic']:.2f} |"
         )

@@ -4,7 +4,7 @@ The policy over options learns from the critic (greedy advantage ``Q(o) - max Q`
 or from sampled returns. This benchmark isolates that estimation problem from everything
 else: every agent's control is fixed to the model-based controller (its row of the LQR gain
 on its view of held broadcasts, :class:`sb3_detc.triggers.FixedControl`), the options
-are uniformly random and not trained (``train_option_policy=False``), and MAPPOC trains only
+are uniformly random and not trained (``train_broadcast_policy=False``), and MAPPOC trains only
 its critic. Because the options are drawn independently of the state, the mean difference of
 the discounted returns that follow a broadcast and a silence in the same class of states is
 an unbiased estimate of ``Q(s, broadcast) - Q(s, silent)`` averaged over that class. It is
@@ -41,8 +41,8 @@ HYPERPARAMS = {
     "n_epochs": 10,
     "reward_scale": 0.01,
     "team_reward": True,
-    "option_ent_coef": 0.0,
-    "train_option_policy": False,
+    "broadcast_ent_coef": 0.0,
+    "train_broadcast_policy": False,
     "policy_kwargs": {"net_arch": [64, 64], "learn_log_std": True},
 }
 
@@ -76,12 +76,12 @@ class OptionValueProbe(BaseCallback):
             running = buffer.rewards[t] + self.model.gamma * running * alive[:, None]
             returns[t] = running
         keep = slice(0, steps - self.horizon)
-        change, returns, comm = change[keep], returns[keep], buffer.comm[keep]
+        change, returns, broadcast = change[keep], returns[keep], buffer.broadcast[keep]
         q_diff = buffer.option_values[keep][..., 1] - buffer.option_values[keep][..., 0]
         large = change > np.quantile(change, self.quantile)
         for name, mask in (("large change", large), ("rest", ~large)):
-            self.samples[name]["broadcast"].append(returns[mask & (comm == 1)])
-            self.samples[name]["silent"].append(returns[mask & (comm == 0)])
+            self.samples[name]["broadcast"].append(returns[mask & (broadcast == 1)])
+            self.samples[name]["silent"].append(returns[mask & (broadcast == 0)])
             self.samples[name]["critic"].append(q_diff[mask])
 
 
@@ -89,7 +89,7 @@ def run(job: tuple[int, int, float, int, dict[str, Any]]) -> list[dict[str, floa
     """Train the critic with one seed; returns one row per state class."""
     seed, timesteps, quantile, horizon, overrides = job
     th.set_num_threads(1)
-    env_kwargs = {"comm_cost": 0.03}
+    env_kwargs = {"broadcast_cost": 0.03}
     env = make_vec_env("sb3_detc/LinearETC-v0", n_envs=2, seed=seed, env_kwargs=env_kwargs, wrapper_class=FixedControl)
     model = MAPPOC("MlpHybridPolicy", env, seed=seed, **{**HYPERPARAMS, **overrides})
     probe = OptionValueProbe(quantile, horizon)

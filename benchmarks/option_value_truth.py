@@ -46,34 +46,34 @@ HYPERPARAMS: dict[str, Any] = {
     "normalize_reward": True,
     "reward_scale": 1.0,
     "gamma": 0.95,
-    "option_ent_coef": 0.0,
-    "train_option_policy": False,
+    "broadcast_ent_coef": 0.0,
+    "train_broadcast_policy": False,
 }
 
 
 def branch_returns(
-    env: gym.Env, comm: np.ndarray, agent: int, p: float, gamma: float, horizon: int, seed: int
+    env: gym.Env, broadcast: np.ndarray, agent: int, p: float, gamma: float, horizon: int, seed: int
 ) -> float:
     """Value of ``agent``'s broadcast now: the difference of two copies' discounted team-mean control returns.
 
     :param env: the fixed-control joint env, at the state of the decision
-    :param comm: everyone's options of this step (N,); ``agent``'s is replaced
+    :param broadcast: everyone's options of this step (N,); ``agent``'s is replaced
     :param agent: the deciding agent
     :param p: probability of broadcasting of the later random options
     :param gamma: discount factor
     :param horizon: steps to follow (fewer at the end of the episode)
     :param seed: seed of the later random options, the same in both copies
     """
-    n = comm.shape[0]
+    n = broadcast.shape[0]
     returns = []
     for option in (1, 0):
         branch = copy.deepcopy(env)  # copies the env's generator: the same noise in both branches
-        options = comm.copy()
+        options = broadcast.copy()
         options[agent] = option
         later = np.random.default_rng(seed)  # the same later options in both branches
         total, discount = 0.0, 1.0
         for _ in range(horizon):
-            _, _, terminated, truncated, info = branch.step({"comm": options, "control": np.zeros((n, 1))})
+            _, _, terminated, truncated, info = branch.step({"broadcast": options, "control": np.zeros((n, 1))})
             total += discount * float(np.mean(info["control_rewards"]))
             if terminated or truncated:
                 break
@@ -90,9 +90,9 @@ def critic_estimates(job: tuple[str, float, float, int, int, list[tuple[dict, np
         the samples (observation before the decision, options of the step, deciding agent)
     :return: the estimates without the communication cost, in team-mean reward (samples,)
     """
-    critic, p, comm_cost, timesteps, seed, samples = job
+    critic, p, broadcast_cost, timesteps, seed, samples = job
     th.set_num_threads(1)
-    env_kwargs = {"comm_cost": comm_cost}
+    env_kwargs = {"broadcast_cost": broadcast_cost}
     env = make_vec_env("sb3_detc/LinearETC-v0", n_envs=2, seed=seed, env_kwargs=env_kwargs, wrapper_class=FixedControl)
     # mu itself draws the random options: untrained, it broadcasts with probability p in every
     # state (its output layer starts near zero), and the centred critic gets the exact probabilities
@@ -100,11 +100,13 @@ def critic_estimates(job: tuple[str, float, float, int, int, list[tuple[dict, np
     model = MAPPOC("MlpHybridPolicy", env, seed=seed, policy_kwargs=policy_kwargs, **HYPERPARAMS)
     model.learn(timesteps)
     obs = {key: th.as_tensor(np.stack([s[0][key] for s in samples])) for key in samples[0][0]}
-    comm = th.as_tensor(np.stack([s[1] for s in samples]))
+    broadcast = th.as_tensor(np.stack([s[1] for s in samples]))
     agent = np.array([s[2] for s in samples])
-    control = th.zeros(*comm.shape, model.n_control)
+    control = th.zeros(*broadcast.shape, model.n_control)
     with th.no_grad():
-        q = model.policy.evaluate_actions(obs, comm, control, p_broadcast=th.full(comm.shape, p)).option_values
+        q = model.policy.evaluate_actions(
+            obs, broadcast, control, p_broadcast=th.full(broadcast.shape, p)
+        ).option_values
     gap = (q[..., 1] - q[..., 0]).numpy()[np.arange(len(agent)), agent]
     # back from the learner's units (reward normalisation) to team-mean reward
     return gap * np.sqrt(model.reward_transform.return_rms.var[agent] + 1e-8) / model.reward_scale
@@ -119,7 +121,7 @@ def main() -> None:
     parser.add_argument("--horizon", type=int, default=60, help="steps after the decision (at most to the episode end)")
     parser.add_argument("--steps", type=int, default=9000, help="steps of the long run")
     parser.add_argument("--every", type=int, default=3, help="measure at every k-th step")
-    parser.add_argument("--comm-cost", type=float, default=0.03, help="only to state the price of a broadcast")
+    parser.add_argument("--broadcast-cost", type=float, default=0.03, help="only to state the price of a broadcast")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--critics", nargs="*", default=[], choices=["option_heads", "afterstate", "centred"])
     parser.add_argument("--timesteps", type=int, default=100_000, help="training steps of every critic")
@@ -133,26 +135,26 @@ def main() -> None:
     samples = []  # (trigger change, age, value of the broadcast)
     states = []  # (observation, options, agent) of every sample
     for step in range(args.steps):
-        comm = (rng.random(n) < args.broadcast_prob).astype(np.int64)
+        broadcast = (rng.random(n) < args.broadcast_prob).astype(np.int64)
         if step % args.every == 0:
             agent = int(rng.integers(n))
             seed = int(rng.integers(1 << 30))
-            value = branch_returns(env, comm, agent, args.broadcast_prob, args.gamma, args.horizon, seed)
+            value = branch_returns(env, broadcast, agent, args.broadcast_prob, args.gamma, args.horizon, seed)
             change = float(np.linalg.norm(obs["trigger"][agent] - obs["trigger_held"][agent]))
             samples.append((change, float(obs["age"][agent, 0]), value))
-            states.append(({key: np.array(v) for key, v in obs.items()}, comm, agent))
-        obs, _, terminated, truncated, _ = env.step({"comm": comm, "control": np.zeros((n, 1))})
+            states.append(({key: np.array(v) for key, v in obs.items()}, broadcast, agent))
+        obs, _, terminated, truncated, _ = env.step({"broadcast": broadcast, "control": np.zeros((n, 1))})
         if terminated or truncated:
             obs, _ = env.reset()
     data = np.asarray(samples)
-    jobs = [(c, args.broadcast_prob, args.comm_cost, args.timesteps, args.seed, states) for c in args.critics]
+    jobs = [(c, args.broadcast_prob, args.broadcast_cost, args.timesteps, args.seed, states) for c in args.critics]
     with multiprocessing.get_context("spawn").Pool(args.workers) as pool:
         estimates = dict(zip(args.critics, pool.map(critic_estimates, jobs), strict=True))
     args.out.parent.mkdir(parents=True, exist_ok=True)
     record = {"settings": {k: str(v) for k, v in vars(args).items()}, "samples": samples}
     record["estimates"] = {c: e.tolist() for c, e in estimates.items()}
     args.out.write_text(json.dumps(record))
-    price = args.comm_cost / n  # a broadcast's cost in team-mean reward
+    price = args.broadcast_cost / n  # a broadcast's cost in team-mean reward
     print(
         f"broadcast probability {args.broadcast_prob}, gamma {args.gamma}, horizon {args.horizon}, "
         f"{len(data)} samples; price of a broadcast in team-mean reward: {price:.4f}"

@@ -22,7 +22,7 @@ Variants (``--variants``):
 * ``afterstate``: as ``sparse`` with the afterstate critic (``critic="afterstate"``);
 * ``afterstate-paper``: as ``paper`` with the afterstate critic;
 * ``afterstate-normalised``: as ``afterstate`` with normalised option advantages
-  (``normalize_option_advantage=True``) and option entropy coefficient 0.03;
+  (``normalize_broadcast_advantage=True``) and option entropy coefficient 0.03;
 * ``centred-normalised``: the same with the centred critic (``critic="centred"``).
 """
 
@@ -41,7 +41,7 @@ import torch as th
 from stable_baselines3.common.env_util import make_vec_env
 
 from sb3_detc import MAPPOC
-from sb3_detc.callbacks import OptionEntropySchedule
+from sb3_detc.callbacks import BroadcastEntropySchedule
 from sb3_detc.envs.linear import LinearSystem, lqr_episode_cost
 from sb3_detc.evaluation import evaluate_communication
 from sb3_detc.triggers import FixedControl, RandomTrigger, lqr_on_held_states, sweep_send_on_delta
@@ -67,8 +67,8 @@ VARIANTS: dict[str, tuple[dict[str, Any], dict[str, float] | None]] = {
         {**BASE, "learning_rate": 1e-4, "reward_scale": 0.01, "policy_kwargs": {"net_arch": [64, 64]}},
         {"initial": 0.1, "final": 0.001, "start": 50, "end": 150},
     ),
-    "sparse": ({**SPARSE, "option_ent_coef": 0.01}, None),
-    "sparse-return": ({**SPARSE, "option_ent_coef": 0.003, "option_advantage": "return"}, None),
+    "sparse": ({**SPARSE, "broadcast_ent_coef": 0.01}, None),
+    "sparse-return": ({**SPARSE, "broadcast_ent_coef": 0.003, "broadcast_advantage": "return"}, None),
 }
 VARIANTS["afterstate"] = (
     {**VARIANTS["sparse"][0], "policy_kwargs": {**SPARSE["policy_kwargs"], "critic": "afterstate"}},
@@ -81,8 +81,8 @@ VARIANTS["afterstate-paper"] = (
 VARIANTS["afterstate-normalised"] = (
     {
         **SPARSE,
-        "option_ent_coef": 0.03,
-        "normalize_option_advantage": True,
+        "broadcast_ent_coef": 0.03,
+        "normalize_broadcast_advantage": True,
         "policy_kwargs": {**SPARSE["policy_kwargs"], "critic": "afterstate"},
     },
     None,
@@ -100,17 +100,17 @@ EVAL_SEED = 10_000
 
 def run(job: tuple[str, int, float, int, int, Path | None]) -> dict[str, Any]:
     """Train one trigger and evaluate it against random skipping and send-on-delta; one table row."""
-    variant, seed, comm_cost, timesteps, episodes, save_dir = job
+    variant, seed, broadcast_cost, timesteps, episodes, save_dir = job
     th.set_num_threads(1)
     settings, schedule = VARIANTS[variant]
-    env_kwargs = {"comm_cost": comm_cost}
+    env_kwargs = {"broadcast_cost": broadcast_cost}
     env = make_vec_env("sb3_detc/LinearETC-v0", n_envs=2, seed=seed, env_kwargs=env_kwargs, wrapper_class=FixedControl)
     model = MAPPOC("MlpHybridPolicy", env, seed=seed, **settings)
     start = time.perf_counter()
-    model.learn(timesteps, callback=OptionEntropySchedule(**schedule) if schedule else None)
+    model.learn(timesteps, callback=BroadcastEntropySchedule(**schedule) if schedule else None)
     seconds = time.perf_counter() - start
     if save_dir is not None:
-        model.save(save_dir / f"{variant}_xi{comm_cost:g}_seed{seed}.zip")
+        model.save(save_dir / f"{variant}_xi{broadcast_cost:g}_seed{seed}.zip")
 
     eval_env = FixedControl(gym.make("sb3_detc/LinearETC-v0", **env_kwargs))
     bound = lqr_episode_cost(LinearSystem())
@@ -119,7 +119,7 @@ def run(job: tuple[str, int, float, int, int, Path | None]) -> dict[str, Any]:
         report = evaluate_communication(model, eval_env, episodes, deterministic=True, seed=EVAL_SEED, **kwargs)
         return -report.mean_control_return * eval_env.unwrapped.n_agents / bound, report.savings
 
-    learned, savings = cost(deterministic_options=False)
+    learned, savings = cost(deterministic_broadcast=False)
     random, _ = cost(fixed_trigger=RandomTrigger(savings, seed=seed))
     curve = sweep_send_on_delta(eval_env.env, lqr_on_held_states(eval_env), DELTAS, n_episodes=episodes, seed=EVAL_SEED)
     order = np.argsort([p.savings for p in curve])
@@ -127,7 +127,7 @@ def run(job: tuple[str, int, float, int, int, Path | None]) -> dict[str, Any]:
     return {
         "variant": variant,
         "seed": seed,
-        "comm_cost": comm_cost,
+        "broadcast_cost": broadcast_cost,
         "timesteps": timesteps,
         "train_seconds": round(seconds, 1),
         "savings": round(savings, 3),
@@ -141,7 +141,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
-    parser.add_argument("--comm-costs", type=float, nargs="+", default=[0.03])
+    parser.add_argument("--broadcast-costs", type=float, nargs="+", default=[0.03])
     parser.add_argument("--timesteps", type=int, default=150_000)
     parser.add_argument("--eval-episodes", type=int, default=100)
     parser.add_argument("--workers", type=int, default=2, help="parallel training processes")
@@ -153,7 +153,7 @@ def main() -> None:
     jobs = [
         (v, seed, xi, args.timesteps, args.eval_episodes, args.save_dir)
         for v in args.variants
-        for xi in args.comm_costs
+        for xi in args.broadcast_costs
         for seed in args.seeds
     ]
     with multiprocessing.get_context("spawn").Pool(args.workers) as pool:
@@ -163,13 +163,13 @@ def main() -> None:
     print(f"{args.timesteps} steps per run, {args.eval_episodes} evaluation episodes")
     print()
     print(
-        "| variant | comm cost | seed | savings | cost learned | cost random, same rate "
+        "| variant | broadcast cost | seed | savings | cost learned | cost random, same rate "
         "| cost send-on-delta, same savings |"
     )
     print("|---|---|---|---:|---:|---:|---:|")
     for row in rows:
         print(
-            f"| {row['variant']} | {row['comm_cost']} | {row['seed']} | {row['savings']:.3f} | "
+            f"| {row['variant']} | {row['broadcast_cost']} | {row['seed']} | {row['savings']:.3f} | "
             f"{row['cost_learned']:.3f} | "
             f"{row['cost_random_same_rate']:.3f} | {row['cost_send_on_delta_same_savings']:.3f} |"
         )

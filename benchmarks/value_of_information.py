@@ -37,12 +37,12 @@ def steady_cost(system: LinearSystem, trigger, steps: int, burn_in: int, seed: i
     held = obs.message.copy()
     costs, broadcasts = [], 0
     for k in range(steps):
-        comm = trigger(obs.message, held, rng)
-        held = hold(held, obs.message, comm)
+        broadcast = trigger(obs.message, held, rng)
+        held = hold(held, obs.message, broadcast)
         obs, rewards, *_ = system.step_arrays(controller.on_views(held, obs.message))
         if k >= burn_in:
             costs.append(-rewards.sum())
-            broadcasts += comm.sum()
+            broadcasts += broadcast.sum()
     return float(np.mean(costs)), broadcasts / ((steps - burn_in) * n)
 
 

@@ -202,17 +202,17 @@ def _check_non_negative(name: str, value: float) -> None:
 
 
 # ----------------------------------------------------------------------------- 2. the network views
-def parallel_env(comm_cost: float = 0.05, trigger: str = "default", **kwargs: Any) -> EventTriggeredNetwork:
+def parallel_env(broadcast_cost: float = 0.05, trigger: str = "default", **kwargs: Any) -> EventTriggeredNetwork:
     """PettingZoo parallel env: the convoy behind the event-triggered network.
 
-    :param comm_cost: reward charged to an agent for every broadcast (default 0.05: a
+    :param broadcast_cost: reward charged to an agent for every broadcast (default 0.05: a
         broadcast right after a turn saves more, one while sailing straight much less)
     :param trigger: features of the policy over options (see :class:`~sb3_detc.envs.EventTriggeredNetwork`);
         the default is the system's, the own heading
     :param kwargs: keyword arguments of :class:`HeadingConsensus`
     :return: the PettingZoo view
     """
-    return EventTriggeredNetwork(HeadingConsensus(**kwargs), comm_cost=comm_cost, trigger=trigger)
+    return EventTriggeredNetwork(HeadingConsensus(**kwargs), broadcast_cost=broadcast_cost, trigger=trigger)
 
 
 def joint_env(**kwargs: Any) -> JointEnv:
@@ -226,7 +226,7 @@ def joint_env(**kwargs: Any) -> JointEnv:
 
 # ----------------------------------------------------------------------------- 3. the Gymnasium id
 # Registered on import, as sb3_detc registers its own ids; keywords of gymnasium.make reach
-# joint_env, e.g. gymnasium.make(ENV_ID, comm_cost=0.1, n_agents=6).
+# joint_env, e.g. gymnasium.make(ENV_ID, broadcast_cost=0.1, n_agents=6).
 if ENV_ID not in gymnasium.registry:
     gymnasium.register(id=ENV_ID, entry_point=joint_env)
 
@@ -254,8 +254,8 @@ def train(timesteps: int, seed: int) -> MAPPOC:
         gamma=0.95,
         reward_scale=0.1,
         team_reward=True,
-        option_ent_coef=0.03,
-        normalize_option_advantage=True,
+        broadcast_ent_coef=0.03,
+        normalize_broadcast_advantage=True,
         policy_kwargs=dict(net_arch=[64, 64], learn_log_std=True, critic="afterstate", age_scale=0.0),
         seed=seed,
         device="cpu",
@@ -319,7 +319,7 @@ def run_decentralised_episode(
         actions = run_decentralised_step(controllers, inboxes, obs, env.system.last_obs.message)
         obs, rewards, _, _, _ = env.step(actions)
         total += float(np.mean(list(rewards.values())))
-        broadcasts += [actions[agent]["comm"] for agent in env.possible_agents]
+        broadcasts += [actions[agent]["broadcast"] for agent in env.possible_agents]
     return total, broadcasts
 
 

@@ -15,7 +15,7 @@ from its own trigger features (package now and at its own last broadcast) whethe
 broadcast; (b) the broadcasters' messages go out on the radio and every walker files them
 in its inbox; (c) every walker views the others' held messages relative to its own current
 message, with their ages, and computes its control; (d) here, the PettingZoo env is
-stepped with ``{walker: {"comm": sent, "control": u}}``. At the start of an episode every
+stepped with ``{walker: {"broadcast": sent, "control": u}}``. At the start of an episode every
 walker's initial message counts as received (age 0), as in the simulated network.
 
 Where a message comes from: a real walker would read its absolute position and velocity
@@ -69,9 +69,9 @@ def run_episode(
         # (d): the plant moves
         obs, rewards, _, _, _ = env.step(actions)
         returns += [rewards[w] for w in walkers]
-        broadcasts += [actions[w]["comm"] for w in walkers]
+        broadcasts += [actions[w]["broadcast"] for w in walkers]
         steps += 1
-    # The PettingZoo infos carry only comm and broadcasts; the package position is in the Box2D world.
+    # The PettingZoo infos carry only broadcast and broadcasts; the package position is in the Box2D world.
     travel = env.system.physics.package.position.x - start_x
     return {"steps": steps, "returns": returns, "travel": travel, "broadcasts": broadcasts}
 

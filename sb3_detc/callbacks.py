@@ -4,7 +4,7 @@ Put them in a :class:`~stable_baselines3.common.callbacks.CallbackList` (or an r
 hyperparameter file, e.g. ``callback: sb3_detc.callbacks.CurriculumCallback``):
 
 * curriculum (Sec. 4 of the method reference): :class:`ActionNoiseSchedule` (phase I),
-  :class:`OptionEntropySchedule` (phase II), :class:`TentNoiseSchedule` (phase III), or
+  :class:`BroadcastEntropySchedule` (phase II), :class:`TentNoiseSchedule` (phase III), or
   all three with the paper's numbers in :class:`CurriculumCallback`;
 * baselines (Sec. 6): :class:`RandomSkipCallback` (the paper's random communication
   skips), :class:`PeriodicCommCallback` (broadcast every step or every k-th step), or any
@@ -37,13 +37,13 @@ from sb3_detc.triggers import PeriodicTrigger, RandomTrigger
 
 __all__ = [
     "PAPER_STEPS_PER_ITERATION",
-    "set_comm_cost",
+    "set_broadcast_cost",
     "ActionNoiseSchedule",
     "CommMetricsCallback",
     "ControlFirstCallback",
     "CurriculumCallback",
     "FixedTriggerCallback",
-    "OptionEntropySchedule",
+    "BroadcastEntropySchedule",
     "PeriodicCommCallback",
     "RandomSkipCallback",
     "TentNoiseSchedule",
@@ -252,15 +252,15 @@ class TentNoiseSchedule(_NoiseSchedule):
         return tent(t, self.start, self.peak, self.end, self.peak_std)
 
 
-class OptionEntropySchedule(_Schedule):
+class BroadcastEntropySchedule(_Schedule):
     """Phase II of the curriculum: decay of the entropy coefficient ``zeta`` of the policy over options.
 
-    Sets ``model.option_ent_coef`` to ``initial`` until ``start``, then linearly to ``final`` at
+    Sets ``model.broadcast_ent_coef`` to ``initial`` until ``start``, then linearly to ``final`` at
     ``end``, then ``final``. The paper's code uses 0.1 until iteration 800 and 0.02 from 1500
     on for an entropy *summed* over minibatches of 32; MAPPOC averages over the minibatch, so
     the defaults are ``32 * 0.1 = 3.2`` and ``32 * 0.02 = 0.64``. Logged as
-    ``curriculum/option_ent_coef``; the update after the rollout uses the same value
-    (``train/option_ent_coef``).
+    ``curriculum/broadcast_ent_coef``; the update after the rollout uses the same value
+    (``train/broadcast_ent_coef``).
 
     :param initial: coefficient until ``start`` (>= 0)
     :param final: coefficient from ``end`` on (>= 0)
@@ -291,17 +291,17 @@ class OptionEntropySchedule(_Schedule):
         return linear_decay(t, self.start, self.end, self.initial, self.final)
 
     def apply(self, t: float) -> None:
-        """Set ``model.option_ent_coef`` to the value of position ``t`` and log it."""
+        """Set ``model.broadcast_ent_coef`` to the value of position ``t`` and log it."""
         value = self.value(t)
-        self.model.option_ent_coef = value
-        self.logger.record("curriculum/option_ent_coef", value)
+        self.model.broadcast_ent_coef = value
+        self.logger.record("curriculum/broadcast_ent_coef", value)
 
 
 class CurriculumCallback(BaseCallback):
     """The paper's three-phase curriculum (Sec. 4) in one callback, with the paper's numbers by default.
 
     * phase I, :class:`ActionNoiseSchedule`: extra action noise 0.25 -> 0 over iterations 0..900;
-    * phase II, :class:`OptionEntropySchedule`: ``zeta`` 3.2 until 800, linear to 0.64 at 1500
+    * phase II, :class:`BroadcastEntropySchedule`: ``zeta`` 3.2 until 800, linear to 0.64 at 1500
       (the paper's 0.1 and 0.02 for a minibatch sum over 32, as a mean);
     * phase III, :class:`TentNoiseSchedule`: extra action noise 0 -> 0.25 over 1500..2000,
       back to 0 at 2500.
@@ -313,7 +313,7 @@ class CurriculumCallback(BaseCallback):
     deviations of independent noises do not add anyway).
 
     Every rollout start logs ``curriculum/action_noise_std``, its terms
-    ``curriculum/noise_decay`` and ``curriculum/noise_tent``, ``curriculum/option_ent_coef``,
+    ``curriculum/noise_decay`` and ``curriculum/noise_tent``, ``curriculum/broadcast_ent_coef``,
     the position ``curriculum/iteration`` (or ``curriculum/timesteps``) and the phase
     ``curriculum/phase``: the latest phase that has started (``"I"`` until phase II starts,
     then ``"II"`` until phase III starts, ...; so ``"II"`` from 800 on although phase I's noise
@@ -353,7 +353,7 @@ class CurriculumCallback(BaseCallback):
         super().__init__(verbose)
         self.unit = _check_unit(unit)
         self.noise = ActionNoiseSchedule(noise_std, end=noise_end, unit=unit)
-        self.entropy = OptionEntropySchedule(ent_initial, ent_final, start=ent_start, end=ent_end, unit=unit)
+        self.entropy = BroadcastEntropySchedule(ent_initial, ent_final, start=ent_start, end=ent_end, unit=unit)
         self.tent = TentNoiseSchedule(tent_std, start=tent_start, peak=tent_peak, end=tent_end, unit=unit)
         self.schedules: tuple[_Schedule, ...] = (self.noise, self.entropy, self.tent)
 
@@ -361,14 +361,14 @@ class CurriculumCallback(BaseCallback):
         """Everything the curriculum sets at position ``t`` and the phase (pure).
 
         :param t: iteration or timestep (as :attr:`unit`)
-        :return: ``action_noise_std``, ``noise_decay``, ``noise_tent``, ``option_ent_coef``, ``phase``
+        :return: ``action_noise_std``, ``noise_decay``, ``noise_tent``, ``broadcast_ent_coef``, ``phase``
         """
         decay, bump = self.noise.value(t), self.tent.value(t)
         return {
             "action_noise_std": max(decay, bump),
             "noise_decay": decay,
             "noise_tent": bump,
-            "option_ent_coef": self.entropy.value(t),
+            "broadcast_ent_coef": self.entropy.value(t),
             "phase": self.phase(t),
         }
 
@@ -483,7 +483,7 @@ class ControlFirstCallback(_Schedule):
         """Put the model into the stage of position ``t`` and log the stage."""
         stage = int(self.value(t))
         self.model.set_fixed_trigger(self.trigger if stage == 1 else None)
-        self.model.set_trained_policies(control_policy=stage == 1, option_policy=stage == 2)
+        self.model.set_trained_policies(control_policy=stage == 1, broadcast_policy=stage == 2)
         if stage == 2 and self.trigger_learning_rate is not None:
             self.model.set_learning_rate(self.trigger_learning_rate)
         if stage == 2 and self.trigger_normalize_reward:
@@ -499,7 +499,7 @@ class FixedTriggerCallback(BaseCallback):
 
     At the start of training: ``model.set_fixed_trigger(trigger)`` (the rollouts take their
     options from it, and ``mu`` is not updated), and,
-    unless ``charge_comm_cost``, the communication cost of every training env is set to 0.
+    unless ``charge_broadcast_cost``, the communication cost of every training env is set to 0.
 
     This is a training *mode*: nothing is restored at the end of training, so a following
     ``learn`` keeps the trigger and the zero cost. The trigger is not saved with the model
@@ -509,36 +509,36 @@ class FixedTriggerCallback(BaseCallback):
 
     :param trigger: callable joint observations (B, N, ...) -> options (B, N), e.g. from
         :mod:`sb3_detc.triggers`
-    :param charge_comm_cost: keep the training envs' communication cost (default: set it to 0)
+    :param charge_broadcast_cost: keep the training envs' communication cost (default: set it to 0)
     :param verbose: verbosity level
     """
 
-    def __init__(self, trigger: Any, charge_comm_cost: bool = False, verbose: int = 0) -> None:
+    def __init__(self, trigger: Any, charge_broadcast_cost: bool = False, verbose: int = 0) -> None:
         if not callable(trigger):
             raise ValueError(f"trigger must be callable (joint observations -> options), got {trigger!r}.")
         super().__init__(verbose)
         self.trigger = trigger
-        self.charge_comm_cost = bool(charge_comm_cost)
+        self.charge_broadcast_cost = bool(charge_broadcast_cost)
 
     def _on_training_start(self) -> None:
         self.model.set_fixed_trigger(self.trigger)
-        if not self.charge_comm_cost:
-            set_comm_cost(self.training_env, 0.0)
+        if not self.charge_broadcast_cost:
+            set_broadcast_cost(self.training_env, 0.0)
 
     def _on_step(self) -> bool:
         return True
 
 
-def set_comm_cost(vec_env: Any, comm_cost: float) -> None:
+def set_broadcast_cost(vec_env: Any, broadcast_cost: float) -> None:
     """Set the communication cost of every env of a VecEnv (through its wrappers).
 
     :param vec_env: a VecEnv of joint sb3_detc envs (:class:`~sb3_detc.envs.wrappers.JointEnv`)
-    :param comm_cost: the new cost per broadcast (>= 0)
-    :raises ValueError: if an env has no ``comm_cost`` (not a joint sb3_detc env)
+    :param broadcast_cost: the new cost per broadcast (>= 0)
+    :raises ValueError: if an env has no ``broadcast_cost`` (not a joint sb3_detc env)
     """
-    done = vec_env.env_method("set_wrapper_attr", "comm_cost", comm_cost, force=False)
+    done = vec_env.env_method("set_wrapper_attr", "broadcast_cost", broadcast_cost, force=False)
     if not all(done):
-        raise ValueError("the training envs have no comm_cost: use joint sb3_detc envs (JointEnv).")
+        raise ValueError("the training envs have no broadcast_cost: use joint sb3_detc envs (JointEnv).")
 
 
 class RandomSkipCallback(FixedTriggerCallback):
@@ -551,14 +551,14 @@ class RandomSkipCallback(FixedTriggerCallback):
 
     :param skip_prob: probability of staying silent (paper: about 0.55; its code: 0.495)
     :param seed: seed of the trigger's random generator (None: the model's seed at training start)
-    :param charge_comm_cost: keep the training envs' communication cost (default: set it to 0)
+    :param charge_broadcast_cost: keep the training envs' communication cost (default: set it to 0)
     :param verbose: verbosity level
     """
 
     def __init__(
-        self, skip_prob: float = 0.55, seed: int | None = None, charge_comm_cost: bool = False, verbose: int = 0
+        self, skip_prob: float = 0.55, seed: int | None = None, charge_broadcast_cost: bool = False, verbose: int = 0
     ) -> None:
-        super().__init__(RandomTrigger(skip_prob, seed), charge_comm_cost, verbose)
+        super().__init__(RandomTrigger(skip_prob, seed), charge_broadcast_cost, verbose)
         self.skip_prob = self.trigger.skip_prob
         self.seed = seed
 
@@ -579,12 +579,12 @@ class PeriodicCommCallback(FixedTriggerCallback):
     See :class:`FixedTriggerCallback` for what changes on the model and the envs (not restored).
 
     :param period: steps between two broadcasts of an agent (integer >= 1)
-    :param charge_comm_cost: keep the training envs' communication cost (default: set it to 0)
+    :param charge_broadcast_cost: keep the training envs' communication cost (default: set it to 0)
     :param verbose: verbosity level
     """
 
-    def __init__(self, period: int = 1, charge_comm_cost: bool = False, verbose: int = 0) -> None:
-        super().__init__(PeriodicTrigger(period), charge_comm_cost, verbose)
+    def __init__(self, period: int = 1, charge_broadcast_cost: bool = False, verbose: int = 0) -> None:
+        super().__init__(PeriodicTrigger(period), charge_broadcast_cost, verbose)
         self.period = self.trigger.period
 
 
@@ -592,7 +592,7 @@ class PeriodicCommCallback(FixedTriggerCallback):
 class CommMetricsCallback(BaseCallback):
     """Communication metrics of every rollout, logged to the SB3 logger (stdout, CSV, TensorBoard, ...).
 
-    Reads ``infos`` and ``dones`` of every step (``info["comm"]``, ``info["agent_rewards"]``,
+    Reads ``infos`` and ``dones`` of every step (``info["broadcast"]``, ``info["agent_rewards"]``,
     ``info["control_rewards"]``, and ``info["package_x"]`` where present). Per rollout:
 
     * ``comm/savings_agent_{i}``: ``Gamma_i = 1 - broadcasts_i / steps`` over the rollout's
@@ -666,14 +666,14 @@ class CommMetricsCallback(BaseCallback):
     def _on_step(self) -> bool:
         infos, dones = self.locals["infos"], self.locals["dones"]
         for e, (info, done) in enumerate(zip(infos, dones, strict=True)):
-            if "comm" not in info:
-                raise ValueError("CommMetricsCallback needs info['comm']: use a joint sb3_detc env (JointEnv).")
-            comm = np.asarray(info["comm"], np.int64)
+            if "broadcast" not in info:
+                raise ValueError("CommMetricsCallback needs info['broadcast']: use a joint sb3_detc env (JointEnv).")
+            broadcast = np.asarray(info["broadcast"], np.int64)
             if self._n_agents is None:
-                self._init_agents(len(comm))
+                self._init_agents(len(broadcast))
             k = self._ep_step[e]
-            self._broadcasts += comm
-            for i in np.flatnonzero(comm):
+            self._broadcasts += broadcast
+            for i in np.flatnonzero(broadcast):
                 if self._last_event[e, i] >= 0:
                     self._intervals[i].append(int(k - self._last_event[e, i]))
                 self._last_event[e, i] = k

@@ -71,7 +71,7 @@ def evaluate_episodes(
     env: gym.Env | str,
     seeds: Sequence[int | None],
     deterministic: bool = True,
-    deterministic_options: bool | None = None,
+    deterministic_broadcast: bool | None = None,
     fixed_trigger: FixedTrigger | None = None,
 ) -> Episodes:
     """Run a policy for whole episodes, one per seed, and record each.
@@ -80,7 +80,7 @@ def evaluate_episodes(
     :param env: a joint env (not vectorised) or its registered id
     :param seeds: the seed of every episode's reset (None: continue the env's generator)
     :param deterministic: mode of ``mu`` and mean of ``pi`` instead of samples
-    :param deterministic_options: mode (True) or samples (False) of ``mu`` whatever
+    :param deterministic_broadcast: mode (True) or samples (False) of ``mu`` whatever
         ``deterministic`` says (None: as ``deterministic``)
     :param fixed_trigger: options to use instead of ``mu``'s (e.g. a
         :class:`~sb3_detc.triggers.RandomTrigger`), with the policy's control policy
@@ -94,7 +94,7 @@ def evaluate_episodes(
         raise ValueError("evaluation needs at least one episode.")
     policy.set_training_mode(False)
     low, high = env.action_space["control"].low, env.action_space["control"].high
-    n_agents = env.action_space["comm"].shape[0]
+    n_agents = env.action_space["broadcast"].shape[0]
     records: dict[str, list] = {field: [] for field in Episodes.__dataclass_fields__}
     for seed in seeds:
         obs, info = env.reset(seed=seed)
@@ -107,15 +107,15 @@ def evaluate_episodes(
                 forced = None
                 if fixed_trigger is not None:
                     forced = th.as_tensor(fixed_trigger(batch), device=policy.device)
-                comm, control = policy.sample_actions(
+                broadcast, control = policy.sample_actions(
                     obs_as_tensor(batch, policy.device),
-                    comm=forced,
+                    broadcast=forced,
                     deterministic=deterministic,
-                    deterministic_options=deterministic_options,
+                    deterministic_broadcast=deterministic_broadcast,
                 )
-            options = comm[0].cpu().numpy()
+            options = broadcast[0].cpu().numpy()
             control = np.clip(control[0].cpu().numpy(), low, high)
-            obs, reward, terminated, truncated, info = env.step({"comm": options, "control": control})
+            obs, reward, terminated, truncated, info = env.step({"broadcast": options, "control": control})
             total += reward
             control_total += float(np.mean(info["control_rewards"]))
             broadcasts += options
@@ -136,7 +136,7 @@ def evaluate_communication(
     env: gym.Env | str,
     n_eval_episodes: int = 10,
     deterministic: bool = True,
-    deterministic_options: bool | None = None,
+    deterministic_broadcast: bool | None = None,
     fixed_trigger: FixedTrigger | None = None,
     seed: int | None = None,
 ) -> CommunicationReport:
@@ -146,7 +146,7 @@ def evaluate_communication(
     :param env: a joint env (not vectorised) or its registered id
     :param n_eval_episodes: number of episodes
     :param deterministic: mode of ``mu`` and mean of ``pi`` instead of samples
-    :param deterministic_options: mode (True) or samples (False) of ``mu`` whatever
+    :param deterministic_broadcast: mode (True) or samples (False) of ``mu`` whatever
         ``deterministic`` says (None: as ``deterministic``)
     :param fixed_trigger: options to use instead of ``mu``'s (e.g. a
         :class:`~sb3_detc.triggers.RandomTrigger`), with the model's control policy
@@ -160,7 +160,7 @@ def evaluate_communication(
         env,
         [seed] + [None] * (n_eval_episodes - 1),
         deterministic=deterministic,
-        deterministic_options=deterministic_options,
+        deterministic_broadcast=deterministic_broadcast,
         fixed_trigger=fixed_trigger,
     )
     agent_rate = episodes.broadcasts.sum(axis=0) / episodes.lengths.sum()

@@ -4,7 +4,7 @@ These are pure functions (arrays in, arrays out). They work unchanged on NumPy a
 on PyTorch tensors, so the environment uses them to advance the network and the policy
 uses them to rebuild every agent's networked observation from a stored observation and a
 vector of options. The agent axis is the second-to-last axis of ``held``/``current``
-and the last axis of ``comm``; any leading axes (environments, time) broadcast.
+and the last axis of ``broadcast``; any leading axes (environments, time) broadcast.
 
 Notation follows the method reference (Kesper, Trimpe and Baumann, L4DC 2023, Sec. 2):
 ``o_i[k]`` option (1 = broadcast), ``m_i[k]`` message, ``x~_i[k]`` held broadcast,
@@ -20,7 +20,7 @@ import numpy as np
 ArrayT = TypeVar("ArrayT")
 
 
-def hold(held: ArrayT, current: ArrayT, comm: ArrayT) -> ArrayT:
+def hold(held: ArrayT, current: ArrayT, broadcast: ArrayT) -> ArrayT:
     """Zero-order hold of broadcasts.
 
     ``x~_i[k] = m_i[k] if o_i[k] = 1 else x~_i[k-1]`` (held broadcast state, Sec. 2).
@@ -30,23 +30,23 @@ def hold(held: ArrayT, current: ArrayT, comm: ArrayT) -> ArrayT:
 
     :param held: held broadcasts before this step, shape (..., N, d)
     :param current: what every agent would broadcast now, shape (..., N, d)
-    :param comm: options of this step in {0, 1}, shape (..., N)
+    :param broadcast: broadcast decisions of this step in {0, 1}, shape (..., N)
     :return: held broadcasts after this step's broadcasts, shape (..., N, d)
     """
-    o = comm[..., None]
+    o = broadcast[..., None]
     return held * (1 - o) + current * o
 
 
-def advance_timer(age: ArrayT, comm: ArrayT) -> ArrayT:
+def advance_timer(age: ArrayT, broadcast: ArrayT) -> ArrayT:
     """Age of information.
 
     ``tau_i[k] = 0 if o_i[k] = 1 else tau_i[k-1] + 1`` (timer, Sec. 2).
 
     :param age: timers before this step, shape (..., N, 1)
-    :param comm: options of this step in {0, 1}, shape (..., N)
+    :param broadcast: broadcast decisions of this step in {0, 1}, shape (..., N)
     :return: timers after this step's broadcasts, shape (..., N, 1)
     """
-    return (age + 1) * (1 - comm[..., None])
+    return (age + 1) * (1 - broadcast[..., None])
 
 
 def others_index(n_agents: int) -> np.ndarray:

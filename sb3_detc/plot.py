@@ -8,7 +8,7 @@ average over ``--window`` iterations (the paper: 50); the runs of one algorithm 
 several seeds) are drawn as their mean and a band from their minimum to their maximum.
 Dashed vertical lines mark the curriculum phases of the first run that logs them
 (``curriculum/phase``, or the start and end of the option entropy decay,
-``curriculum/option_ent_coef``).
+``curriculum/broadcast_ent_coef``).
 """
 
 from __future__ import annotations
@@ -28,6 +28,7 @@ import matplotlib.pyplot as plt  # noqa: E402  (after choosing the file backend)
 import numpy as np  # noqa: E402
 from huggingface_sb3 import EnvironmentName  # noqa: E402
 
+from sb3_detc.renamed import renamed_column  # noqa: E402
 from sb3_detc.zoo import InputError, run_cli  # noqa: E402
 
 __all__ = ["curriculum_phases", "find_runs", "main", "plot_runs", "read_progress", "smooth", "symlog_threshold"]
@@ -54,9 +55,9 @@ def read_progress(run: str | Path) -> dict[str, np.ndarray]:
     for key in rows[0]:
         values = [row.get(key) or "" for row in rows]
         try:
-            columns[key] = np.array([float(v) if v != "" else math.nan for v in values])
+            columns[renamed_column(key)] = np.array([float(v) if v != "" else math.nan for v in values])
         except ValueError:
-            columns[key] = np.array(values)
+            columns[renamed_column(key)] = np.array(values)
     columns["iteration"] = _iterations(columns.pop("time/iterations"), columns.get("time/total_timesteps"))
     return columns
 
@@ -102,8 +103,8 @@ def curriculum_phases(progress: dict[str, np.ndarray]) -> list[tuple[float, str]
 
     From ``curriculum/phase`` (:class:`~sb3_detc.callbacks.CurriculumCallback`) where logged,
     else from ``curriculum/stage`` (:class:`~sb3_detc.callbacks.ControlFirstCallback`: "stage 2"
-    where the policies over options start to learn), else from ``curriculum/option_ent_coef``
-    (:class:`~sb3_detc.callbacks.OptionEntropySchedule`): "entropy decay" where it first leaves
+    where the policies over options start to learn), else from ``curriculum/broadcast_ent_coef``
+    (:class:`~sb3_detc.callbacks.BroadcastEntropySchedule`): "entropy decay" where it first leaves
     its initial value, "decayed" where it first reaches its last logged value after that.
 
     :param progress: a run's columns from :func:`read_progress`
@@ -121,11 +122,11 @@ def curriculum_phases(progress: dict[str, np.ndarray]) -> list[tuple[float, str]
             for j, k in enumerate(logged[1:], start=1)
             if stage[k] != stage[logged[j - 1]]
         ]
-    coef = progress.get("curriculum/option_ent_coef")
+    coef = progress.get("curriculum/broadcast_ent_coef")
     if coef is None or coef.dtype.kind != "f" or not np.isfinite(coef).any():
         return []
     coef = coef[np.isfinite(coef)]
-    iterations = iterations[np.isfinite(progress["curriculum/option_ent_coef"])]
+    iterations = iterations[np.isfinite(progress["curriculum/broadcast_ent_coef"])]
     moved = np.flatnonzero(coef != coef[0])
     if len(moved) == 0:
         return []

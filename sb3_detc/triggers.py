@@ -190,7 +190,7 @@ def evaluate_trigger(
             batch = {key: np.asarray(value)[None] for key, value in obs.items()}
             options = np.asarray(trigger(batch))[0].astype(np.int64)
             controls = control(obs, options)
-            obs, _, terminated, truncated, info = env.step({"comm": options, "control": controls})
+            obs, _, terminated, truncated, info = env.step({"broadcast": options, "control": controls})
             costs[episode] -= float(np.sum(info["control_rewards"]))
             broadcasts += int(options.sum())
             agent_steps += options.size
@@ -213,7 +213,7 @@ def lqr_on_held_states(system_or_env: LinearSystem | gym.Env) -> Control:
     current state. With broadcasts every step it is the centralised LQR controller.
 
     :param system_or_env: a :class:`~sb3_detc.envs.linear.LinearSystem` or a joint env around one
-    :return: ``control(obs, comm)`` -> controls (N, 1)
+    :return: ``control(obs, broadcast)`` -> controls (N, 1)
     :raises ValueError: if no linear system is found
     """
     system = system_or_env
@@ -224,8 +224,8 @@ def lqr_on_held_states(system_or_env: LinearSystem | gym.Env) -> Control:
         raise ValueError(f"lqr_on_held_states needs a LinearSystem or a joint env around one, got {system_or_env!r}.")
     controller = LQRController(system)
 
-    def control(obs: dict[str, np.ndarray], comm: np.ndarray) -> np.ndarray:
-        held = hold(np.asarray(obs["held"]), np.asarray(obs["message"]), np.asarray(comm))
+    def control(obs: dict[str, np.ndarray], broadcast: np.ndarray) -> np.ndarray:
+        held = hold(np.asarray(obs["held"]), np.asarray(obs["message"]), np.asarray(broadcast))
         return controller.on_views(held, obs["local"])
 
     return control
@@ -241,7 +241,7 @@ class FixedControl(gym.Wrapper):
     setting in which send-on-delta is the classic trigger.
 
     :param env: a joint env (:class:`~sb3_detc.envs.wrappers.JointEnv`, possibly wrapped)
-    :param control: the control law ``control(obs, comm) -> controls (N, m)``, or None for
+    :param control: the control law ``control(obs, broadcast) -> controls (N, m)``, or None for
         :func:`lqr_on_held_states` of the env's linear system
     """
 
@@ -265,9 +265,9 @@ class FixedControl(gym.Wrapper):
         """
         if self._obs is None:
             raise RuntimeError("FixedControl: call reset() before step().")
-        comm = np.asarray(action["comm"])
-        control = np.asarray(self.control(self._obs, comm), dtype=self.action_space["control"].dtype)
-        self._obs, reward, terminated, truncated, info = self.env.step({"comm": comm, "control": control})
+        broadcast = np.asarray(action["broadcast"])
+        control = np.asarray(self.control(self._obs, broadcast), dtype=self.action_space["control"].dtype)
+        self._obs, reward, terminated, truncated, info = self.env.step({"broadcast": broadcast, "control": control})
         return self._obs, reward, terminated, truncated, info
 
 

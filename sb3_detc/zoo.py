@@ -124,12 +124,12 @@ def sample_mappoc_params(
         "gamma": trial.suggest_categorical("gamma", [0.95, 0.98, 0.99, 0.995]),
         "gae_lambda": trial.suggest_categorical("gae_lambda", [0.9, 0.95, 0.98]),
         "clip_range": trial.suggest_categorical("clip_range", [0.1, 0.2, 0.3]),
-        "clip_range_option": trial.suggest_categorical("clip_range_option", [0.1, 0.2, 0.3]),
-        "option_ent_coef": trial.suggest_float("option_ent_coef", 1e-4, 1.0, log=True),
+        "clip_range_broadcast": trial.suggest_categorical("clip_range_broadcast", [0.1, 0.2, 0.3]),
+        "broadcast_ent_coef": trial.suggest_float("broadcast_ent_coef", 1e-4, 1.0, log=True),
         "max_grad_norm": trial.suggest_categorical("max_grad_norm", [0.5, 1.0, 5.0]),
         "reward_scale": trial.suggest_float("reward_scale", 1e-3, 1.0, log=True),
         "team_reward": trial.suggest_categorical("team_reward", [False, True]),
-        "normalize_option_advantage": trial.suggest_categorical("normalize_option_advantage", [False, True]),
+        "normalize_broadcast_advantage": trial.suggest_categorical("normalize_broadcast_advantage", [False, True]),
         "net_arch": trial.suggest_categorical("net_arch", list(NET_ARCHS)),
         # the random-skip baseline replaces mu's options: no critic that needs the probabilities they were drawn with
         "critic": trial.suggest_categorical(

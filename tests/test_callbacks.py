@@ -18,16 +18,16 @@ import sb3_detc  # noqa: F401  (registers the env ids)
 from sb3_detc.callbacks import (
     PAPER_STEPS_PER_ITERATION,
     ActionNoiseSchedule,
+    BroadcastEntropySchedule,
     CommMetricsCallback,
     ControlFirstCallback,
     CurriculumCallback,
     FixedTriggerCallback,
-    OptionEntropySchedule,
     PeriodicCommCallback,
     RandomSkipCallback,
     TentNoiseSchedule,
     linear_decay,
-    set_comm_cost,
+    set_broadcast_cost,
     tent,
 )
 from sb3_detc.envs import linear_etc_v0, multiwalker_etc_v0
@@ -60,10 +60,12 @@ def capture_logger(model: MAPPOC) -> Capture:
 
 
 def make_model(
-    n_agents: int = 2, n_envs: int = 1, max_cycles: int = 20, comm_cost: float = 0.01, **kwargs: Any
+    n_agents: int = 2, n_envs: int = 1, max_cycles: int = 20, broadcast_cost: float = 0.01, **kwargs: Any
 ) -> MAPPOC:
     env = make_vec_env(
-        ENV_ID, n_envs=n_envs, env_kwargs={"n_agents": n_agents, "max_cycles": max_cycles, "comm_cost": comm_cost}
+        ENV_ID,
+        n_envs=n_envs,
+        env_kwargs={"n_agents": n_agents, "max_cycles": max_cycles, "broadcast_cost": broadcast_cost},
     )
     kwargs = {"n_steps": 8, "batch_size": 8, "n_epochs": 1, "learning_rate": 1e-3, **kwargs}
     return MAPPOC("MlpHybridPolicy", env, seed=0, policy_kwargs=TINY, **kwargs)
@@ -95,7 +97,7 @@ class Record(BaseCallback):
         self.n_rollouts += 1
 
     def _on_rollout_end(self) -> None:
-        self.zeta.append(float(self.model.option_ent_coef))
+        self.zeta.append(float(self.model.broadcast_ent_coef))
 
 
 # --------------------------------------------------------------------------- pure schedules
@@ -115,10 +117,10 @@ def test_phase_one_noise_decay_paper_values(h: int, sigma: float) -> None:
     ("h", "zeta"), [(0, 3.2), (800, 3.2), (1150, (3.2 + 0.64) / 2), (1500, 0.64), (2000, 0.64), (3000, 0.64)]
 )
 def test_phase_two_entropy_paper_values(h: int, zeta: float) -> None:
-    assert OptionEntropySchedule().value(h) == pytest.approx(zeta, abs=1e-12)
+    assert BroadcastEntropySchedule().value(h) == pytest.approx(zeta, abs=1e-12)
     # The paper's minibatch-sum numbers times the minibatch size 32.
-    assert OptionEntropySchedule().value(0) == pytest.approx(32 * 0.1)
-    assert OptionEntropySchedule().value(1500) == pytest.approx(32 * 0.02)
+    assert BroadcastEntropySchedule().value(0) == pytest.approx(32 * 0.1)
+    assert BroadcastEntropySchedule().value(1500) == pytest.approx(32 * 0.02)
 
 
 @pytest.mark.parametrize(
@@ -152,7 +154,7 @@ def test_curriculum_values_and_phases(h: int, phase: str, noise: float, zeta: fl
     values = CurriculumCallback().values(h)
     assert values["phase"] == phase
     assert values["action_noise_std"] == pytest.approx(noise, abs=1e-12)
-    assert values["option_ent_coef"] == pytest.approx(zeta, abs=1e-12)
+    assert values["broadcast_ent_coef"] == pytest.approx(zeta, abs=1e-12)
     assert values["action_noise_std"] == max(values["noise_decay"], values["noise_tent"])
 
 
@@ -166,7 +168,7 @@ def test_timesteps_unit_defaults_are_the_paper_iterations_times_2048() -> None:
     # Explicit boundaries are taken as timesteps as given.
     noise = ActionNoiseSchedule(initial_std=0.5, end=1000, unit="timesteps")
     assert [noise.value(t) for t in (0, 500, 1000, 2000)] == [0.5, 0.25, 0.0, 0.0]
-    zeta = OptionEntropySchedule(initial=1.0, final=0.0, start=100, end=300, unit="timesteps")
+    zeta = BroadcastEntropySchedule(initial=1.0, final=0.0, start=100, end=300, unit="timesteps")
     assert [zeta.value(t) for t in (0, 100, 200, 300, 400)] == [1.0, 1.0, 0.5, 0.0, 0.0]
     bump = TentNoiseSchedule(peak_std=1.0, start=100, peak=200, end=400, unit="timesteps")
     assert [bump.value(t) for t in (100, 150, 200, 300, 400)] == [0.0, 0.5, 1.0, 0.5, 0.0]
@@ -180,8 +182,8 @@ def test_timesteps_unit_defaults_are_the_paper_iterations_times_2048() -> None:
         (lambda: ActionNoiseSchedule(end=0), "increase"),
         (lambda: ActionNoiseSchedule(start=-1), "start"),
         (lambda: ActionNoiseSchedule(unit="episodes"), "unit"),
-        (lambda: OptionEntropySchedule(final=-1), "final"),
-        (lambda: OptionEntropySchedule(start=1500, end=800), "increase"),
+        (lambda: BroadcastEntropySchedule(final=-1), "final"),
+        (lambda: BroadcastEntropySchedule(start=1500, end=800), "increase"),
         (lambda: TentNoiseSchedule(start=1500, peak=1500, end=2500), "increase"),
         (lambda: TentNoiseSchedule(peak=3000), "increase"),
         (lambda: TentNoiseSchedule(peak_std=-1), "peak_std"),
@@ -217,18 +219,18 @@ def test_curriculum_values_reach_the_model_and_the_logger(unit: str) -> None:
     expected = [reference.values(h) for h in range(n_iterations)]
     # During rollout h the model uses the noise of iteration h; its update uses zeta of iteration h.
     np.testing.assert_allclose(record.noise, [v["action_noise_std"] for v in expected], atol=1e-12)
-    np.testing.assert_allclose(record.zeta, [v["option_ent_coef"] for v in expected], atol=1e-12)
+    np.testing.assert_allclose(record.zeta, [v["broadcast_ent_coef"] for v in expected], atol=1e-12)
     assert len(set(record.noise)) > 3 and len(set(record.zeta)) > 2  # the values really change
     assert len(capture.rows) == n_iterations
     position = "curriculum/iteration" if unit == "iterations" else "curriculum/timesteps"
     for h, (row, values) in enumerate(zip(capture.rows, expected, strict=True)):
         assert row[position] == h * scale
         assert row["curriculum/phase"] == values["phase"]
-        for key in ("action_noise_std", "noise_decay", "noise_tent", "option_ent_coef"):
+        for key in ("action_noise_std", "noise_decay", "noise_tent", "broadcast_ent_coef"):
             assert row[f"curriculum/{key}"] == pytest.approx(values[key], abs=1e-12), (h, key)
         if h > 0:  # train() of iteration h - 1 is dumped with iteration h
             previous = expected[h - 1]
-            assert row["train/option_ent_coef"] == pytest.approx(previous["option_ent_coef"], abs=1e-12)
+            assert row["train/broadcast_ent_coef"] == pytest.approx(previous["broadcast_ent_coef"], abs=1e-12)
             assert row["train/action_noise_std"] == pytest.approx(previous["action_noise_std"], abs=1e-12)
     phases = [row["curriculum/phase"] for row in capture.rows]
     assert phases == ["I"] * 3 + ["II"] * 3 + ["III"] * 4 + ["done"] * 2
@@ -259,7 +261,7 @@ class Stages(BaseCallback):
 
     def _on_rollout_start(self) -> None:
         model = self.model
-        self.rows.append((model.fixed_trigger, model.train_option_policy, model.train_control_policy))
+        self.rows.append((model.fixed_trigger, model.train_broadcast_policy, model.train_control_policy))
 
     def _on_rollout_end(self) -> None:
         self.learning_rates.append(self.model.lr_schedule(self.model._current_progress_remaining))
@@ -291,8 +293,8 @@ def test_control_first_trains_pi_under_random_skips_then_mu_for_the_frozen_pi(un
     assert levels.learning_rates == [1e-3, 1e-3, 5e-4, 5e-4]
     assert model.policy.optimizer.param_groups[0]["lr"] == 5e-4
     # Stage 1: random options at the rate asked for, mu unchanged, pi trained.
-    comm = np.array([info["comm"] for step in record.infos for info in step])
-    assert abs(comm.mean() - 0.3) < 4 * math.sqrt(0.3 * 0.7 / comm.size)
+    broadcast = np.array([info["broadcast"] for step in record.infos for info in step])
+    assert abs(broadcast.mean() - 0.3) < 4 * math.sqrt(0.3 * 0.7 / broadcast.size)
     assert all(th.equal(a, b) for a, b in zip(mu_before, mu_stage_1, strict=True))
     # Stage 2: mu trained, pi exactly as stage 1 left it.
     assert all(th.equal(a, b) for a, b in zip(pi_stage_1, net_slices(model, "pi"), strict=True))
@@ -311,7 +313,7 @@ def test_control_first_without_a_learning_rate_keeps_the_models() -> None:
 def test_control_first_normalises_the_rewards_of_stage_two_only() -> None:
     rewards = []
     for normalise in (True, False):
-        model = make_model(n_steps=8, comm_cost=0.0)
+        model = make_model(n_steps=8, broadcast_cost=0.0)
         stages = ControlFirstCallback(1, trigger_normalize_reward=normalise)
         model.learn(8, callback=stages)
         stage_1 = model.rollout_buffer.rewards.copy()
@@ -327,7 +329,7 @@ def test_control_first_normalises_the_rewards_of_stage_two_only() -> None:
 
 @pytest.mark.parametrize("unit", ["iterations", "timesteps"])
 def test_control_first_measures_the_spread_of_stage_two_on_its_own_returns(unit: str) -> None:
-    model = make_model(n_steps=8, comm_cost=0.0, normalize_reward=True)  # normalised in both stages
+    model = make_model(n_steps=8, broadcast_cost=0.0, normalize_reward=True)  # normalised in both stages
     samples = 8 * model.n_envs  # returns measured per iteration
     switch = 2 if unit == "iterations" else 2 * samples - 3  # within the second rollout of stage 1
     stages = ControlFirstCallback(switch, trigger_normalize_reward=True, unit=unit)
@@ -342,19 +344,19 @@ def test_control_first_measures_the_spread_of_stage_two_on_its_own_returns(unit:
 @pytest.mark.parametrize("skip_prob", [0.55, 0.2])
 def test_random_skip_rate_frozen_mu_and_no_comm_cost(skip_prob: float) -> None:
     n_agents, n_envs, n_steps, n_iterations = 3, 2, 128, 2
-    model = make_model(n_agents=n_agents, n_envs=n_envs, n_steps=n_steps, batch_size=64, comm_cost=0.5)
+    model = make_model(n_agents=n_agents, n_envs=n_envs, n_steps=n_steps, batch_size=64, broadcast_cost=0.5)
     mu_before, pi_before = net_slices(model, "mu"), net_slices(model, "pi")
     record, metrics = Record(), CommMetricsCallback()
     capture = capture_logger(model)
     model.learn(n_steps * n_envs * n_iterations, callback=[RandomSkipCallback(skip_prob), metrics, record])
 
     assert isinstance(model.fixed_trigger, RandomTrigger) and model.fixed_trigger.skip_prob == skip_prob
-    comm = np.array([info["comm"] for step in record.infos for info in step])
-    n = comm.size
+    broadcast = np.array([info["broadcast"] for step in record.infos for info in step])
+    n = broadcast.size
     assert n == n_agents * n_envs * n_steps * n_iterations
     rate = 1 - skip_prob
     tolerance = 4 * math.sqrt(rate * (1 - rate) / n)  # 4 binomial standard deviations
-    assert abs(comm.mean() - rate) < tolerance
+    assert abs(broadcast.mean() - rate) < tolerance
     for row in capture.rows:  # every rollout alone (n / 2 samples)
         assert abs(row["comm/savings"] - skip_prob) < 4 * math.sqrt(rate * (1 - rate) / (n / n_iterations))
 
@@ -364,7 +366,7 @@ def test_random_skip_rate_frozen_mu_and_no_comm_cost(skip_prob: float) -> None:
     assert any(not th.equal(a, b) for a, b in zip(pi_before, net_slices(model, "pi"), strict=True))
 
     # No communication cost charged although the env was made with 0.5 and agents broadcast.
-    assert model.get_env().get_attr("comm_cost") == [0.0] * n_envs
+    assert model.get_env().get_attr("broadcast_cost") == [0.0] * n_envs
     for step in record.infos:
         for info in step:
             np.testing.assert_array_equal(info["agent_rewards"], info["control_rewards"])
@@ -376,7 +378,7 @@ def test_random_skip_seed_defaults_to_the_model_seed() -> None:
         model = make_model(n_steps=16)
         record = Record()
         model.learn(16, callback=[RandomSkipCallback(0.5), record])
-        options.append(np.array([info["comm"] for step in record.infos for info in step]))
+        options.append(np.array([info["broadcast"] for step in record.infos for info in step]))
     np.testing.assert_array_equal(options[0], options[1])
     assert 0 < options[0].mean() < 1
 
@@ -384,18 +386,18 @@ def test_random_skip_seed_defaults_to_the_model_seed() -> None:
 @pytest.mark.parametrize(("period", "charge"), [(1, False), (3, False), (3, True)])
 def test_periodic_comm_callback_broadcasts_every_kth_step_of_each_episode(period: int, charge: bool) -> None:
     max_cycles, n_steps = 7, 32
-    model = make_model(n_agents=3, max_cycles=max_cycles, n_steps=n_steps, comm_cost=0.5)
+    model = make_model(n_agents=3, max_cycles=max_cycles, n_steps=n_steps, broadcast_cost=0.5)
     record = Record()
-    model.learn(n_steps, callback=[PeriodicCommCallback(period, charge_comm_cost=charge), record])
+    model.learn(n_steps, callback=[PeriodicCommCallback(period, charge_broadcast_cost=charge), record])
     assert isinstance(model.fixed_trigger, PeriodicTrigger)
-    comm = np.array([step[0]["comm"] for step in record.infos])  # (steps, agents)
+    broadcast = np.array([step[0]["broadcast"] for step in record.infos])  # (steps, agents)
     step_in_episode = np.arange(n_steps) % max_cycles
     expected = ((step_in_episode + 1) % period == 0).astype(np.int64)  # e.g. period 3: steps 2 and 5 of 0..6
-    np.testing.assert_array_equal(comm, np.repeat(expected[:, None], 3, axis=1))
-    assert model.get_env().get_attr("comm_cost") == [0.5 if charge else 0.0]
+    np.testing.assert_array_equal(broadcast, np.repeat(expected[:, None], 3, axis=1))
+    assert model.get_env().get_attr("broadcast_cost") == [0.5 if charge else 0.0]
     rewards = np.array([step[0]["agent_rewards"] for step in record.infos])
     control = np.array([step[0]["control_rewards"] for step in record.infos])
-    np.testing.assert_allclose(rewards, control - (0.5 if charge else 0.0) * comm)
+    np.testing.assert_allclose(rewards, control - (0.5 if charge else 0.0) * broadcast)
 
 
 def test_fixed_trigger_needs_a_callable_and_joint_envs() -> None:
@@ -405,30 +407,30 @@ def test_fixed_trigger_needs_a_callable_and_joint_envs() -> None:
         RandomSkipCallback(skip_prob=1.5)
     with pytest.raises(ValueError, match="period"):
         PeriodicCommCallback(period=0)
-    with pytest.raises(ValueError, match="comm_cost"):
-        set_comm_cost(DummyVecEnv([lambda: gym.make("CartPole-v1")]), 0.0)
+    with pytest.raises(ValueError, match="broadcast_cost"):
+        set_broadcast_cost(DummyVecEnv([lambda: gym.make("CartPole-v1")]), 0.0)
 
 
 def test_joint_env_comm_cost_property() -> None:
-    env = linear_etc_v0.joint_env(n_agents=2, max_cycles=5, comm_cost=0.3)
-    assert env.comm_cost == 0.3
+    env = linear_etc_v0.joint_env(n_agents=2, max_cycles=5, broadcast_cost=0.3)
+    assert env.broadcast_cost == 0.3
     env.reset(seed=0)
-    comm, control = np.array([1, 0]), np.zeros((2, 1), np.float32)
-    _, _, _, _, info = env.step({"comm": comm, "control": control})
-    np.testing.assert_allclose(info["agent_rewards"], info["control_rewards"] - 0.3 * comm)
-    env.comm_cost = 0.0
-    assert env.network.comm_cost == 0.0
-    _, _, _, _, info = env.step({"comm": comm, "control": control})
+    broadcast, control = np.array([1, 0]), np.zeros((2, 1), np.float32)
+    _, _, _, _, info = env.step({"broadcast": broadcast, "control": control})
+    np.testing.assert_allclose(info["agent_rewards"], info["control_rewards"] - 0.3 * broadcast)
+    env.broadcast_cost = 0.0
+    assert env.network.broadcast_cost == 0.0
+    _, _, _, _, info = env.step({"broadcast": broadcast, "control": control})
     np.testing.assert_array_equal(info["agent_rewards"], info["control_rewards"])
     for bad in (-0.1, math.inf, math.nan):
-        with pytest.raises(ValueError, match="comm_cost"):
-            env.comm_cost = bad
-    assert env.comm_cost == 0.0
+        with pytest.raises(ValueError, match="broadcast_cost"):
+            env.broadcast_cost = bad
+    assert env.broadcast_cost == 0.0
     # Through gym.make's wrappers, Monitor and the VecEnv.
-    vec_env = make_vec_env(ENV_ID, n_envs=2, env_kwargs={"comm_cost": 0.2})
-    set_comm_cost(vec_env, 0.7)
-    assert vec_env.get_attr("comm_cost") == [0.7, 0.7]
-    assert [e.unwrapped.network.comm_cost for e in vec_env.envs] == [0.7, 0.7]
+    vec_env = make_vec_env(ENV_ID, n_envs=2, env_kwargs={"broadcast_cost": 0.2})
+    set_broadcast_cost(vec_env, 0.7)
+    assert vec_env.get_attr("broadcast_cost") == [0.7, 0.7]
+    assert [e.unwrapped.network.broadcast_cost for e in vec_env.envs] == [0.7, 0.7]
 
 
 # --------------------------------------------------------------------------- triggers
@@ -465,11 +467,11 @@ def test_send_on_delta_in_the_network_compares_with_the_own_last_broadcast() -> 
     sent = []
     for _ in range(60):
         expected = (np.linalg.norm(obs["trigger"] - at_last, axis=-1) > 0.3).astype(np.int64)
-        comm = trigger({key: value[None] for key, value in obs.items()})[0]
-        np.testing.assert_array_equal(comm, expected)
-        at_last[comm == 1] = obs["trigger"][comm == 1]
-        sent.append(comm)
-        obs, _, _, _, _ = env.step({"comm": comm, "control": rng.normal(size=(3, 1)).astype(np.float32)})
+        broadcast = trigger({key: value[None] for key, value in obs.items()})[0]
+        np.testing.assert_array_equal(broadcast, expected)
+        at_last[broadcast == 1] = obs["trigger"][broadcast == 1]
+        sent.append(broadcast)
+        obs, _, _, _, _ = env.step({"broadcast": broadcast, "control": rng.normal(size=(3, 1)).astype(np.float32)})
     assert 0 < np.mean(sent) < 1
 
 
@@ -481,10 +483,10 @@ def test_periodic_trigger_drives_a_joint_env_every_kth_step(period: int) -> None
     obs, _ = env.reset(seed=0)
     k = 0
     for _ in range(25):
-        comm = trigger({key: value[None] for key, value in obs.items()})[0]
+        broadcast = trigger({key: value[None] for key, value in obs.items()})[0]
         expected = 1 if (k + 1) % period == 0 else 0  # steps period - 1, 2 period - 1, ... of the episode
-        np.testing.assert_array_equal(comm, [expected] * 3)
-        obs, _, terminated, truncated, _ = env.step({"comm": comm, "control": np.zeros((3, 1), np.float32)})
+        np.testing.assert_array_equal(broadcast, [expected] * 3)
+        obs, _, terminated, truncated, _ = env.step({"broadcast": broadcast, "control": np.zeros((3, 1), np.float32)})
         k += 1
         if terminated or truncated:
             obs, _ = env.reset()
@@ -502,7 +504,7 @@ SENDS = {0: {0, 2, 4, 6, 8, 10, 12, 14, 16, 18, 20, 22}, 1: {1, 4, 5, 9, 11, 13,
 
 def test_comm_metrics_equal_hand_counts_in_a_scripted_run() -> None:
     xi, n_steps = 0.01, 12
-    model = make_model(n_agents=2, max_cycles=5, n_steps=n_steps, comm_cost=xi)
+    model = make_model(n_agents=2, max_cycles=5, n_steps=n_steps, broadcast_cost=xi)
     counter = iter(range(10**6))
 
     def script(obs: dict[str, np.ndarray]) -> np.ndarray:
@@ -599,7 +601,7 @@ def test_comm_metrics_package_travel_and_fall_rate_in_multiwalker() -> None:
     controls = np.array([[[1, 0, -1, 0]] * 3, [[1, 1, 1, 1]] * 3], np.float32)
     travel, fell = [], []
     for _ in range(n_steps):
-        _, _, dones, infos = envs.step([{"comm": np.ones(3, np.int64), "control": u} for u in controls])
+        _, _, dones, infos = envs.step([{"broadcast": np.ones(3, np.int64), "control": u} for u in controls])
         callback.update_locals({"infos": infos, "dones": dones})
         assert callback.on_step()
         for e in np.flatnonzero(dones):
@@ -633,7 +635,7 @@ def test_paper_setup_runs_end_to_end_on_multiwalker() -> None:
     logged = model.logger.name_to_value
     assert model.action_noise_std == pytest.approx(0.25 * (1 - 1 / 900))  # phase I, iteration 1
     assert 0.0 <= logged["comm/savings"] <= 1.0
-    assert logged["train/option_ent_coef"] == pytest.approx(3.2)
+    assert logged["train/broadcast_ent_coef"] == pytest.approx(3.2)
 
 
 @pytest.mark.parametrize("workers", [False, True])

@@ -31,7 +31,10 @@ def joint_obs(n_agents: int = N, steps: int = B) -> dict[str, th.Tensor]:
     visited = []
     for _ in range(steps):
         visited.append(obs)
-        action = {"comm": rng.integers(0, 2, n_agents), "control": rng.uniform(-1, 1, (n_agents, 1)).astype(np.float32)}
+        action = {
+            "broadcast": rng.integers(0, 2, n_agents),
+            "control": rng.uniform(-1, 1, (n_agents, 1)).astype(np.float32),
+        }
         obs, *_ = env.step(action)
     return {key: th.as_tensor(np.stack([o[key] for o in visited])) for key in visited[0]}
 
@@ -66,8 +69,8 @@ def test_policy_holds_the_named_critic(name: str) -> None:
     policy = make_policy(name)
     assert policy.critic == name  # the constructor parameter, saved with the policy
     assert type(policy.option_critic) is CRITICS[name]
-    obs, comm = joint_obs(), th.zeros(B, N, dtype=th.int64)
-    q = policy.chains.run({"q": policy.option_critic.features(policy, obs, comm)})["q"]
+    obs, broadcast = joint_obs(), th.zeros(B, N, dtype=th.int64)
+    q = policy.chains.run({"q": policy.option_critic.features(policy, obs, broadcast)})["q"]
     assert q.shape[-1] == CRITICS[name].outputs
     assert q.shape[:-1] == ((B, 2, N) if CRITICS[name].reads_afterstate else (B, N))
 
@@ -137,11 +140,11 @@ def test_a_registered_critic_is_usable_by_name(monkeypatch: pytest.MonkeyPatch) 
     assert isinstance(policy.option_critic, StateValueCritic)
     assert policy.critic == "state_value"
     obs = joint_obs()
-    comm = th.as_tensor(np.random.default_rng(3).integers(0, 2, (B, N)))
+    broadcast = th.as_tensor(np.random.default_rng(3).integers(0, 2, (B, N)))
     with th.no_grad():
         value = policy.chains.run({"q": policy.critic_features(obs)})["q"][..., 0]
         action = policy(obs)
-        evaluation = policy.evaluate_actions(obs, comm, action.control)
+        evaluation = policy.evaluate_actions(obs, broadcast, action.control)
         state_values = policy.state_values(obs)
     th.testing.assert_close(action.option_values, value[..., None].expand(-1, -1, 2))
     th.testing.assert_close(evaluation.option_values, action.option_values)

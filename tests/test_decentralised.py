@@ -53,14 +53,14 @@ def lockstep(model: MAPPOC, module, kwargs: dict, seed: int, n_steps: int = 40) 
     for _ in range(n_steps):
         expected, _ = model.predict(joint_obs, deterministic=True)
         actions = run_decentralised_step(controllers, inboxes, obs, parallel.system.last_obs.message)
-        comm = np.array([actions[a]["comm"] for a in parallel.possible_agents])
+        broadcast = np.array([actions[a]["broadcast"] for a in parallel.possible_agents])
         control = np.stack([actions[a]["control"] for a in parallel.possible_agents])
-        np.testing.assert_array_equal(comm, expected["comm"])
+        np.testing.assert_array_equal(broadcast, expected["broadcast"])
         np.testing.assert_allclose(control, expected["control"], rtol=0, atol=1e-5)
-        options.append(comm)
+        options.append(broadcast)
 
         # Both envs get the same action, so tiny float differences cannot compound.
-        joint_obs, _, terminated, truncated, _ = joint.step({"comm": comm, "control": control})
+        joint_obs, _, terminated, truncated, _ = joint.step({"broadcast": broadcast, "control": control})
         obs, _, _, _, _ = parallel.step(actions)
         # Every inbox now holds what the network holds.
         messages = parallel.system.last_obs.message
@@ -102,7 +102,7 @@ def test_deterministic_decide_is_the_mode_of_mu(share_parameters: bool) -> None:
     batch = [space.sample() for _ in range(64)]
     obs = {key: th.as_tensor(np.stack([b[key] for b in batch])) for key in space.spaces}
     with th.no_grad():
-        mode = policy(obs, deterministic=True).comm.numpy()  # (B, N) argmax of mu
+        mode = policy(obs, deterministic=True).broadcast.numpy()  # (B, N) argmax of mu
     decided = np.array(
         [
             [policy.agent_controller(i).decide(b["trigger"][i], b["trigger_held"][i]) for i in range(policy.n_agents)]

@@ -42,8 +42,8 @@ def with_examples_on_path() -> dict[str, str]:
 # ----------------------------------------------------------------------------- the system and its views
 def test_importing_registers_the_id(example: ModuleType) -> None:
     assert ENV_ID in gym.registry
-    env = gym.make(ENV_ID, comm_cost=0.2, n_agents=5, max_cycles=7)
-    assert env.unwrapped.network.comm_cost == 0.2 and env.unwrapped.n_agents == 5
+    env = gym.make(ENV_ID, broadcast_cost=0.2, n_agents=5, max_cycles=7)
+    assert env.unwrapped.network.broadcast_cost == 0.2 and env.unwrapped.n_agents == 5
     assert env.observation_space["held"].shape == (5, 1) and env.action_space["control"].shape == (5, 1)
     env.reset(seed=0)
     steps = 0
@@ -125,7 +125,7 @@ def test_same_seed_same_episode(example: ModuleType) -> None:
         obs, _ = env.reset(seed=5)
         headings = [obs["message"]]
         for _ in range(30):
-            obs, *_ = env.step({"comm": np.ones(4, dtype=np.int64), "control": np.full((4, 1), 0.3)})
+            obs, *_ = env.step({"broadcast": np.ones(4, dtype=np.int64), "control": np.full((4, 1), 0.3)})
             headings.append(obs["message"])
         runs.append(np.stack(headings))
     np.testing.assert_array_equal(runs[0], runs[1])

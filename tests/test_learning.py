@@ -25,7 +25,7 @@ SETTINGS = {
     "normalize_reward": True,
     "reward_scale": 1.0,
     "team_reward": True,
-    "option_ent_coef": 0.0,
+    "broadcast_ent_coef": 0.0,
 }
 
 
@@ -37,16 +37,16 @@ def test_option_policy_learns_to_save_costly_communication(critic: str) -> None:
     advantages normalised: the price is tiny in normalised reward units, but mu moves at
     the rate the learning rate sets.
     """
-    env_kwargs = {"comm_cost": 1.0, "max_cycles": 50}
+    env_kwargs = {"broadcast_cost": 1.0, "max_cycles": 50}
     env = make_vec_env(ENV_ID, n_envs=2, seed=0, env_kwargs=env_kwargs, wrapper_class=FixedControl)
     policy_kwargs = {"net_arch": [32, 32], "critic": critic}
     model = MAPPOC(
-        "MlpHybridPolicy", env, seed=0, policy_kwargs=policy_kwargs, normalize_option_advantage=True, **SETTINGS
+        "MlpHybridPolicy", env, seed=0, policy_kwargs=policy_kwargs, normalize_broadcast_advantage=True, **SETTINGS
     )
     eval_env = FixedControl(gym.make(ENV_ID, **env_kwargs))
-    before = evaluate_communication(model, eval_env, 4, deterministic_options=False, seed=1)
+    before = evaluate_communication(model, eval_env, 4, deterministic_broadcast=False, seed=1)
     model.learn(12_000)
-    after = evaluate_communication(model, eval_env, 4, deterministic_options=False, seed=1)
+    after = evaluate_communication(model, eval_env, 4, deterministic_broadcast=False, seed=1)
     assert 0.4 < before.savings < 0.6  # undecided at the start
     assert after.savings > 0.8
     assert after.mean_return > before.mean_return
@@ -54,7 +54,7 @@ def test_option_policy_learns_to_save_costly_communication(critic: str) -> None:
 
 def test_control_policy_learns_with_random_skips() -> None:
     """The control policy learns to stabilise the team: its cost falls far below the untrained policy's."""
-    env_kwargs = {"comm_cost": 0.0, "max_cycles": 50}
+    env_kwargs = {"broadcast_cost": 0.0, "max_cycles": 50}
     env = make_vec_env(ENV_ID, n_envs=2, seed=0, env_kwargs=env_kwargs)
     model = MAPPOC("MlpHybridPolicy", env, seed=0, policy_kwargs={"net_arch": [32, 32]}, **SETTINGS)
     model.set_fixed_trigger(RandomTrigger(0.5, seed=0))

@@ -22,7 +22,7 @@ from sb3_detc.mappoc import MAPPOC, HybridRolloutBuffer, MlpHybridPolicy
 from sb3_detc.mappoc import mappoc as mappoc_module
 from sb3_detc.mappoc.batched import BatchedMLP
 from sb3_detc.mappoc.critics import CRITICS
-from sb3_detc.mappoc.losses import UpdateInputs, clipped_surrogate_loss, greedy_option_advantage, option_gap_scale
+from sb3_detc.mappoc.losses import UpdateInputs, broadcast_gap_scale, clipped_surrogate_loss, greedy_broadcast_advantage
 from sb3_detc.mappoc.policies import NETS
 from sb3_detc.mappoc.steps import FusedGradientStep, GradientStep
 from sb3_detc.triggers import RandomTrigger
@@ -47,7 +47,7 @@ def joint_obs_batch(env: JointEnv, steps: int = 12, seed: int = 0) -> dict[str, 
     visited = []
     for _ in range(steps):
         visited.append(obs)
-        action = {"comm": rng.integers(0, 2, n), "control": rng.uniform(-1, 1, (n, 1)).astype(np.float32)}
+        action = {"broadcast": rng.integers(0, 2, n), "control": rng.uniform(-1, 1, (n, 1)).astype(np.float32)}
         obs, _, terminated, truncated, _ = env.step(action)
         if terminated or truncated:
             obs, _ = env.reset()
@@ -101,8 +101,8 @@ def assert_padding_is_zero(policy: MlpHybridPolicy) -> None:
     [
         {},
         {"deterministic": True},
-        {"deterministic": True, "deterministic_options": False},
-        {"deterministic_options": True},
+        {"deterministic": True, "deterministic_broadcast": False},
+        {"deterministic_broadcast": True},
     ],
 )
 def test_sample_actions_draws_what_forward_draws_in_every_mode(critic: str, modes: dict[str, bool]) -> None:
@@ -113,13 +113,13 @@ def test_sample_actions_draws_what_forward_draws_in_every_mode(critic: str, mode
         th.manual_seed(5)
         action = policy(obs, **modes)
         th.manual_seed(5)
-        comm, control = policy.sample_actions(obs, **modes)
+        broadcast, control = policy.sample_actions(obs, **modes)
         th.manual_seed(6)
         again, _ = policy.sample_actions(obs, **modes)
-    assert th.equal(comm, action.comm)
+    assert th.equal(broadcast, action.broadcast)
     th.testing.assert_close(control, action.control)
-    deterministic_options = modes.get("deterministic_options", modes.get("deterministic", False))
-    assert th.equal(again, comm) == deterministic_options  # modes repeat, 64 x 3 samples do not
+    deterministic_broadcast = modes.get("deterministic_broadcast", modes.get("deterministic", False))
+    assert th.equal(again, broadcast) == deterministic_broadcast  # modes repeat, 64 x 3 samples do not
 
 
 @pytest.mark.parametrize("critic", CRITICS)
@@ -131,24 +131,24 @@ def test_forward_and_evaluate_shapes(n_agents: int, share: bool, critic: str) ->
     b, n = 7, n_agents
     with th.no_grad():
         action = policy(obs)
-    assert action.comm.shape == (b, n) and action.comm.dtype == th.int64
-    assert th.all((action.comm == 0) | (action.comm == 1))
+    assert action.broadcast.shape == (b, n) and action.broadcast.dtype == th.int64
+    assert th.all((action.broadcast == 0) | (action.broadcast == 1))
     assert action.control.shape == (b, n, 1)
-    assert action.log_prob_comm.shape == (b, n) and action.log_prob_control.shape == (b, n)
-    assert th.all(action.log_prob_comm <= 0)
+    assert action.log_prob_broadcast.shape == (b, n) and action.log_prob_control.shape == (b, n)
+    assert th.all(action.log_prob_broadcast <= 0)
     assert action.option_values.shape == (b, n, 2)
 
-    comm = th.as_tensor(np.random.default_rng(1).integers(0, 2, (b, n)))
+    broadcast = th.as_tensor(np.random.default_rng(1).integers(0, 2, (b, n)))
     with th.no_grad():
-        ev = policy.evaluate_actions(obs, comm, action.control)
-    assert ev.log_prob_comm.shape == (b, n) and ev.entropy_comm.shape == (b, n)
+        ev = policy.evaluate_actions(obs, broadcast, action.control)
+    assert ev.log_prob_broadcast.shape == (b, n) and ev.entropy_broadcast.shape == (b, n)
     assert ev.log_prob_control.shape == (b, n) and ev.option_values.shape == (b, n, 2)
-    assert th.all(ev.entropy_comm >= 0) and th.all(ev.entropy_comm <= math.log(2) + 1e-6)
+    assert th.all(ev.entropy_broadcast >= 0) and th.all(ev.entropy_broadcast <= math.log(2) + 1e-6)
     assert policy.state_values(obs).shape == (b, n)
     # Evaluating the sampled options gives back the sampling log-probabilities.
     with th.no_grad():
-        ev_own = policy.evaluate_actions(obs, action.comm, action.control)
-    th.testing.assert_close(ev_own.log_prob_comm, action.log_prob_comm)
+        ev_own = policy.evaluate_actions(obs, action.broadcast, action.control)
+    th.testing.assert_close(ev_own.log_prob_broadcast, action.log_prob_broadcast)
     th.testing.assert_close(ev_own.log_prob_control, action.log_prob_control)
     th.testing.assert_close(ev_own.option_values, action.option_values)
 
@@ -165,9 +165,9 @@ def test_predict_and_tiny_learn(n_agents: int, share: bool) -> None:
     assert isinstance(actions, list) and len(actions) == 2
     controls = []
     for action in actions:
-        assert set(action) == {"comm", "control"}
-        assert action["comm"].shape == (n_agents,)
-        assert set(np.unique(action["comm"])) <= {0, 1}
+        assert set(action) == {"broadcast", "control"}
+        assert action["broadcast"].shape == (n_agents,)
+        assert set(np.unique(action["broadcast"])) <= {0, 1}
         assert action["control"].shape == (n_agents, 1)
         controls.append(action["control"])
     controls = np.concatenate(controls)
@@ -177,10 +177,10 @@ def test_predict_and_tiny_learn(n_agents: int, share: bool) -> None:
     single = {key: value[1] for key, value in obs.items()}
     action, _ = model.predict(single, deterministic=True)
     assert isinstance(action, dict)
-    assert action["comm"].shape == (n_agents,) and action["control"].shape == (n_agents, 1)
+    assert action["broadcast"].shape == (n_agents,) and action["control"].shape == (n_agents, 1)
     # The single observation gives what the batch gives for the same env.
     batch_actions, _ = model.predict(obs, deterministic=True)
-    np.testing.assert_array_equal(action["comm"], batch_actions[1]["comm"])
+    np.testing.assert_array_equal(action["broadcast"], batch_actions[1]["broadcast"])
     np.testing.assert_allclose(action["control"], batch_actions[1]["control"], rtol=1e-5, atol=1e-7)
 
     before = parameters(model)
@@ -199,11 +199,11 @@ def test_shared_parameters_do_not_grow_with_agents() -> None:
     def input_widths(policy: MlpHybridPolicy, n: int) -> dict[str, int]:
         """Feature widths the networks actually receive (plus the one-hot agent id)."""
         obs = joint_obs_batch(linear_etc_v0.joint_env(n_agents=n), steps=2)
-        comm = th.zeros(2, n, dtype=th.int64)
+        broadcast = th.zeros(2, n, dtype=th.int64)
         return {
             "mu": policy.option_features(obs).shape[-1] + n,
             "q": policy.critic_features(obs).shape[-1] + n,
-            "pi": policy.control_features(obs, comm).shape[-1] + n,
+            "pi": policy.control_features(obs, broadcast).shape[-1] + n,
         }
 
     shared = {n: build(n, True) for n in (2, 5)}
@@ -234,12 +234,12 @@ def test_agents_have_independent_networks_without_sharing(critic: str) -> None:
     env = linear_etc_v0.joint_env(n_agents=3)
     policy = make_policy(env, learn_log_std=True, critic=critic)
     obs = joint_obs_batch(env, steps=6)
-    comm = random_options(6, 3, seed=2)
+    broadcast = random_options(6, 3, seed=2)
     control = th.randn(6, 3, 1)
-    ev = policy.evaluate_actions(obs, comm, control)
+    ev = policy.evaluate_actions(obs, broadcast, control)
     loss = (
-        ev.log_prob_comm[:, 0].sum()
-        + ev.entropy_comm[:, 0].sum()
+        ev.log_prob_broadcast[:, 0].sum()
+        + ev.entropy_broadcast[:, 0].sum()
         + ev.log_prob_control[:, 0].sum()
         + ev.option_values[:, 0].sum()
     )
@@ -264,14 +264,14 @@ def test_policy_outputs_match_each_agents_extracted_networks(share: bool, net_ar
     env = linear_etc_v0.joint_env(n_agents=n)
     policy = make_policy(env, share_parameters=share, net_arch=net_arch, critic=critic)
     obs = joint_obs_batch(env, steps=5)
-    comm = random_options(5, n, seed=3)
+    broadcast = random_options(5, n, seed=3)
     if critic == "afterstate":  # both own options side by side on the agent axis' feature rows
-        q_features = policy.afterstate_features(obs, comm)
+        q_features = policy.afterstate_features(obs, broadcast)
     else:
         q_features = policy.critic_features(obs)
-    features = {"mu": policy.option_features(obs), "q": q_features, "pi": policy.control_features(obs, comm)}
+    features = {"mu": policy.option_features(obs), "q": q_features, "pi": policy.control_features(obs, broadcast)}
     with th.no_grad():
-        action = policy(obs, deterministic=True, comm=comm)
+        action = policy(obs, deterministic=True, broadcast=broadcast)
         outputs = {}
         for net in NETS:
             per_agent = []
@@ -289,8 +289,8 @@ def test_policy_outputs_match_each_agents_extracted_networks(share: bool, net_ar
         outputs["q"] = th.cat([value - p * gap, value + (1 - p) * gap], dim=-1)
     th.testing.assert_close(action.option_values, outputs["q"])
     th.testing.assert_close(action.control, outputs["pi"])
-    log_mu = th.log_softmax(outputs["mu"], dim=-1).gather(-1, comm[..., None])[..., 0]
-    th.testing.assert_close(action.log_prob_comm, log_mu)
+    log_mu = th.log_softmax(outputs["mu"], dim=-1).gather(-1, broadcast[..., None])[..., 0]
+    th.testing.assert_close(action.log_prob_broadcast, log_mu)
 
 
 @pytest.mark.parametrize("n_agents", [2, 3])
@@ -298,23 +298,23 @@ def test_afterstate_features_apply_the_network_rule_to_each_own_option(n_agents:
     env = linear_etc_v0.joint_env(n_agents=n_agents)
     policy = make_policy(env, critic="afterstate")
     obs = joint_obs_batch(env, steps=6)
-    comm = random_options(6, n_agents, seed=4)
-    features = policy.afterstate_features(obs, comm)
+    broadcast = random_options(6, n_agents, seed=4)
+    features = policy.afterstate_features(obs, broadcast)
     assert features.shape == (6, 2, n_agents, policy.critic_features(obs).shape[-1])
     for i in range(n_agents):
         for option in (0, 1):
-            options = comm.clone()
+            options = broadcast.clone()
             options[:, i] = option
             held, _ = policy.network_after(obs, options)  # the one rule, applied to the whole team
             expected = policy.critic_features({**obs, "held": held})[:, i]  # ages before the options
             th.testing.assert_close(features[:, option, i], expected)
     # The taken options' afterstate: one feature row per agent, whatever the own option.
-    taken = features.gather(1, comm[:, None, :, None].expand(-1, 1, -1, features.shape[-1]))[:, 0]
-    held, _ = policy.network_after(obs, comm)
+    taken = features.gather(1, broadcast[:, None, :, None].expand(-1, 1, -1, features.shape[-1]))[:, 0]
+    held, _ = policy.network_after(obs, broadcast)
     th.testing.assert_close(taken, policy.critic_features({**obs, "held": held}))
     # A broadcast of what the others already hold leaves the afterstate unchanged.
     unchanged = {**obs, "held": obs["message"].clone()}
-    both = policy.afterstate_features(unchanged, comm)
+    both = policy.afterstate_features(unchanged, broadcast)
     th.testing.assert_close(both[:, 0], both[:, 1])
 
 
@@ -358,10 +358,10 @@ def test_policy_views_equal_the_environments(n_agents: int) -> None:
         obs_t = {key: th.as_tensor(value)[None] for key, value in obs.items()}
         with th.no_grad():
             action = policy(obs_t)
-            held, age = policy.network_after(obs_t, action.comm)
-            features = policy.control_features(obs_t, action.comm)[0].numpy()
-        comm = action.comm[0].numpy()
-        next_obs, *_ = env.step({"comm": comm, "control": np.clip(action.control[0].numpy(), low, high)})
+            held, age = policy.network_after(obs_t, action.broadcast)
+            features = policy.control_features(obs_t, action.broadcast)[0].numpy()
+        broadcast = action.broadcast[0].numpy()
+        next_obs, *_ = env.step({"broadcast": broadcast, "control": np.clip(action.control[0].numpy(), low, high)})
         np.testing.assert_array_equal(held[0].numpy(), next_obs["held"])
         np.testing.assert_array_equal(age[0].numpy(), next_obs["age"])
 
@@ -374,7 +374,7 @@ def test_policy_views_equal_the_environments(n_agents: int) -> None:
                 [view["local"], view["neighbours"].ravel(), view["neighbour_age"] * np.float32(policy.age_scale)]
             )
             np.testing.assert_array_equal(features[i], expected)
-        options.append(comm)
+        options.append(broadcast)
         max_age = max(max_age, float(next_obs["age"].max()))
         obs = next_obs
     options = np.array(options)
@@ -385,31 +385,34 @@ def test_policy_views_equal_the_environments(n_agents: int) -> None:
 # ------------------------------------------------------------ 3. greedy advantage
 def test_greedy_option_advantage_hand_computed() -> None:
     q = th.tensor([[[1.0, 3.0], [2.0, -1.0]], [[0.5, 0.5], [-2.0, 4.0]]], requires_grad=True)
-    comm = th.tensor([[0, 0], [1, 0]])
+    broadcast = th.tensor([[0, 0], [1, 0]])
     expected = th.tensor([[1.0 - 3.0, 0.0], [0.0, -2.0 - 4.0]])
-    advantage = greedy_option_advantage(q, comm)
+    advantage = greedy_broadcast_advantage(q, broadcast)
     th.testing.assert_close(advantage, expected)
     assert advantage.grad_fn is None and not advantage.requires_grad
-    th.testing.assert_close(greedy_option_advantage(q, comm, offset=0.1), expected + 0.1)
+    th.testing.assert_close(greedy_broadcast_advantage(q, broadcast, offset=0.1), expected + 0.1)
     # The greedy option has advantage zero, the other option a negative one.
     greedy = q.argmax(-1)
-    assert th.all(greedy_option_advantage(q, greedy) == 0)
-    assert th.all(greedy_option_advantage(q, 1 - greedy)[th.tensor([[True, True], [False, True]])] < 0)
+    assert th.all(greedy_broadcast_advantage(q, greedy) == 0)
+    assert th.all(greedy_broadcast_advantage(q, 1 - greedy)[th.tensor([[True, True], [False, True]])] < 0)
     # No gradient flows into Q through the advantage.
-    (greedy_option_advantage(q, comm, 0.1).sum() * 3.0 + q.sum()).backward()
+    (greedy_broadcast_advantage(q, broadcast, 0.1).sum() * 3.0 + q.sum()).backward()
     th.testing.assert_close(q.grad, th.ones_like(q))
 
 
 def test_option_gap_scale_makes_greedy_advantages_scale_free() -> None:
     q = th.randn(64, 3, 2, generator=th.Generator().manual_seed(0), dtype=th.float64)
-    comm = th.randint(0, 2, (64, 3), generator=th.Generator().manual_seed(1))
+    broadcast = th.randint(0, 2, (64, 3), generator=th.Generator().manual_seed(1))
     gap = q[..., 1] - q[..., 0]
-    th.testing.assert_close(option_gap_scale(q), gap.pow(2).mean(0).sqrt() + 1e-8)
-    normalised = greedy_option_advantage(q, comm) / option_gap_scale(q)
+    th.testing.assert_close(broadcast_gap_scale(q), gap.pow(2).mean(0).sqrt() + 1e-8)
+    normalised = greedy_broadcast_advantage(q, broadcast) / broadcast_gap_scale(q)
     for factor in (1e-2, 7.0):  # rewards in other units: the same normalised advantages
         scaled = factor * q + 3.0
         th.testing.assert_close(
-            greedy_option_advantage(scaled, comm) / option_gap_scale(scaled), normalised, rtol=1e-4, atol=1e-6
+            greedy_broadcast_advantage(scaled, broadcast) / broadcast_gap_scale(scaled),
+            normalised,
+            rtol=1e-4,
+            atol=1e-6,
         )
 
 
@@ -419,12 +422,12 @@ def test_centred_critic_option_values(n_agents: int) -> None:
     env = linear_etc_v0.joint_env(n_agents=n_agents)
     policy = make_policy(env, critic="centred")
     obs = joint_obs_batch(env, steps=7)
-    comm = random_options(7, n_agents, seed=5)
+    broadcast = random_options(7, n_agents, seed=5)
     price = th.rand(7, n_agents, generator=th.Generator().manual_seed(2))
     p = th.rand(7, n_agents, generator=th.Generator().manual_seed(3))
     with th.no_grad():
         value, gap = policy.chains.run({"q": policy.critic_features(obs)})["q"].unbind(-1)
-        q = policy.evaluate_actions(obs, comm, th.zeros(7, n_agents, 1), price, p).option_values
+        q = policy.evaluate_actions(obs, broadcast, th.zeros(7, n_agents, 1), price, p).option_values
         state_values = policy.state_values(obs, price)
     th.testing.assert_close(q[..., 1] - q[..., 0], gap - price)
     th.testing.assert_close(p * q[..., 1] + (1 - p) * q[..., 0], value)
@@ -436,15 +439,15 @@ def test_centred_critic_option_values(n_agents: int) -> None:
 @pytest.mark.parametrize("team_reward", [False, True])
 def test_comm_price_is_what_a_broadcast_takes_from_the_learners_reward(team_reward: bool) -> None:
     """The price the critics add analytically equals the reward change of one broadcast, in the learner's units."""
-    env = linear_etc_v0.joint_env(comm_cost=0.4)
+    env = linear_etc_v0.joint_env(broadcast_cost=0.4)
     model = MAPPOC(
         "MlpHybridPolicy", env, n_steps=8, batch_size=8, reward_scale=0.1, team_reward=team_reward, policy_kwargs=TINY
     )
     env.reset(seed=3)
     control = np.zeros((3, 1), dtype=np.float32)
     rewards = []
-    for comm in (np.array([0, 1, 0]), np.array([0, 0, 0])):  # agent 1 broadcasts or not, everything else equal
-        _, _, _, _, info = copy.deepcopy(env).step({"comm": comm, "control": control})
+    for broadcast in (np.array([0, 1, 0]), np.array([0, 0, 0])):  # agent 1 broadcasts or not, everything else equal
+        _, _, _, _, info = copy.deepcopy(env).step({"broadcast": broadcast, "control": control})
         agent_rewards = model.reward_scale * np.asarray(info["agent_rewards"])
         rewards.append(np.full(3, agent_rewards.mean()) if team_reward else agent_rewards)
     price = model.reward_transform.price(np.array([0.4], dtype=np.float32))[0]
@@ -597,10 +600,10 @@ def test_save_load_round_trip(tmp_path) -> None:
         n_agents=2,
         n_envs=1,
         share_parameters=True,
-        option_ent_coef=0.3,
+        broadcast_ent_coef=0.3,
         reward_scale=0.25,
-        option_advantage_offset=0.1,
-        clip_range_option=0.15,
+        broadcast_advantage_offset=0.1,
+        clip_range_broadcast=0.15,
     )
     model.learn(16)
     path = tmp_path / "mappoc.zip"
@@ -611,10 +614,10 @@ def test_save_load_round_trip(tmp_path) -> None:
     assert saved.keys() == restored.keys()
     for key in saved:
         assert th.equal(saved[key], restored[key]), key
-    assert loaded.option_ent_coef == 0.3
+    assert loaded.broadcast_ent_coef == 0.3
     assert loaded.reward_scale == 0.25
-    assert loaded.option_advantage_offset == 0.1
-    assert loaded.clip_range_option == 0.15
+    assert loaded.broadcast_advantage_offset == 0.1
+    assert loaded.clip_range_broadcast == 0.15
     assert loaded.policy.share_parameters is True
     assert loaded.policy_kwargs["share_parameters"] is True
     assert loaded.n_agents == 2
@@ -623,7 +626,7 @@ def test_save_load_round_trip(tmp_path) -> None:
     expected, _ = model.predict(obs, deterministic=True)
     got, _ = loaded.predict(obs, deterministic=True)
     for a, b in zip(expected, got, strict=True):
-        np.testing.assert_array_equal(a["comm"], b["comm"])
+        np.testing.assert_array_equal(a["broadcast"], b["broadcast"])
         np.testing.assert_array_equal(a["control"], b["control"])
     loaded.learn(16)  # the loaded model keeps training
 
@@ -649,7 +652,7 @@ def test_a_policy_saved_alone_loads_alone(tmp_path, critic: str) -> None:
     th.manual_seed(1)
     got, _ = loaded.predict(obs, deterministic=True)
     for a, b in zip(expected, got, strict=True):
-        np.testing.assert_array_equal(a["comm"], b["comm"])
+        np.testing.assert_array_equal(a["broadcast"], b["broadcast"])
         np.testing.assert_array_equal(a["control"], b["control"])
 
 
@@ -667,7 +670,7 @@ def test_predict_on_a_reset_tuple_says_which_apis_are_mixed() -> None:
         model.predict(env.reset(seed=0))
     obs, _ = env.reset(seed=0)
     action, _ = model.predict(obs)
-    assert set(action) == {"comm", "control"}
+    assert set(action) == {"broadcast", "control"}
 
 
 # ------------------------------------------------------------------ 5b. torch.compile
@@ -676,16 +679,16 @@ def test_compiled_sampling_and_loss_match_eager(tmp_path) -> None:
 
     With the afterstate critic (the option heads' compiled step is checked against the eager one below).
     """
-    settings = {"torch_compile": True, "normalize_option_advantage": True, "policy_kwargs": {"critic": "afterstate"}}
+    settings = {"torch_compile": True, "normalize_broadcast_advantage": True, "policy_kwargs": {"critic": "afterstate"}}
     model = make_model(n_agents=3, n_envs=2, **settings)
     model.learn(64)  # compiled rollouts and updates
     assert isinstance(model.gradient_step, FusedGradientStep)
 
     rollout = model.rollout_buffer.tensors()
     update = UpdateInputs(
-        model.policy.training_inputs(rollout.observations, rollout.comm),
+        model.policy.training_inputs(rollout.observations, rollout.broadcast),
         rollout._replace(observations={}),
-        th.full_like(rollout.old_log_prob_comm, 0.5),
+        th.full_like(rollout.old_log_prob_broadcast, 0.5),
         0.2,
         0.1,
         0.05,
@@ -708,8 +711,8 @@ def test_compiled_sampling_and_loss_match_eager(tmp_path) -> None:
     obs = {key: th.as_tensor(value) for key, value in model.get_env().reset().items()}
     price = th.full((2, 3), 0.1)
     with th.no_grad():
-        compiled = th.compile(model.policy.forward)(obs, deterministic=True, comm_price=price)
-        eager = model.policy(obs, deterministic=True, comm_price=price)
+        compiled = th.compile(model.policy.forward)(obs, deterministic=True, broadcast_price=price)
+        eager = model.policy(obs, deterministic=True, broadcast_price=price)
     for got, expected in zip(compiled, eager, strict=True):
         th.testing.assert_close(got, expected)
 
@@ -753,7 +756,7 @@ def test_fused_gradient_step_is_not_recompiled_when_schedules_change() -> None:
     # Scheduled scalars (zeta, clip ranges) enter the compiled step as tensors; were they compiled
     # in, each new value would recompile it, and past the limit the eager fallback fails on a CPU.
     th._dynamo.reset()  # forget what other tests compiled: only this model's compilations count
-    model = make_model(torch_compile=True, option_ent_coef=lambda p: p, clip_range=lambda p: 0.1 + 0.1 * p)
+    model = make_model(torch_compile=True, broadcast_ent_coef=lambda p: p, clip_range=lambda p: 0.1 + 0.1 * p)
     with th._dynamo.config.patch(recompile_limit=1):
         model.learn(16 * 6)
     assert model.num_timesteps == 96
@@ -898,19 +901,21 @@ def test_pettingzoo_network_is_adapted_to_the_joint_view() -> None:
     views, _ = parallel.reset(seed=0)  # the wrapped PettingZoo env is still usable on its own
     assert set(views) == set(parallel.possible_agents)
     action, _ = model.predict(model.env.reset(), deterministic=True)
-    assert action[0]["comm"].shape == (3,) and action[0]["control"].shape == (3, 1)
+    assert action[0]["broadcast"].shape == (3,) and action[0]["control"].shape == (3, 1)
 
 
 # ---------------------------------------------------- 9. frozen mu, fixed trigger
-@pytest.mark.parametrize(("train_control_policy", "train_option_policy"), [(True, False), (False, True), (True, True)])
-def test_policy_level_switches(train_control_policy: bool, train_option_policy: bool) -> None:
+@pytest.mark.parametrize(
+    ("train_control_policy", "train_broadcast_policy"), [(True, False), (False, True), (True, True)]
+)
+def test_policy_level_switches(train_control_policy: bool, train_broadcast_policy: bool) -> None:
     """A level that is switched off stays exactly as it was, also after it was trained (Adam's momentum)."""
     model = make_model(n_agents=2, n_epochs=2, batch_size=8)
     model.learn(32)  # both levels train: the optimizer has momentum for both
-    model.train_control_policy, model.train_option_policy = train_control_policy, train_option_policy
+    model.train_control_policy, model.train_broadcast_policy = train_control_policy, train_broadcast_policy
     mu_before, pi_before = net_slices(model.policy, "mu"), net_slices(model.policy, "pi")
     model.learn(32)
-    for net, before, trained in (("mu", mu_before, train_option_policy), ("pi", pi_before, train_control_policy)):
+    for net, before, trained in (("mu", mu_before, train_broadcast_policy), ("pi", pi_before, train_control_policy)):
         unchanged = all(th.equal(a, b) for a, b in zip(before, net_slices(model.policy, net), strict=True))
         assert unchanged is (not trained), net
 
@@ -926,7 +931,7 @@ def test_fixed_trigger_drives_the_rollouts() -> None:
     buffer = model.rollout_buffer
     expected = (buffer.observations["local"][..., 0] > 0).astype(np.int64)
     assert 0 < expected.mean() < 1  # the trigger is not constant
-    np.testing.assert_array_equal(buffer.comm, expected)
+    np.testing.assert_array_equal(buffer.broadcast, expected)
     # The next stored observation shows the overridden options' timers (within episodes).
     age = buffer.observations["age"][..., 0]
     within = buffer.episode_starts[1:] == 0
@@ -938,26 +943,26 @@ def test_option_advantages_subtract_the_state_value_under_mu() -> None:
     """V(s) = mu(taken) Q(taken) + mu(other) Q(other); option advantage = lambda-return - V(s)."""
     buffer = gae_buffer(1, n_envs=1, gamma=0.9, gae_lambda=0.8)
     obs = {key: np.zeros((1, *space.shape), np.float32) for key, space in buffer.observation_space.spaces.items()}
-    comm = np.array([[1, 0]])
+    broadcast = np.array([[1, 0]])
     option_values = np.array([[[2.0, 6.0], [3.0, -1.0]]], np.float32)  # taken: 6.0 (agent 0), 3.0 (agent 1)
     log_prob = np.log(np.array([[0.25, 0.5]], np.float32))
     buffer.add(
-        obs, comm, np.zeros((1, 2, 1)), np.array([[1.0, 1.0]]), np.array([1.0]), option_values, log_prob, log_prob
+        obs, broadcast, np.zeros((1, 2, 1)), np.array([[1.0, 1.0]]), np.array([1.0]), option_values, log_prob, log_prob
     )
     buffer.compute_returns_and_advantage(last_values=np.array([[0.0, 0.0]], np.float32), dones=np.array([1]))
     np.testing.assert_allclose(buffer.values[0, 0], [6.0, 3.0])
     np.testing.assert_allclose(buffer.state_values[0, 0], [0.25 * 6 + 0.75 * 2, 0.5 * 3 + 0.5 * -1])
     np.testing.assert_allclose(buffer.returns[0, 0], [1.0, 1.0])
-    np.testing.assert_allclose(buffer.option_advantages[0, 0], [1.0 - 3.0, 1.0 - 1.0])
+    np.testing.assert_allclose(buffer.broadcast_advantages[0, 0], [1.0 - 3.0, 1.0 - 1.0])
 
 
 def test_option_advantage_modes() -> None:
-    with pytest.raises(ValueError, match="option_advantage"):
-        MAPPOC("MlpHybridPolicy", "sb3_detc/LinearETC-v0", option_advantage="best")
+    with pytest.raises(ValueError, match="broadcast_advantage"):
+        MAPPOC("MlpHybridPolicy", "sb3_detc/LinearETC-v0", broadcast_advantage="best")
     model = MAPPOC(
         "MlpHybridPolicy",
         "sb3_detc/LinearETC-v0",
-        option_advantage="return",
+        broadcast_advantage="return",
         n_steps=32,
         batch_size=16,
         n_epochs=2,
@@ -970,8 +975,8 @@ def test_option_advantage_modes() -> None:
     after = model.policy.chains.agent_weights("mu")[0]
     assert not th.equal(before, after)
     buffer = model.rollout_buffer
-    np.testing.assert_allclose(buffer.option_advantages, buffer.returns - buffer.state_values, rtol=1e-6)
-    taken = np.take_along_axis(buffer.option_values, buffer.comm[..., None], axis=-1)[..., 0]
+    np.testing.assert_allclose(buffer.broadcast_advantages, buffer.returns - buffer.state_values, rtol=1e-6)
+    taken = np.take_along_axis(buffer.option_values, buffer.broadcast[..., None], axis=-1)[..., 0]
     np.testing.assert_array_equal(buffer.values, taken)
 
 
@@ -1025,10 +1030,10 @@ def test_options_are_sampled_with_mu_probabilities() -> None:
     batch = {key: th.as_tensor(np.repeat(value, 20000, axis=0)) for key, value in obs.items()}
     with th.no_grad():
         action = policy(batch)
-    rate = action.comm.float().mean(0).numpy()
+    rate = action.broadcast.float().mean(0).numpy()
     np.testing.assert_allclose(rate, 0.3, atol=0.015)
-    expected = np.where(action.comm.numpy() == 1, math.log(0.3), math.log(0.7))
-    np.testing.assert_allclose(action.log_prob_comm.numpy(), expected, rtol=1e-5)
+    expected = np.where(action.broadcast.numpy() == 1, math.log(0.3), math.log(0.7))
+    np.testing.assert_allclose(action.log_prob_broadcast.numpy(), expected, rtol=1e-5)
 
 
 def test_team_reward_trains_every_agent_on_the_mean_reward() -> None:
@@ -1047,7 +1052,7 @@ def test_broadcast_prob_init_sets_the_untrained_broadcast_rate(share: bool, p: f
     obs = model.env.reset()
     batch = {key: th.as_tensor(np.repeat(value, 20000, axis=0)) for key, value in obs.items()}
     with th.no_grad():
-        rate = model.policy(batch).comm.float().mean(0).numpy()
+        rate = model.policy(batch).broadcast.float().mean(0).numpy()
     # The output weights are small (gain 0.01), so the bias sets the rate up to a small spread.
     np.testing.assert_allclose(rate, p, atol=0.02)
 

@@ -92,12 +92,12 @@ def test_a_fixed_trigger_decides_and_mu_is_not_trained() -> None:
     model = make_model(fixed_trigger=lambda obs: np.ones((1, 2), np.int64))
     mu = [view.clone() for view in model.policy.net_parameters("mu")]
     model.learn(32)
-    assert model.rollout_buffer.comm.all()
+    assert model.rollout_buffer.broadcast.all()
     for before, after in zip(mu, model.policy.net_parameters("mu"), strict=True):
         assert th.equal(before, after)
     model.set_fixed_trigger(None)
     model.learn(32)
-    assert not model.rollout_buffer.comm.all()
+    assert not model.rollout_buffer.broadcast.all()
     assert not all(th.equal(a, b) for a, b in zip(mu, model.policy.net_parameters("mu"), strict=True))
     with pytest.raises(ValueError, match="must be callable"):
         model.set_fixed_trigger(0.5)
@@ -105,7 +105,7 @@ def test_a_fixed_trigger_decides_and_mu_is_not_trained() -> None:
 
 def test_trained_policies_are_chosen_by_level() -> None:
     model = make_model()
-    model.set_trained_policies(control_policy=False, option_policy=True)
+    model.set_trained_policies(control_policy=False, broadcast_policy=True)
     pi, mu = ([view.clone() for view in model.policy.net_parameters(net)] for net in ("pi", "mu"))
     model.learn(32)
     assert all(th.equal(a, b) for a, b in zip(pi, model.policy.net_parameters("pi"), strict=True))
@@ -180,6 +180,6 @@ def test_bad_arguments_with_an_env_id_start_no_worker_processes() -> None:
     before = set(multiprocessing.active_children())
     with pytest.raises(ValueError, match="batch_size must be a positive integer"):
         MAPPOC("MlpHybridPolicy", ENV_ID, batch_size=0)
-    with pytest.raises(ValueError, match="option_advantage must be"):
-        MAPPOC("MlpHybridPolicy", ENV_ID, option_advantage="best")
+    with pytest.raises(ValueError, match="broadcast_advantage must be"):
+        MAPPOC("MlpHybridPolicy", ENV_ID, broadcast_advantage="best")
     assert set(multiprocessing.active_children()) == before

@@ -44,9 +44,9 @@ def histories(draw):
 def test_held_is_message_at_last_broadcast_and_age_counts_steps(history):
     messages, options = history
     held, age = messages[0].copy(), np.zeros((messages.shape[1], 1))
-    for k, comm in enumerate(options):
-        held = hold(held, messages[k + 1], comm)
-        age = advance_timer(age, comm)
+    for k, broadcast in enumerate(options):
+        held = hold(held, messages[k + 1], broadcast)
+        age = advance_timer(age, broadcast)
     expected_held, expected_age = reference_network(messages, options)
     np.testing.assert_array_equal(held, expected_held)  # exact, not approximately
     np.testing.assert_array_equal(age, expected_age)
@@ -58,11 +58,11 @@ def test_numpy_and_torch_give_identical_results(history):
     messages, options = history
     held_np, age_np = messages[0], np.zeros((messages.shape[1], 1))
     held_t, age_t = torch.as_tensor(messages[0]), torch.zeros(messages.shape[1], 1, dtype=torch.float64)
-    for k, comm in enumerate(options):
-        held_np, age_np = hold(held_np, messages[k + 1], comm), advance_timer(age_np, comm)
-        comm_t = torch.as_tensor(comm, dtype=torch.float64)
-        held_t = hold(held_t, torch.as_tensor(messages[k + 1]), comm_t)
-        age_t = advance_timer(age_t, comm_t)
+    for k, broadcast in enumerate(options):
+        held_np, age_np = hold(held_np, messages[k + 1], broadcast), advance_timer(age_np, broadcast)
+        broadcast_t = torch.as_tensor(broadcast, dtype=torch.float64)
+        held_t = hold(held_t, torch.as_tensor(messages[k + 1]), broadcast_t)
+        age_t = advance_timer(age_t, broadcast_t)
     np.testing.assert_array_equal(held_t.numpy(), held_np)
     np.testing.assert_array_equal(age_t.numpy(), age_np)
 
@@ -70,12 +70,12 @@ def test_numpy_and_torch_give_identical_results(history):
 def test_rule_broadcasts_over_leading_axes():
     rng = np.random.default_rng(0)
     held, current = rng.normal(size=(5, 7, 3, 2)), rng.normal(size=(5, 7, 3, 2))
-    comm = rng.integers(0, 2, size=(5, 7, 3))
-    out = hold(held, current, comm)
+    broadcast = rng.integers(0, 2, size=(5, 7, 3))
+    out = hold(held, current, broadcast)
     for idx in np.ndindex(5, 7, 3):
-        np.testing.assert_array_equal(out[idx], current[idx] if comm[idx] else held[idx])
+        np.testing.assert_array_equal(out[idx], current[idx] if broadcast[idx] else held[idx])
     age = rng.integers(0, 9, size=(5, 7, 3, 1)).astype(float)
-    np.testing.assert_array_equal(advance_timer(age, comm)[..., 0], np.where(comm == 1, 0, age[..., 0] + 1))
+    np.testing.assert_array_equal(advance_timer(age, broadcast)[..., 0], np.where(broadcast == 1, 0, age[..., 0] + 1))
 
 
 def test_others_index_lists_every_other_agent_once():

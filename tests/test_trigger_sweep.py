@@ -74,9 +74,9 @@ def test_lqr_on_held_states_with_periodic_broadcasts_is_centralised_lqr(env):
 
 def test_lqr_on_held_states_accepts_system_and_env(env):
     obs, _ = env.reset(seed=0)
-    comm = np.array([1, 0, 1])
-    from_env = lqr_on_held_states(env)(obs, comm)
-    from_system = lqr_on_held_states(env.unwrapped.network.system)(obs, comm)
+    broadcast = np.array([1, 0, 1])
+    from_env = lqr_on_held_states(env)(obs, broadcast)
+    from_system = lqr_on_held_states(env.unwrapped.network.system)(obs, broadcast)
     np.testing.assert_array_equal(from_env, from_system)
     assert from_env.shape == (3, 1)
     with pytest.raises(ValueError, match="LinearSystem"):
@@ -133,12 +133,12 @@ def test_fixed_control_replaces_the_controls_by_the_law(env):
         obs, _ = fixed.reset(seed=11 + episode)
         cost, done = 0.0, False
         while not done:
-            comm = trigger({key: value[None] for key, value in obs.items()})[0]
+            broadcast = trigger({key: value[None] for key, value in obs.items()})[0]
             junk = rng.normal(size=fixed.action_space["control"].shape).astype(np.float32) * 5
-            obs, _, terminated, truncated, info = fixed.step({"comm": comm, "control": junk})
+            obs, _, terminated, truncated, info = fixed.step({"broadcast": broadcast, "control": junk})
             cost -= float(np.sum(info["control_rewards"]))
-            broadcasts += int(np.sum(comm))
-            steps += comm.size
+            broadcasts += int(np.sum(broadcast))
+            steps += broadcast.size
             done = terminated or truncated
         costs.append(cost)
     np.testing.assert_allclose(np.mean(costs), point.cost, rtol=1e-6)

@@ -28,7 +28,7 @@ def make(workers: bool, vec_env_cls: type = DummyVecEnv, **kwargs: Any) -> MAPPO
         ENV_ID,
         n_envs=2,
         seed=3,
-        env_kwargs={"n_agents": 3, "max_cycles": 20, "comm_cost": 0.05},
+        env_kwargs={"n_agents": 3, "max_cycles": 20, "broadcast_cost": 0.05},
         vec_env_cls=vec_env_cls,
         wrapper_class=RolloutWorker if workers else None,
     )
@@ -55,9 +55,9 @@ def test_worker_rollouts_fill_the_buffer_like_rollouts_in_the_learner(normalize_
     assert plain.episode_starts[1:].any()  # episodes of 20 steps ended inside the rollout
     for key in plain.observations:
         np.testing.assert_allclose(worker.observations[key], plain.observations[key], atol=1e-5)
-    np.testing.assert_array_equal(worker.comm, plain.comm)
-    assert not periodic or 0.6 < 1 - worker.comm.mean() < 0.7  # broadcasts at every third step
-    for name in ("control", "rewards", "values", "returns", "advantages", "log_prob_comm", "comm_price"):
+    np.testing.assert_array_equal(worker.broadcast, plain.broadcast)
+    assert not periodic or 0.6 < 1 - worker.broadcast.mean() < 0.7  # broadcasts at every third step
+    for name in ("control", "rewards", "values", "returns", "advantages", "log_prob_broadcast", "broadcast_price"):
         np.testing.assert_allclose(getattr(worker, name), getattr(plain, name), rtol=1e-4, atol=1e-5, err_msg=name)
     np.testing.assert_array_equal(worker.episode_starts, plain.episode_starts)
     a, b = models
@@ -80,7 +80,7 @@ def test_worker_processes_train_and_take_the_new_policy_after_loading(tmp_path) 
     with th.no_grad():  # the loaded policy always broadcasts, the workers' copy of the saved one does not
         loaded.policy.net_parameters("mu")[-1][..., 1] = 30.0
     loaded.learn(96, reset_num_timesteps=False)
-    assert loaded.last_rollout_in_workers and loaded.rollout_buffer.comm.all()
+    assert loaded.last_rollout_in_workers and loaded.rollout_buffer.broadcast.all()
     assert loaded.num_timesteps == 2 * 96  # one more iteration of 2 x 48 steps
     model.get_env().close()
 
@@ -89,14 +89,14 @@ def test_random_skips_run_in_the_workers_with_one_fork_per_env_and_rollout() -> 
     """Each env skips at random with its own stream, a new one every rollout, at the trigger's rate."""
     model = make(True, policy_kwargs={"net_arch": [16, 16]})
     model.set_fixed_trigger(RandomTrigger(0.5, seed=0))
-    comms = []
+    rollout_broadcasts = []
     for _ in range(2):
         model.learn(96, reset_num_timesteps=False)
-        comms.append(model.rollout_buffer.comm.copy())
+        rollout_broadcasts.append(model.rollout_buffer.broadcast.copy())
     assert model.last_rollout_in_workers
-    assert not np.array_equal(comms[0][:, 0], comms[0][:, 1])  # the two envs
-    assert not np.array_equal(comms[0], comms[1])  # the two rollouts
-    assert 0.35 < np.mean(comms) < 0.65
+    assert not np.array_equal(rollout_broadcasts[0][:, 0], rollout_broadcasts[0][:, 1])  # the two envs
+    assert not np.array_equal(rollout_broadcasts[0], rollout_broadcasts[1])  # the two rollouts
+    assert 0.35 < np.mean(rollout_broadcasts) < 0.65
 
 
 def test_other_triggers_and_vec_env_wrappers_keep_the_rollout_in_the_learner() -> None:
@@ -104,7 +104,7 @@ def test_other_triggers_and_vec_env_wrappers_keep_the_rollout_in_the_learner() -
     model = make(True)
     model.set_fixed_trigger(lambda obs: np.ones((2, 3), np.int64))
     model.learn(48)
-    assert model.last_rollout_in_workers is False and model.rollout_buffer.comm.all()
+    assert model.last_rollout_in_workers is False and model.rollout_buffer.broadcast.all()
     assert not has_rollout_workers(VecNormalize(model.get_env()))
 
 

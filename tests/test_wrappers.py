@@ -27,11 +27,11 @@ def test_gymnasium_env_checker():
 
 
 def test_kwargs_reach_network_and_system():
-    env = joint(comm_cost=0.7, n_agents=5, max_cycles=9)
-    assert env.network.comm_cost == 0.7
+    env = joint(broadcast_cost=0.7, n_agents=5, max_cycles=9)
+    assert env.network.broadcast_cost == 0.7
     assert env.n_agents == 5 and env.network.system.max_cycles == 9
     assert env.observation_space["held"].shape == (5, 2)
-    assert env.action_space["comm"].nvec.tolist() == [2] * 5
+    assert env.action_space["broadcast"].nvec.tolist() == [2] * 5
 
 
 @settings(max_examples=30, deadline=None)
@@ -47,22 +47,22 @@ def test_held_age_and_cost_follow_the_options(data):
             )
         )
     )
-    env = joint(n_agents=n_agents, comm_cost=xi, max_cycles=n_steps)
+    env = joint(n_agents=n_agents, broadcast_cost=xi, max_cycles=n_steps)
     obs, _ = env.reset(seed=data.draw(st.integers(0, 2**16)))
     last_sent = obs["message"].copy()  # the initial message counts as received
     last_step = np.full(n_agents, -1)
     rng = np.random.default_rng(0)
-    for k, comm in enumerate(options):
+    for k, broadcast in enumerate(options):
         before = obs
         control = rng.uniform(-1, 1, size=(n_agents, 1))
-        obs, reward, terminated, truncated, info = env.step({"comm": comm, "control": control})
-        last_sent[comm == 1] = before["message"][comm == 1]
-        last_step[comm == 1] = k
+        obs, reward, terminated, truncated, info = env.step({"broadcast": broadcast, "control": control})
+        last_sent[broadcast == 1] = before["message"][broadcast == 1]
+        last_step[broadcast == 1] = k
         np.testing.assert_array_equal(obs["held"], last_sent)
         np.testing.assert_array_equal(obs["age"][:, 0], np.where(last_step >= 0, k - last_step, k + 1))
-        np.testing.assert_allclose(info["agent_rewards"], info["control_rewards"] - xi * comm)
+        np.testing.assert_allclose(info["agent_rewards"], info["control_rewards"] - xi * broadcast)
         assert reward == pytest.approx(info["agent_rewards"].mean())
-        np.testing.assert_array_equal(info["comm"], comm)
+        np.testing.assert_array_equal(info["broadcast"], broadcast)
         np.testing.assert_array_equal(info["broadcasts"], options[: k + 1].sum(0))
     assert truncated and not terminated
 
@@ -71,8 +71,8 @@ def test_age_counts_steps_since_last_broadcast():
     env = joint(n_agents=2, max_cycles=10)
     env.reset(seed=0)
     ages = []
-    for comm in ([0, 1], [0, 0], [1, 0], [0, 0]):
-        obs, *_ = env.step({"comm": np.array(comm), "control": np.zeros((2, 1))})
+    for broadcast in ([0, 1], [0, 0], [1, 0], [0, 0]):
+        obs, *_ = env.step({"broadcast": np.array(broadcast), "control": np.zeros((2, 1))})
         ages.append(obs["age"][:, 0].tolist())
     # agent 0 was last "heard" at reset; agent 1 broadcast at step 0, agent 0 at step 2
     assert ages == [[1, 0], [2, 1], [0, 2], [1, 3]]
@@ -82,7 +82,7 @@ def test_agent_views_are_relative_to_own_current_message():
     env = linear_etc_v0.parallel_env(n_agents=3)
     obs, _ = env.reset(seed=3)
     for _ in range(5):
-        actions = {a: {"comm": 0, "control": np.array([0.5])} for a in env.agents}
+        actions = {a: {"broadcast": 0, "control": np.array([0.5])} for a in env.agents}
         obs, *_ = env.step(actions)
     message = env.system.last_obs.message
     held = env.held
@@ -99,7 +99,7 @@ def test_same_seed_same_episode_and_new_episodes_differ():
         rng = np.random.default_rng(1)
         out = [obs["local"]]
         for _ in range(20):
-            obs, r, *_ = env.step({"comm": rng.integers(0, 2, 3), "control": rng.uniform(-1, 1, (3, 1))})
+            obs, r, *_ = env.step({"broadcast": rng.integers(0, 2, 3), "control": rng.uniform(-1, 1, (3, 1))})
             out.append(obs["local"])
         return np.array(out)
 
@@ -111,34 +111,34 @@ def test_same_seed_same_episode_and_new_episodes_differ():
 
 @pytest.mark.parametrize("bad", [-0.1, float("nan"), float("inf")])
 def test_negative_or_non_finite_comm_cost_is_rejected(bad):
-    with pytest.raises(ValueError, match="comm_cost"):
-        linear_etc_v0.parallel_env(comm_cost=bad)
+    with pytest.raises(ValueError, match="broadcast_cost"):
+        linear_etc_v0.parallel_env(broadcast_cost=bad)
 
 
 def test_bad_actions_are_rejected_with_clear_errors():
     env = joint(n_agents=3, max_cycles=2)
     env.reset(seed=0)
     with pytest.raises(ValueError, match="0 \\(silent\\) or 1"):
-        env.step({"comm": np.array([0, 2, 1]), "control": np.zeros((3, 1))})
-    with pytest.raises(ValueError, match="comm must have shape \\(3,\\)"):
-        env.step({"comm": np.array([0, 1]), "control": np.zeros((3, 1))})
+        env.step({"broadcast": np.array([0, 2, 1]), "control": np.zeros((3, 1))})
+    with pytest.raises(ValueError, match="broadcast must have shape \\(3,\\)"):
+        env.step({"broadcast": np.array([0, 1]), "control": np.zeros((3, 1))})
     with pytest.raises(ValueError, match="control must have shape \\(3, 1\\)"):
-        env.step({"comm": np.array([0, 1, 1]), "control": np.zeros((3, 2))})
+        env.step({"broadcast": np.array([0, 1, 1]), "control": np.zeros((3, 2))})
     with pytest.raises(ValueError, match="NaN"):
-        env.step({"comm": np.array([0, 1, 1]), "control": np.full((3, 1), np.nan)})
-    with pytest.raises(ValueError, match="keys 'comm' and 'control'"):
+        env.step({"broadcast": np.array([0, 1, 1]), "control": np.full((3, 1), np.nan)})
+    with pytest.raises(ValueError, match="keys 'broadcast' and 'control'"):
         env.step(np.zeros(3))
     for _ in range(2):
-        env.step({"comm": np.ones(3, dtype=int), "control": np.zeros((3, 1))})
+        env.step({"broadcast": np.ones(3, dtype=int), "control": np.zeros((3, 1))})
     with pytest.raises(RuntimeError, match="reset"):
-        env.step({"comm": np.ones(3, dtype=int), "control": np.zeros((3, 1))})
+        env.step({"broadcast": np.ones(3, dtype=int), "control": np.zeros((3, 1))})
 
 
 def test_failed_step_leaves_the_network_unchanged():
     env = joint(n_agents=2)
     obs, _ = env.reset(seed=0)
     with pytest.raises(ValueError):
-        env.step({"comm": np.array([0, 1]), "control": np.full((2, 1), np.nan)})
+        env.step({"broadcast": np.array([0, 1]), "control": np.full((2, 1), np.nan)})
     np.testing.assert_array_equal(env.network.held.astype(np.float32), obs["held"])
     np.testing.assert_array_equal(env.network.age, [[0], [0]])
     assert env.network.broadcasts.tolist() == [0, 0]
@@ -148,8 +148,8 @@ def test_parallel_step_rejects_missing_agents_and_malformed_actions():
     env = linear_etc_v0.parallel_env(n_agents=2)
     env.reset(seed=0)
     with pytest.raises(ValueError, match="missing"):
-        env.step({"agent_0": {"comm": 1, "control": np.zeros(1)}})
-    with pytest.raises(ValueError, match="'comm' and 'control'"):
+        env.step({"agent_0": {"broadcast": 1, "control": np.zeros(1)}})
+    with pytest.raises(ValueError, match="'broadcast' and 'control'"):
         env.step({"agent_0": np.zeros(1), "agent_1": np.zeros(1)})
 
 
@@ -178,14 +178,14 @@ def test_multiwalker_parallel_api_and_env_checker():
     assert obs["local"].shape == (3, 17) and obs["message"].shape == (3, 4)
     assert obs["trigger"].shape == (3, 3) and obs["trigger_held"].shape == (3, 3)
     assert env.action_space["control"].shape == (3, 4)
-    assert env.network.comm_cost == 0.25
+    assert env.network.broadcast_cost == 0.25
     assert "package_x" in info
     penv = multiwalker_etc_v0.parallel_env()
     penv.reset(seed=0)
-    _, rewards, _, _, infos = penv.step({a: {"comm": 1, "control": np.zeros(4)} for a in penv.agents})
+    _, rewards, _, _, infos = penv.step({a: {"broadcast": 1, "control": np.zeros(4)} for a in penv.agents})
     for agent in penv.possible_agents:
         assert infos[agent]["package_x"] == penv.system.physics.package.position.x
-        assert infos[agent]["comm"] == 1 and infos[agent]["broadcasts"] == 1
+        assert infos[agent]["broadcast"] == 1 and infos[agent]["broadcasts"] == 1
         assert rewards[agent] == pytest.approx(infos[agent]["control_reward"] - 0.25)
 
 

@@ -56,7 +56,7 @@ def test_multiwalker_entry_has_the_paper_settings() -> None:
     assert entry["n_steps"] * entry["n_envs"] == 2048
     assert entry["n_timesteps"] == 3000 * 2048
     assert (entry["learning_rate"], entry["batch_size"], entry["n_epochs"]) == (3e-5, 32, 10)
-    assert entry["env_kwargs"]["comm_cost"] == 0.25
+    assert entry["env_kwargs"]["broadcast_cost"] == 0.25
     assert eval(entry["policy_kwargs"])["net_arch"] == [96, 96, 96]
     assert any(isinstance(c, CurriculumCallback) for c in get_callback_list(entry))
 
@@ -96,12 +96,12 @@ def test_sampled_parameters_build_a_model() -> None:
             "gamma": 0.99,
             "gae_lambda": 0.95,
             "clip_range": 0.2,
-            "clip_range_option": 0.2,
-            "option_ent_coef": 0.01,
+            "clip_range_broadcast": 0.2,
+            "broadcast_ent_coef": 0.01,
             "max_grad_norm": 0.5,
             "reward_scale": 0.01,
             "team_reward": True,
-            "normalize_option_advantage": True,
+            "normalize_broadcast_advantage": True,
             "net_arch": "paper",
             "critic": "afterstate",
         }
@@ -109,7 +109,7 @@ def test_sampled_parameters_build_a_model() -> None:
     params = zoo.sample_mappoc_params(trial, 0, 1, {})
     assert params["batch_size"] == 128  # at most one rollout
     assert params["policy_kwargs"]["net_arch"] == [96, 96, 96]
-    assert params["policy_kwargs"]["critic"] == "afterstate" and params["normalize_option_advantage"]
+    assert params["policy_kwargs"]["critic"] == "afterstate" and params["normalize_broadcast_advantage"]
     model = MAPPOC("MlpHybridPolicy", make_vec_env(LINEAR, n_envs=1), **params)
     assert model.n_steps == 128
 
@@ -185,12 +185,12 @@ def test_rendered_frames_mark_who_broadcast() -> None:
 
     env = gym.make(MULTIWALKER, render_mode="rgb_array")
     env.reset(seed=0)
-    action = {"comm": np.array([1, 0, 1]), "control": np.zeros((3, 4), np.float32)}
+    action = {"broadcast": np.array([1, 0, 1]), "control": np.zeros((3, 4), np.float32)}
     env.step(action)
     frame = env.render()
     assert np.all(frame == BROADCAST_COLOR, axis=-1).sum() > 50  # two discs
     assert np.all(frame == SILENT_COLOR, axis=-1).sum() > 10  # one ring
-    env.step({**action, "comm": np.zeros(3, np.int64)})
+    env.step({**action, "broadcast": np.zeros(3, np.int64)})
     assert not np.all(env.render() == BROADCAST_COLOR, axis=-1).any()
     env.close()
 
@@ -269,7 +269,7 @@ def write(path: Path, text: str) -> str:
         ),
         (
             "sb3_detc/LinearETC-v0:\n  n_timesteps: 1\n  policy: MlpHybridPolicy\n  callback:\n"
-            "    - sb3_detc.callbacks.OptionEntropySchedule: {intial: 0.1}\n",
+            "    - sb3_detc.callbacks.BroadcastEntropySchedule: {intial: 0.1}\n",
             "unexpected keyword argument 'intial'",
         ),
     ],
@@ -316,7 +316,7 @@ def test_observation_normalization_of_the_local_state_passes_the_checks() -> Non
 
 def test_malformed_arguments_and_other_conf_files(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     assert "argument --env: expected one argument" in bad(train.main, ["--env"], capsys)
-    assert "--env-kwargs 'comm_cost'" in bad(train.main, ["--env-kwargs", "comm_cost"], capsys)
+    assert "--env-kwargs 'broadcast_cost'" in bad(train.main, ["--env-kwargs", "broadcast_cost"], capsys)
     assert "no module to import" in bad(train.main, ["-conf", "no_such_module.hyperparams"], capsys)
     assert "'missing.py' not found" in bad(train.main, ["-conf", "missing.py"], capsys)
     conf = write(tmp_path / "conf.py", f"hyperparams = {{{LINEAR!r}: {{'n_timesteps': 1, 'policy': 'Nope'}}}}\n")
@@ -353,7 +353,7 @@ def test_curriculum_phases_from_the_logs() -> None:
     iterations = np.arange(1.0, 7.0)
     phases = {"iteration": iterations, "curriculum/phase": np.array(["I", "I", "II", "II", "III", "done"])}
     assert plot.curriculum_phases(phases) == [(3.0, "II"), (5.0, "III"), (6.0, "done")]
-    coef = {"iteration": iterations, "curriculum/option_ent_coef": np.array([0.1, 0.1, 0.05, 0.001, 0.001, 0.001])}
+    coef = {"iteration": iterations, "curriculum/broadcast_ent_coef": np.array([0.1, 0.1, 0.05, 0.001, 0.001, 0.001])}
     assert plot.curriculum_phases(coef) == [(3.0, "entropy decay"), (4.0, "decayed")]
     stage = {"iteration": iterations, "curriculum/stage": np.array([1.0, np.nan, 1.0, 2.0, np.nan, 2.0])}
     assert plot.curriculum_phases(stage) == [(4.0, "stage 2")]

@@ -13,17 +13,17 @@ from sb3_detc.envs.linear import LinearSystem
 from sb3_detc.envs.wrappers import EventTriggeredNetwork, JointEnv
 
 
-def parallel_env(comm_cost: float = 0.01, trigger: str = "default", **kwargs) -> EventTriggeredNetwork:
+def parallel_env(broadcast_cost: float = 0.01, trigger: str = "default", **kwargs) -> EventTriggeredNetwork:
     """PettingZoo parallel env of linear agents that communicate through the event-triggered network.
 
-    :param comm_cost: reward cost of one broadcast (default 0.01: about what one broadcast is
+    :param broadcast_cost: reward cost of one broadcast (default 0.01: about what one broadcast is
         worth to the team's quadratic cost when send-on-delta with the LQR controller keeps
         70 to 85 % savings on the default system, so that the trade-off matters)
     :param trigger: features of the policy over options (see :class:`EventTriggeredNetwork`);
         the default is the own state (position error and velocity)
     :param kwargs: keyword arguments of :class:`~sb3_detc.envs.linear.LinearSystem`
     """
-    return EventTriggeredNetwork(LinearSystem(**kwargs), comm_cost=comm_cost, trigger=trigger)
+    return EventTriggeredNetwork(LinearSystem(**kwargs), broadcast_cost=broadcast_cost, trigger=trigger)
 
 
 def joint_env(**kwargs) -> JointEnv:

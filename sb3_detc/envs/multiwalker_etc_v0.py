@@ -10,15 +10,15 @@ from sb3_detc.envs.multiwalker import MultiwalkerSystem
 from sb3_detc.envs.wrappers import EventTriggeredNetwork, JointEnv
 
 
-def parallel_env(comm_cost: float = 0.25, trigger: str = "default", **kwargs) -> EventTriggeredNetwork:
+def parallel_env(broadcast_cost: float = 0.25, trigger: str = "default", **kwargs) -> EventTriggeredNetwork:
     """PettingZoo parallel env of walkers that communicate through the event-triggered network.
 
-    :param comm_cost: reward cost of one broadcast (0.25 environment reward units, as in the paper)
+    :param broadcast_cost: reward cost of one broadcast (0.25 environment reward units, as in the paper)
     :param trigger: features of the policy over options (see :class:`EventTriggeredNetwork`);
         the default is the package information (dx, dy, angle) now and at the last broadcast
     :param kwargs: keyword arguments of :class:`~sb3_detc.envs.multiwalker.MultiwalkerSystem`
     """
-    return EventTriggeredNetwork(MultiwalkerSystem(**kwargs), comm_cost=comm_cost, trigger=trigger)
+    return EventTriggeredNetwork(MultiwalkerSystem(**kwargs), broadcast_cost=broadcast_cost, trigger=trigger)
 
 
 def joint_env(**kwargs) -> JointEnv:

@@ -3,7 +3,7 @@
 :class:`EventTriggeredNetwork` is a PettingZoo parallel wrapper that turns any
 :class:`~sb3_detc.envs.system.CommunicatingSystem` into the paper's setting: every agent
 decides each step whether to broadcast its message, receivers hold the last broadcasts
-(zero-order hold) with their age, and each broadcast costs ``comm_cost`` reward.
+(zero-order hold) with their age, and each broadcast costs ``broadcast_cost`` reward.
 
 :class:`JointEnv` is the single-agent Gymnasium view of the same network that SB3
 vectorises: the agent axis lives inside the arrays of a Dict observation and a Dict action.
@@ -37,7 +37,7 @@ def _box(shape: tuple[int, ...], low: float = -np.inf) -> spaces.Box:
 class EventTriggeredNetwork(BaseParallelWrapper):
     """Event-triggered communication between the agents of a communicating system.
 
-    Per agent, the action is ``Dict(comm=Discrete(2), control=Box)`` and the observation
+    Per agent, the action is ``Dict(broadcast=Discrete(2), control=Box)`` and the observation
     is ``Dict(local, neighbours, neighbour_age, trigger, trigger_held)``: the own local
     state, the others' held broadcasts relative to the own current message (N - 1, n_msg),
     their ages in steps (N - 1,), the option policy's features now and at the agent's own
@@ -47,23 +47,23 @@ class EventTriggeredNetwork(BaseParallelWrapper):
     broadcast is forced at the first step.
 
     :param env: the physical system
-    :param comm_cost: communication cost ``xi >= 0`` subtracted from an agent's reward for
+    :param broadcast_cost: communication cost ``xi >= 0`` subtracted from an agent's reward for
         every broadcast (``r_i = r_ctrl_i - xi * o_i``, Sec. 2)
     :param trigger: features of the policy over options: ``"default"`` (the system's own
         choice, e.g. the package information in Multiwalker), ``"local"`` (the whole local
         state) or ``"message"`` (the own message)
     """
 
-    def __init__(self, env: CommunicatingSystem, comm_cost: float = 0.25, trigger: str = "default") -> None:
+    def __init__(self, env: CommunicatingSystem, broadcast_cost: float = 0.25, trigger: str = "default") -> None:
         if not isinstance(env, CommunicatingSystem):
             raise TypeError(f"EventTriggeredNetwork wraps a CommunicatingSystem, got {type(env).__name__}.")
-        if not np.isfinite(comm_cost) or comm_cost < 0:
-            raise ValueError(f"comm_cost must be a finite number >= 0, got {comm_cost!r}.")
+        if not np.isfinite(broadcast_cost) or broadcast_cost < 0:
+            raise ValueError(f"broadcast_cost must be a finite number >= 0, got {broadcast_cost!r}.")
         if trigger not in TRIGGER_SOURCES:
             raise ValueError(f"trigger must be one of {TRIGGER_SOURCES}, got {trigger!r}.")
         super().__init__(env)
         self.system = env
-        self.comm_cost = float(comm_cost)
+        self.broadcast_cost = float(broadcast_cost)
         self.trigger = trigger
         self.possible_agents = list(env.possible_agents)
         self.agents: list[str] = []
@@ -85,7 +85,7 @@ class EventTriggeredNetwork(BaseParallelWrapper):
                 "trigger_held": _box((self.n_trig,)),
             }
         )
-        self._agent_action_space = spaces.Dict({"comm": spaces.Discrete(2), "control": env.control_space})
+        self._agent_action_space = spaces.Dict({"broadcast": spaces.Discrete(2), "control": env.control_space})
         self.joint_observation_space = spaces.Dict(
             {
                 "local": _box((n, self.n_local)),
@@ -99,7 +99,7 @@ class EventTriggeredNetwork(BaseParallelWrapper):
         control = env.control_space
         self.joint_action_space = spaces.Dict(
             {
-                "comm": spaces.MultiDiscrete([2] * n),
+                "broadcast": spaces.MultiDiscrete([2] * n),
                 "control": spaces.Box(
                     low=np.broadcast_to(control.low, (n, *control.shape)).astype(control.dtype),
                     high=np.broadcast_to(control.high, (n, *control.shape)).astype(control.dtype),
@@ -111,7 +111,7 @@ class EventTriggeredNetwork(BaseParallelWrapper):
         self.age = np.zeros((n, 1))
         self.trigger_held = np.zeros((n, self.n_trig))
         self.broadcasts = np.zeros(n, dtype=np.int64)
-        self.last_comm = np.zeros(n, dtype=np.int64)
+        self.last_broadcast = np.zeros(n, dtype=np.int64)
 
     def observation_space(self, agent: str) -> spaces.Dict:
         """Networked observation space of one agent."""
@@ -147,43 +147,50 @@ class EventTriggeredNetwork(BaseParallelWrapper):
         self.age = np.zeros((self.n_agents, 1))
         self.trigger_held = self._trigger_of(obs).copy()
         self.broadcasts = np.zeros(self.n_agents, dtype=np.int64)
-        self.last_comm = np.zeros(self.n_agents, dtype=np.int64)
+        self.last_broadcast = np.zeros(self.n_agents, dtype=np.int64)
         return self._joint_obs(obs), info
 
     def step_joint(
-        self, comm: np.ndarray, control: np.ndarray
+        self, broadcast: np.ndarray, control: np.ndarray
     ) -> tuple[dict[str, np.ndarray], np.ndarray, bool, bool, dict[str, Any]]:
         """One step of the network and the system (same-step delivery).
 
-        :param comm: options of all agents, shape (N,), values in {0, 1}
+        :param broadcast: broadcast decisions of all agents, shape (N,), values in {0, 1}
         :param control: controls of all agents, shape (N, m)
         :return: joint observation, per-agent rewards with the communication cost (N,),
-            terminated, truncated, info (adds ``comm``, ``broadcasts`` of the episode so
+            terminated, truncated, info (adds ``broadcast``, ``broadcasts`` of the episode so
             far and ``control_rewards`` without the communication cost)
         :raises RuntimeError: if no episode is running
         :raises ValueError: on a wrong shape or options outside {0, 1}
         """
         if not self.agents:
             raise RuntimeError("step called without a running episode: the last episode ended; call reset() first.")
-        comm = np.asarray(comm)
-        if comm.shape != (self.n_agents,):
-            raise ValueError(f"comm must have shape ({self.n_agents},) (one option per agent), got {comm.shape}.")
-        if not np.all((comm == 0) | (comm == 1)):
-            raise ValueError(f"comm options must be 0 (silent) or 1 (broadcast), got {comm.tolist()}.")
-        comm = comm.astype(np.int64)
+        broadcast = np.asarray(broadcast)
+        if broadcast.shape != (self.n_agents,):
+            raise ValueError(
+                f"broadcast must have shape ({self.n_agents},) (one option per agent), got {broadcast.shape}."
+            )
+        if not np.all((broadcast == 0) | (broadcast == 1)):
+            raise ValueError(f"broadcast decisions must be 0 (silent) or 1 (broadcast), got {broadcast.tolist()}.")
+        broadcast = broadcast.astype(np.int64)
         before = self.system.last_obs
-        held = hold(self.held, before.message, comm)
-        trigger_held = hold(self.trigger_held, self._trigger_of(before), comm)
+        held = hold(self.held, before.message, broadcast)
+        trigger_held = hold(self.trigger_held, self._trigger_of(before), broadcast)
         # The system checks the controls; the network changes only once the step succeeded.
         obs, control_rewards, terminated, truncated, info = self.system.step_arrays(control)
         self.held, self.trigger_held = held, trigger_held
-        self.age = advance_timer(self.age, comm)
-        self.broadcasts += comm
-        self.last_comm = comm
-        rewards = control_rewards - self.comm_cost * comm
+        self.age = advance_timer(self.age, broadcast)
+        self.broadcasts += broadcast
+        self.last_broadcast = broadcast
+        rewards = control_rewards - self.broadcast_cost * broadcast
         if terminated or truncated:
             self.agents = []
-        info = {**info, "comm": comm, "broadcasts": self.broadcasts.copy(), "control_rewards": control_rewards}
+        info = {
+            **info,
+            "broadcast": broadcast,
+            "broadcasts": self.broadcasts.copy(),
+            "control_rewards": control_rewards,
+        }
         return self._joint_obs(obs), rewards, terminated, truncated, info
 
     # ------------------------------------------------------------ PettingZoo API
@@ -212,24 +219,28 @@ class EventTriggeredNetwork(BaseParallelWrapper):
         return self.agent_views(obs), {a: dict(info) for a in self.possible_agents}
 
     def step(self, actions: dict) -> tuple[dict, dict, dict, dict, dict]:
-        """PettingZoo step: ``{agent: {"comm": 0 or 1, "control": array}}`` for every live agent."""
+        """PettingZoo step: ``{agent: {"broadcast": 0 or 1, "control": array}}`` for every live agent."""
         if not self.agents:
             raise RuntimeError("step called without a running episode: the last episode ended; call reset() first.")
         missing = set(self.agents) - set(actions)
         if missing:
             raise ValueError(f"actions are missing for agents {sorted(missing)}.")
         try:
-            comm = np.array([actions[a]["comm"] for a in self.possible_agents])
+            broadcast = np.array([actions[a]["broadcast"] for a in self.possible_agents])
             control = np.stack([np.asarray(actions[a]["control"], dtype=np.float64) for a in self.possible_agents])
         except (KeyError, TypeError, IndexError) as err:
-            raise ValueError(f"each agent's action must be a dict with keys 'comm' and 'control' ({err!r}).") from err
-        obs, rewards, terminated, truncated, info = self.step_joint(comm, control)
+            raise ValueError(
+                f"each agent's action must be a dict with keys 'broadcast' and 'control' ({err!r})."
+            ) from err
+        obs, rewards, terminated, truncated, info = self.step_joint(broadcast, control)
         names = self.possible_agents
-        shared = {key: value for key, value in info.items() if key not in ("comm", "broadcasts", "control_rewards")}
+        shared = {
+            key: value for key, value in info.items() if key not in ("broadcast", "broadcasts", "control_rewards")
+        }
         agent_infos = {
             a: {
                 **shared,
-                "comm": int(info["comm"][i]),
+                "broadcast": int(info["broadcast"][i]),
                 "broadcasts": int(info["broadcasts"][i]),
                 "control_reward": float(info["control_rewards"][i]),
             }
@@ -249,7 +260,7 @@ class EventTriggeredNetwork(BaseParallelWrapper):
         :return: the system's frame (None without render mode)
         """
         if "broadcast" in inspect.signature(self.system.render).parameters:
-            return self.system.render(broadcast=self.last_comm)
+            return self.system.render(broadcast=self.last_broadcast)
         return self.system.render()
 
     def state(self) -> np.ndarray:
@@ -264,8 +275,8 @@ class JointEnv(gym.Env):
     messages, for the centralised critic), ``held`` (N, n_msg, each agent's last broadcast
     as held before this step's decisions), ``age`` (N, 1, the timers ``tau_i[k-1]`` before
     this step's decisions), ``trigger`` and ``trigger_held`` (N, n_trig). Action ``Dict``:
-    ``comm`` ``MultiDiscrete([2] * N)``, ``control`` ``Box(N, m)``. The reward is the mean
-    of the agents' rewards; ``info["agent_rewards"]`` has them all (N,), ``info["comm"]``
+    ``broadcast`` ``MultiDiscrete([2] * N)``, ``control`` ``Box(N, m)``. The reward is the mean
+    of the agents' rewards; ``info["agent_rewards"]`` has them all (N,), ``info["broadcast"]``
     this step's options (N,).
 
     :param network: the event-triggered network to drive
@@ -282,22 +293,22 @@ class JointEnv(gym.Env):
         self.n_agents = network.n_agents
 
     @property
-    def comm_cost(self) -> float:
+    def broadcast_cost(self) -> float:
         """Communication cost ``xi >= 0`` charged per broadcast, read from and written to the network.
 
         Settable through wrappers and vectorised envs, e.g.
-        ``vec_env.env_method("set_wrapper_attr", "comm_cost", 0.0)``; the new cost applies
+        ``vec_env.env_method("set_wrapper_attr", "broadcast_cost", 0.0)``; the new cost applies
         from the next step on.
 
         :raises ValueError: on setting a negative or non-finite cost
         """
-        return self.network.comm_cost
+        return self.network.broadcast_cost
 
-    @comm_cost.setter
-    def comm_cost(self, value: float) -> None:
+    @broadcast_cost.setter
+    def broadcast_cost(self, value: float) -> None:
         if not np.isfinite(value) or value < 0:
-            raise ValueError(f"comm_cost must be a finite number >= 0, got {value!r}.")
-        self.network.comm_cost = float(value)
+            raise ValueError(f"broadcast_cost must be a finite number >= 0, got {value!r}.")
+        self.network.broadcast_cost = float(value)
 
     def reset(self, *, seed: int | None = None, options: dict | None = None) -> tuple[dict, dict]:
         """Start an episode (Gymnasium seeding)."""
@@ -307,12 +318,12 @@ class JointEnv(gym.Env):
     def step(self, action: dict[str, np.ndarray]) -> tuple[dict, float, bool, bool, dict]:
         """Advance all agents by one step.
 
-        :param action: ``{"comm": (N,) in {0, 1}, "control": (N, m)}``
+        :param action: ``{"broadcast": (N,) in {0, 1}, "control": (N, m)}``
         """
-        if not isinstance(action, dict) or set(action) != {"comm", "control"}:
+        if not isinstance(action, dict) or set(action) != {"broadcast", "control"}:
             got = sorted(action) if isinstance(action, dict) else type(action).__name__
-            raise ValueError(f"action must be a dict with keys 'comm' and 'control', got {got}.")
-        obs, rewards, terminated, truncated, info = self.network.step_joint(action["comm"], action["control"])
+            raise ValueError(f"action must be a dict with keys 'broadcast' and 'control', got {got}.")
+        obs, rewards, terminated, truncated, info = self.network.step_joint(action["broadcast"], action["control"])
         info["agent_rewards"] = rewards
         return obs, float(rewards.mean()), terminated, truncated, info
 

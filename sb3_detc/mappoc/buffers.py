@@ -15,14 +15,14 @@ class HybridRolloutSamples(NamedTuple):
     """A minibatch of hybrid transitions; B samples, N agents."""
 
     observations: dict[str, th.Tensor]  # (B, N, ...) joint observations before the options
-    comm: th.Tensor  # (B, N) options taken
+    broadcast: th.Tensor  # (B, N) options taken
     control: th.Tensor  # (B, N, m) controls taken (unclipped, with exploration noise)
-    old_log_prob_comm: th.Tensor  # (B, N)
+    old_log_prob_broadcast: th.Tensor  # (B, N)
     old_log_prob_control: th.Tensor  # (B, N)
     advantages: th.Tensor  # (B, N) GAE advantages
     returns: th.Tensor  # (B, N) lambda-returns, targets of Q_i(s, o_taken)
-    option_advantages: th.Tensor  # (B, N) lambda-return minus V_i(s) = sum_o mu_i(o) Q_i(s, o) at collection
-    comm_price: th.Tensor  # (B, N) the learner's reward lost by the own broadcast (afterstate critic)
+    broadcast_advantages: th.Tensor  # (B, N) lambda-return minus V_i(s) = sum_o mu_i(o) Q_i(s, o) at collection
+    broadcast_price: th.Tensor  # (B, N) the learner's reward lost by the own broadcast (afterstate critic)
 
     def select(self, idx: th.Tensor) -> HybridRolloutSamples:
         """The samples ``idx`` of the batch axis."""
@@ -37,14 +37,14 @@ class HybridRolloutBuffer:
     of the *taken* option, ``delta_t = r_t + gamma Q(s_{t+1}, o_{t+1}) - Q(s_t, o_t)``,
     per agent, cut at episode ends; truncated episodes are bootstrapped by the caller
     (added to the reward, as SB3 does). The lambda-returns ``A + Q(s, o)`` are the
-    critic's regression targets. ``option_advantages`` are the lambda-returns minus the
+    critic's regression targets. ``broadcast_advantages`` are the lambda-returns minus the
     state value ``V(s) = sum_o mu(o | s) Q(s, o)`` at collection time (a sampled advantage
     of the taken option, for :class:`~sb3_detc.mappoc.mappoc.MAPPOC` with
-    ``option_advantage="return"``).
+    ``broadcast_advantage="return"``).
 
     :param buffer_size: steps per environment and rollout
     :param observation_space: joint observation space (Dict of (N, ...) boxes)
-    :param action_space: joint action space (Dict with ``comm`` and ``control``)
+    :param action_space: joint action space (Dict with ``broadcast`` and ``control``)
     :param device: PyTorch device of the sampled minibatches
     :param gamma: discount factor
     :param gae_lambda: GAE factor
@@ -68,7 +68,7 @@ class HybridRolloutBuffer:
         self.gamma = gamma
         self.gae_lambda = gae_lambda
         self.n_envs = n_envs
-        self.n_agents = len(action_space["comm"].nvec)
+        self.n_agents = len(action_space["broadcast"].nvec)
         self.control_shape = action_space["control"].shape
         self.reset()
 
@@ -79,19 +79,19 @@ class HybridRolloutBuffer:
         self.observations = {
             key: np.zeros(shape + space.shape, dtype=np.float32) for key, space in self.observation_space.spaces.items()
         }
-        self.comm = np.zeros((*shape, n), dtype=np.int64)
+        self.broadcast = np.zeros((*shape, n), dtype=np.int64)
         self.control = np.zeros(shape + self.control_shape, dtype=np.float32)
         self.rewards = np.zeros((*shape, n), dtype=np.float32)
         self.episode_starts = np.zeros(shape, dtype=np.float32)
         self.option_values = np.zeros((*shape, n, 2), dtype=np.float32)
         self.values = np.zeros((*shape, n), dtype=np.float32)
         self.state_values = np.zeros((*shape, n), dtype=np.float32)
-        self.log_prob_comm = np.zeros((*shape, n), dtype=np.float32)
+        self.log_prob_broadcast = np.zeros((*shape, n), dtype=np.float32)
         self.log_prob_control = np.zeros((*shape, n), dtype=np.float32)
         self.advantages = np.zeros((*shape, n), dtype=np.float32)
         self.returns = np.zeros((*shape, n), dtype=np.float32)
-        self.option_advantages = np.zeros((*shape, n), dtype=np.float32)
-        self.comm_price = np.zeros((*shape, n), dtype=np.float32)
+        self.broadcast_advantages = np.zeros((*shape, n), dtype=np.float32)
+        self.broadcast_price = np.zeros((*shape, n), dtype=np.float32)
         self.pos = 0
         self.full = False
 
@@ -102,79 +102,79 @@ class HybridRolloutBuffer:
     def add(
         self,
         obs: dict[str, np.ndarray],
-        comm: np.ndarray,
+        broadcast: np.ndarray,
         control: np.ndarray,
         rewards: np.ndarray,
         episode_start: np.ndarray,
         option_values: np.ndarray,
-        log_prob_comm: np.ndarray,
+        log_prob_broadcast: np.ndarray,
         log_prob_control: np.ndarray,
-        comm_price: np.ndarray | None = None,
+        broadcast_price: np.ndarray | None = None,
     ) -> None:
         """Store one step of all environments.
 
         :param obs: joint observations before the options, (n_envs, N, ...) per key
-        :param comm: options (n_envs, N)
+        :param broadcast: broadcast decisions (n_envs, N)
         :param control: controls (n_envs, N, m)
         :param rewards: per-agent rewards (n_envs, N), already scaled and bootstrapped at timeouts
         :param episode_start: whether ``obs`` starts an episode (n_envs,)
         :param option_values: ``Q_i(s, o)`` of both options (n_envs, N, 2)
-        :param log_prob_comm: ``log mu_i(o_i)`` (n_envs, N)
+        :param log_prob_broadcast: ``log mu_i(o_i)`` (n_envs, N)
         :param log_prob_control: ``log pi_i(u_i)`` (n_envs, N)
-        :param comm_price: what the own broadcast costs in the learner's reward units (n_envs, N),
+        :param broadcast_price: what the own broadcast costs in the learner's reward units (n_envs, N),
             for critics that add it to their option values (None: zero)
         """
         self.extend(
             {key: value[None] for key, value in obs.items()},
-            *(np.asarray(x)[None] for x in (comm, control, rewards, episode_start, option_values)),
-            np.asarray(log_prob_comm)[None],
+            *(np.asarray(x)[None] for x in (broadcast, control, rewards, episode_start, option_values)),
+            np.asarray(log_prob_broadcast)[None],
             np.asarray(log_prob_control)[None],
-            None if comm_price is None else np.asarray(comm_price)[None],
+            None if broadcast_price is None else np.asarray(broadcast_price)[None],
         )
 
     def extend(
         self,
         obs: dict[str, np.ndarray],
-        comm: np.ndarray,
+        broadcast: np.ndarray,
         control: np.ndarray,
         rewards: np.ndarray,
         episode_start: np.ndarray,
         option_values: np.ndarray,
-        log_prob_comm: np.ndarray,
+        log_prob_broadcast: np.ndarray,
         log_prob_control: np.ndarray,
-        comm_price: np.ndarray | None = None,
+        broadcast_price: np.ndarray | None = None,
     ) -> None:
         """Store several consecutive steps of all environments: :meth:`add` with a leading step axis (T, ...).
 
         :param obs: joint observations before the options, (T, n_envs, N, ...) per key
-        :param comm: options (T, n_envs, N)
+        :param broadcast: broadcast decisions (T, n_envs, N)
         :param control: controls (T, n_envs, N, m)
         :param rewards: per-agent rewards (T, n_envs, N)
         :param episode_start: whether ``obs`` starts an episode (T, n_envs)
         :param option_values: ``Q_i(s, o)`` of both options (T, n_envs, N, 2)
-        :param log_prob_comm: ``log mu_i(o_i)`` (T, n_envs, N)
+        :param log_prob_broadcast: ``log mu_i(o_i)`` (T, n_envs, N)
         :param log_prob_control: ``log pi_i(u_i)`` (T, n_envs, N)
-        :param comm_price: what the own broadcast costs (T, n_envs, N) (None: zero)
+        :param broadcast_price: what the own broadcast costs (T, n_envs, N) (None: zero)
         """
-        steps = len(comm)
+        steps = len(broadcast)
         if self.pos + steps > self.buffer_size:
             raise RuntimeError("HybridRolloutBuffer is full; call reset() before adding.")
         at = slice(self.pos, self.pos + steps)
         for key, value in obs.items():
             self.observations[key][at] = value
-        self.comm[at] = comm
+        self.broadcast[at] = broadcast
         self.control[at] = control
         self.rewards[at] = rewards
         self.episode_starts[at] = episode_start
-        taken = np.take_along_axis(option_values, comm[..., None], axis=-1)[..., 0]
-        p_taken = np.exp(log_prob_comm)
+        taken = np.take_along_axis(option_values, broadcast[..., None], axis=-1)[..., 0]
+        p_taken = np.exp(log_prob_broadcast)
         other = option_values.sum(-1) - taken  # two options: the one not taken
         self.option_values[at] = option_values
         self.values[at] = taken
         self.state_values[at] = p_taken * taken + (1 - p_taken) * other
-        self.log_prob_comm[at] = log_prob_comm
+        self.log_prob_broadcast[at] = log_prob_broadcast
         self.log_prob_control[at] = log_prob_control
-        self.comm_price[at] = 0.0 if comm_price is None else comm_price
+        self.broadcast_price[at] = 0.0 if broadcast_price is None else broadcast_price
         self.pos += steps
         self.full = self.pos == self.buffer_size
 
@@ -197,7 +197,7 @@ class HybridRolloutBuffer:
             last_gae = delta + self.gamma * self.gae_lambda * alive * last_gae
             self.advantages[t] = last_gae
         self.returns = self.advantages + self.values
-        self.option_advantages = self.returns - self.state_values
+        self.broadcast_advantages = self.returns - self.state_values
 
     def tensors(self) -> HybridRolloutSamples:
         """The whole rollout as tensors, environments and steps flattened into one batch axis."""
@@ -213,14 +213,14 @@ class HybridRolloutBuffer:
             *(
                 flat(a)
                 for a in (
-                    self.comm,
+                    self.broadcast,
                     self.control,
-                    self.log_prob_comm,
+                    self.log_prob_broadcast,
                     self.log_prob_control,
                     self.advantages,
                     self.returns,
-                    self.option_advantages,
-                    self.comm_price,
+                    self.broadcast_advantages,
+                    self.broadcast_price,
                 )
             ),
         )

@@ -29,7 +29,7 @@ class OptionCritic:
     * ``reads_afterstate``: whether :meth:`features` needs this step's options (then the
       network runs after they are sampled, else before, together with ``mu``);
     * ``needs_price``: whether :meth:`option_values` adds the cost of the own broadcast
-      analytically (then MAPPOC reads the environments' ``comm_cost``; otherwise the critic
+      analytically (then MAPPOC reads the environments' ``broadcast_cost``; otherwise the critic
       learns it from the rewards);
     * ``needs_draw_probabilities``: whether :meth:`option_values` needs the probabilities
       with which the options were drawn (then options must come from ``mu``, not from a fixed
@@ -42,23 +42,23 @@ class OptionCritic:
     needs_price: ClassVar[bool] = True
     needs_draw_probabilities: ClassVar[bool] = False
 
-    def features(self, policy: MlpHybridPolicy, obs: PyTorchObs, comm: th.Tensor | None) -> th.Tensor:
+    def features(self, policy: MlpHybridPolicy, obs: PyTorchObs, broadcast: th.Tensor | None) -> th.Tensor:
         """Inputs of the critic network: the network state before this step's options.
 
         :param policy: the policy whose feature builders to use
         :param obs: joint observation (B, N, ...) from before the options
-        :param comm: this step's options (B, N); read only if ``reads_afterstate`` (may be None otherwise)
+        :param broadcast: this step's options (B, N); read only if ``reads_afterstate`` (may be None otherwise)
         :return: (B, N, features), or (B, variants, N, features) for several inputs per sample
         """
         return policy.critic_features(obs)
 
     def option_values(
-        self, q: th.Tensor, comm_price: th.Tensor | None = None, p_broadcast: th.Tensor | None = None
+        self, q: th.Tensor, broadcast_price: th.Tensor | None = None, p_broadcast: th.Tensor | None = None
     ) -> th.Tensor:
         """Both options' values from the critic network's outputs.
 
         :param q: outputs of the critic network on :meth:`features`
-        :param comm_price: what a broadcast costs agent ``i`` in the learner's reward units (B, N)
+        :param broadcast_price: what a broadcast costs agent ``i`` in the learner's reward units (B, N)
             (None: zero); read only if ``needs_price``
         :param p_broadcast: probability of broadcasting ``p_i`` with which the options were
             drawn (B, N); required if ``needs_draw_probabilities``
@@ -67,7 +67,7 @@ class OptionCritic:
         """
         if self.needs_draw_probabilities and p_broadcast is None:
             raise ValueError(f"The {self.name} critic needs the probabilities of broadcasting (p_broadcast).")
-        return self._option_values(q, 0.0 if comm_price is None else comm_price, p_broadcast)
+        return self._option_values(q, 0.0 if broadcast_price is None else broadcast_price, p_broadcast)
 
     def _option_values(self, q: th.Tensor, price: th.Tensor | float, p_broadcast: th.Tensor | None) -> th.Tensor:
         """:meth:`option_values` with the price filled in and the probabilities checked.
@@ -110,10 +110,10 @@ class AfterstateCritic(OptionCritic):
     outputs = 1
     reads_afterstate = True
 
-    def features(self, policy: MlpHybridPolicy, obs: PyTorchObs, comm: th.Tensor | None) -> th.Tensor:
+    def features(self, policy: MlpHybridPolicy, obs: PyTorchObs, broadcast: th.Tensor | None) -> th.Tensor:
         """The afterstates of both own options (see :meth:`OptionCritic.features`), (B, 2, N, features)."""
-        assert comm is not None, "the afterstate critic reads this step's options"
-        return policy.afterstate_features(obs, comm)
+        assert broadcast is not None, "the afterstate critic reads this step's options"
+        return policy.afterstate_features(obs, broadcast)
 
     def _option_values(self, q: th.Tensor, price: th.Tensor | float, p_broadcast: th.Tensor | None) -> th.Tensor:
         """``[W_i(after(s, 0)), W_i(after(s, 1)) - price_i]`` from the afterstate values ``q`` (B, 2, N, 1)."""

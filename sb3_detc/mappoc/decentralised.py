@@ -68,15 +68,15 @@ class Inbox:
         """
         if self.held is None:
             raise RuntimeError("the inbox has no messages yet: call reset() at the start of an episode.")
-        comm = np.zeros(self.n_agents)  # (N,) 1 = broadcast this step
+        broadcast = np.zeros(self.n_agents)  # (N,) 1 = broadcast this step
         current = np.zeros_like(self.held)  # (N, n_msg) silent agents' rows are never read by hold
         for sender, message in radio.items():
             if not 0 <= sender < self.n_agents:
                 raise ValueError(f"sender must be in [0, {self.n_agents}), got {sender}.")
-            comm[sender] = 1
+            broadcast[sender] = 1
             current[sender] = message
-        self.held = hold(self.held, current, comm)
-        self.age = advance_timer(self.age, comm)
+        self.held = hold(self.held, current, broadcast)
+        self.age = advance_timer(self.age, broadcast)
 
     def view(self, own_message: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The others' held messages relative to the own current message, and their ages.
@@ -111,7 +111,7 @@ def run_decentralised_step(
         ``trigger_held`` are read: the neighbour information comes from the inboxes)
     :param messages: every agent's current message from its own sensors, shape (N, n_msg)
     :param deterministic: most likely option and mean control instead of samples
-    :return: ``{agent: {"comm": 0 or 1, "control": (m,)}}``, what the PettingZoo env's ``step`` takes
+    :return: ``{agent: {"broadcast": 0 or 1, "control": (m,)}}``, what the PettingZoo env's ``step`` takes
     """
     agents = list(parallel_obs)
     if not len(controllers) == len(inboxes) == len(agents) == len(messages):
@@ -138,5 +138,5 @@ def run_decentralised_step(
     for i, (controller, inbox, agent) in enumerate(zip(controllers, inboxes, agents, strict=True)):
         neighbours, ages = inbox.view(messages[i])
         control = controller.act(parallel_obs[agent]["local"], neighbours, ages, deterministic=deterministic)
-        actions[agent] = {"comm": sent[i], "control": control}
+        actions[agent] = {"broadcast": sent[i], "control": control}
     return actions

@@ -24,7 +24,7 @@ if TYPE_CHECKING:
 STEP_STATS = ("pi_loss", "mu_loss", "q_loss", "entropy_mu", "clip_pi", "clip_mu", "kl_pi", "kl_mu")
 
 #: Kinds of option advantage in ``mu``'s loss.
-OPTION_ADVANTAGES = ("greedy", "return")
+BROADCAST_ADVANTAGES = ("greedy", "return")
 
 
 class UpdateInputs(NamedTuple):
@@ -54,21 +54,21 @@ def clipped_surrogate_loss(advantages: th.Tensor, ratio: th.Tensor, clip: float 
     return -surrogate.mean(0).sum()
 
 
-def greedy_option_advantage(option_values: th.Tensor, comm: th.Tensor, offset: float = 0.0) -> th.Tensor:
+def greedy_broadcast_advantage(option_values: th.Tensor, broadcast: th.Tensor, offset: float = 0.0) -> th.Tensor:
     """Greedy advantage of the taken options, ``A_mu = Q(o) - max_o' Q(o') + offset`` (Sec. 3).
 
     Evaluated with the current critic and detached: no gradient flows into ``Q``.
 
     :param option_values: ``Q_i(s, o)`` for both options, (B, N, 2)
-    :param comm: taken options (B, N)
+    :param broadcast: taken options (B, N)
     :param offset: constant added to the advantage (the paper's code: 0.1, the paper: 0)
     :return: advantages (B, N), at most ``offset``
     """
     q = option_values.detach()
-    return q.gather(-1, comm.long()[..., None])[..., 0] - q.max(-1).values + offset
+    return q.gather(-1, broadcast.long()[..., None])[..., 0] - q.max(-1).values + offset
 
 
-def option_gap_scale(option_values: th.Tensor) -> th.Tensor:
+def broadcast_gap_scale(option_values: th.Tensor) -> th.Tensor:
     """Every agent's root mean square option gap ``Q(1) - Q(0)`` over a batch, detached, (N,).
 
     :param option_values: ``Q_i(s, o)`` for both options, (B, N, 2)
@@ -103,44 +103,44 @@ class MAPPOCLoss(nn.Module):
 
     :param policy: the policy whose networks are trained
     :param vf_coef: coefficient of the critic's squared error
-    :param option_advantage: ``"greedy"`` or ``"return"`` (see :class:`~sb3_detc.MAPPOC`)
-    :param option_advantage_offset: constant added to the option advantages
-    :param normalize_option_advantage: divide the greedy option advantages by every agent's
-        root mean square option gap over the minibatch (:func:`option_gap_scale`)
+    :param broadcast_advantage: ``"greedy"`` or ``"return"`` (see :class:`~sb3_detc.MAPPOC`)
+    :param broadcast_advantage_offset: constant added to the option advantages
+    :param normalize_broadcast_advantage: divide the greedy option advantages by every agent's
+        root mean square option gap over the minibatch (:func:`broadcast_gap_scale`)
     :param normalize_advantage: standardise the control advantages (and the sampled option
         advantages) per agent and minibatch
-    :raises ValueError: for an unknown ``option_advantage``
+    :raises ValueError: for an unknown ``broadcast_advantage``
     """
 
     def __init__(
         self,
         policy: MlpHybridPolicy,
         vf_coef: float,
-        option_advantage: str,
-        option_advantage_offset: float,
-        normalize_option_advantage: bool,
+        broadcast_advantage: str,
+        broadcast_advantage_offset: float,
+        normalize_broadcast_advantage: bool,
         normalize_advantage: bool,
     ) -> None:
         super().__init__()
-        if option_advantage not in OPTION_ADVANTAGES:
-            raise ValueError(f"option_advantage must be 'greedy' or 'return', got {option_advantage!r}.")
+        if broadcast_advantage not in BROADCAST_ADVANTAGES:
+            raise ValueError(f"broadcast_advantage must be 'greedy' or 'return', got {broadcast_advantage!r}.")
         self.policy = policy
         self.vf_coef = vf_coef
-        self.offset = option_advantage_offset
-        self.normalize_option_advantage = normalize_option_advantage
+        self.offset = broadcast_advantage_offset
+        self.normalize_broadcast_advantage = normalize_broadcast_advantage
         self.normalized: Callable[[th.Tensor], th.Tensor] = standardized if normalize_advantage else unchanged
-        self.option_advantages: Callable[[HybridEvaluation, HybridRolloutSamples], th.Tensor] = (
-            self._greedy if option_advantage == "greedy" else self._sampled
+        self.broadcast_advantages: Callable[[HybridEvaluation, HybridRolloutSamples], th.Tensor] = (
+            self._greedy if broadcast_advantage == "greedy" else self._sampled
         )
 
     def _greedy(self, evaluation: HybridEvaluation, data: HybridRolloutSamples) -> th.Tensor:
-        advantages = greedy_option_advantage(evaluation.option_values, data.comm)
-        if self.normalize_option_advantage:
-            advantages = advantages / option_gap_scale(evaluation.option_values)
+        advantages = greedy_broadcast_advantage(evaluation.option_values, data.broadcast)
+        if self.normalize_broadcast_advantage:
+            advantages = advantages / broadcast_gap_scale(evaluation.option_values)
         return advantages + self.offset
 
     def _sampled(self, evaluation: HybridEvaluation, data: HybridRolloutSamples) -> th.Tensor:
-        return self.normalized(data.option_advantages) + self.offset
+        return self.normalized(data.broadcast_advantages) + self.offset
 
     def forward(self, update: UpdateInputs, idx: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
         """The loss of one gradient step on the minibatch ``idx`` and its statistics.
@@ -152,7 +152,11 @@ class MAPPOCLoss(nn.Module):
         clip_pi, clip_mu = update.clip_pi, update.clip_mu
         data = update.samples.select(idx)
         evaluation = self.policy.evaluate_inputs(
-            [x.select(idx) for x in update.inputs], data.comm, data.control, data.comm_price, update.p_broadcast[idx]
+            [x.select(idx) for x in update.inputs],
+            data.broadcast,
+            data.control,
+            data.broadcast_price,
+            update.p_broadcast[idx],
         )
 
         # Control policy: PPO clipped surrogate on GAE advantages of the taken option.
@@ -161,17 +165,17 @@ class MAPPOCLoss(nn.Module):
         pi_loss = clipped_surrogate_loss(self.normalized(data.advantages), ratio_pi, clip_pi)
 
         # Critic: squared error of Q(s, o_taken) against the lambda-return.
-        q_taken = evaluation.option_values.gather(-1, data.comm[..., None])[..., 0]
+        q_taken = evaluation.option_values.gather(-1, data.broadcast[..., None])[..., 0]
         q_loss = (data.returns - q_taken).pow(2).mean(0).sum()
         loss = self.vf_coef * q_loss
         if update.train_pi:
             loss = loss + pi_loss
 
         # Options: PPO clipped surrogate on the option advantage, no gradient into Q.
-        log_ratio_mu = evaluation.log_prob_comm - data.old_log_prob_comm
+        log_ratio_mu = evaluation.log_prob_broadcast - data.old_log_prob_broadcast
         ratio_mu = th.exp(log_ratio_mu)
-        mu_loss = clipped_surrogate_loss(self.option_advantages(evaluation, data), ratio_mu, clip_mu)
-        entropy_mu = evaluation.entropy_comm.mean(0).sum()
+        mu_loss = clipped_surrogate_loss(self.broadcast_advantages(evaluation, data), ratio_mu, clip_mu)
+        entropy_mu = evaluation.entropy_broadcast.mean(0).sum()
         if update.train_mu:
             loss = loss + mu_loss - update.zeta * entropy_mu
 

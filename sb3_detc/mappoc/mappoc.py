@@ -24,11 +24,12 @@ from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecEnv,
 
 from sb3_detc.envs.wrappers import EventTriggeredNetwork, JointEnv
 from sb3_detc.mappoc.buffers import HybridRolloutBuffer
-from sb3_detc.mappoc.losses import OPTION_ADVANTAGES, STEP_STATS, MAPPOCLoss, UpdateInputs
+from sb3_detc.mappoc.losses import BROADCAST_ADVANTAGES, STEP_STATS, MAPPOCLoss, UpdateInputs
 from sb3_detc.mappoc.policies import MlpHybridPolicy, check_joint_spaces
 from sb3_detc.mappoc.rewards import RewardTransform, agent_rewards
 from sb3_detc.mappoc.steps import FusedGradientStep, GradientStep, fusable_adam
 from sb3_detc.mappoc.workers import RolloutWorker, check_finite
+from sb3_detc.renamed import RENAMED, renamed_action_space
 
 SelfMAPPOC = TypeVar("SelfMAPPOC", bound="MAPPOC")
 
@@ -55,7 +56,7 @@ class Rollout(NamedTuple):
     """Steps of all envs as sampled, before the learner takes them in (T steps, n_envs envs)."""
 
     observations: dict[str, np.ndarray]  # (T, n_envs, N, ...) before every step
-    comm: np.ndarray  # (T, n_envs, N) options
+    broadcast: np.ndarray  # (T, n_envs, N) options
     control: np.ndarray  # (T, n_envs, N, m) sampled controls (before clipping to the bounds)
     dones: np.ndarray  # (T, n_envs) episode ends
     infos: list[list[dict[str, Any]]]  # T lists of n_envs infos; at an episode end also "reset_info"
@@ -130,21 +131,21 @@ class MAPPOC(OnPolicyAlgorithm):
     :param gamma: discount factor
     :param gae_lambda: GAE factor
     :param clip_range: clipping parameter of the control policy ``pi`` (constant or schedule)
-    :param clip_range_option: clipping parameter of the policy over options ``mu`` (constant or schedule)
-    :param option_ent_coef: coefficient ``zeta`` of the mean entropy of ``mu`` (constant or
+    :param clip_range_broadcast: clipping parameter of the policy over options ``mu`` (constant or schedule)
+    :param broadcast_ent_coef: coefficient ``zeta`` of the mean entropy of ``mu`` (constant or
         schedule; the paper's code sums over minibatches of 32, so its final 0.02 is 0.64 here)
     :param vf_coef: coefficient of the critic's squared error
     :param max_grad_norm: maximum gradient norm, or None for no clipping (paper: none)
     :param action_noise_std: standard deviation of extra Gaussian noise on the controls
         (the curriculum changes it during training); log-probabilities refer to the noisy controls
-    :param option_advantage: advantage of the taken option in ``mu``'s loss: ``"greedy"``
+    :param broadcast_advantage: advantage of the taken option in ``mu``'s loss: ``"greedy"``
         (the paper: ``Q(o) - max_o' Q(o')`` with the current critic) or ``"return"`` (the
         lambda-return minus ``V(s) = sum_o mu(o) Q(s, o)`` at collection time, standardised
         per agent like the control advantages: a sampled advantage that does not rely on the
         critic telling the two options apart)
-    :param option_advantage_offset: constant added to the greedy option advantage (the
+    :param broadcast_advantage_offset: constant added to the greedy option advantage (the
         paper's code used a 0.1 "deliberation" offset; the paper and the default use 0)
-    :param normalize_option_advantage: divide every agent's greedy option advantages by the
+    :param normalize_broadcast_advantage: divide every agent's greedy option advantages by the
         root mean square of its critic's option gap ``Q(1) - Q(0)`` over the minibatch, so
         that ``mu`` moves towards the better option at a rate set by the learning rate and
         the clip range, not by the (often tiny) scale of the value of a single broadcast,
@@ -164,7 +165,7 @@ class MAPPOC(OnPolicyAlgorithm):
         (added to ``policy_kwargs``; default off, as in the paper)
     :param train_control_policy: whether ``pi`` (and its log standard deviation) is trained;
         switch it off to learn only when to communicate for a trained controller
-    :param train_option_policy: whether ``mu`` is trained (baselines with fixed
+    :param train_broadcast_policy: whether ``mu`` is trained (baselines with fixed
         communication switch it off)
     :param torch_compile: compile the rollout's sampling and every gradient step with
         ``torch.compile`` (needs a C++ compiler); with the default Adam optimizer and no
@@ -188,7 +189,7 @@ class MAPPOC(OnPolicyAlgorithm):
     :param device: device (cpu, cuda, ...) on which the code runs
     :param _init_setup_model: whether to build the network at the creation of the instance
 
-    The loss's and the rewards' settings (``vf_coef``, ``option_advantage*``,
+    The loss's and the rewards' settings (``vf_coef``, ``broadcast_advantage*``,
     ``normalize_advantage``, ``max_grad_norm``, ``target_kl``, ``gamma``, ``reward_scale``,
     ``team_reward``) are read when the model is built or loaded (``MAPPOC.load(path, key=value)``
     changes them); what callbacks switch during training goes through the ``set_*`` methods.
@@ -209,14 +210,14 @@ class MAPPOC(OnPolicyAlgorithm):
         gamma: float = 0.99,
         gae_lambda: float = 0.95,
         clip_range: float | Schedule = 0.2,
-        clip_range_option: float | Schedule = 0.2,
-        option_ent_coef: float | Schedule = 0.64,
+        clip_range_broadcast: float | Schedule = 0.2,
+        broadcast_ent_coef: float | Schedule = 0.64,
         vf_coef: float = 1.0,
         max_grad_norm: float | None = None,
         action_noise_std: float = 0.0,
-        option_advantage: str = "greedy",
-        option_advantage_offset: float = 0.0,
-        normalize_option_advantage: bool = False,
+        broadcast_advantage: str = "greedy",
+        broadcast_advantage_offset: float = 0.0,
+        normalize_broadcast_advantage: bool = False,
         reward_scale: float = 0.1,
         normalize_reward: bool = False,
         team_reward: bool = False,
@@ -224,7 +225,7 @@ class MAPPOC(OnPolicyAlgorithm):
         target_kl: float | None = None,
         share_parameters: bool = False,
         train_control_policy: bool = True,
-        train_option_policy: bool = True,
+        train_broadcast_policy: bool = True,
         torch_compile: bool | str = "auto",
         n_envs: int | None = None,
         fixed_trigger: FixedTrigger | None = None,
@@ -238,8 +239,8 @@ class MAPPOC(OnPolicyAlgorithm):
     ) -> None:
         if torch_compile not in (True, False, "auto"):
             raise ValueError(f"torch_compile must be True, False or 'auto', got {torch_compile!r}.")
-        if option_advantage not in OPTION_ADVANTAGES:
-            raise ValueError(f"option_advantage must be 'greedy' or 'return', got {option_advantage!r}.")
+        if broadcast_advantage not in BROADCAST_ADVANTAGES:
+            raise ValueError(f"broadcast_advantage must be 'greedy' or 'return', got {broadcast_advantage!r}.")
         if n_envs is not None:
             if not isinstance(env, str):
                 raise ValueError(
@@ -297,19 +298,19 @@ class MAPPOC(OnPolicyAlgorithm):
         self.batch_size = batch_size
         self.n_epochs = n_epochs
         self.clip_range = clip_range
-        self.clip_range_option = clip_range_option
-        self.option_ent_coef = option_ent_coef
+        self.clip_range_broadcast = clip_range_broadcast
+        self.broadcast_ent_coef = broadcast_ent_coef
         self.action_noise_std = action_noise_std
-        self.option_advantage = option_advantage
-        self.option_advantage_offset = option_advantage_offset
-        self.normalize_option_advantage = normalize_option_advantage
+        self.broadcast_advantage = broadcast_advantage
+        self.broadcast_advantage_offset = broadcast_advantage_offset
+        self.normalize_broadcast_advantage = normalize_broadcast_advantage
         self.reward_scale = reward_scale
         self.normalize_reward = normalize_reward
         self.team_reward = team_reward
         self.normalize_advantage = normalize_advantage
         self.target_kl = target_kl
         self.train_control_policy = train_control_policy
-        self.train_option_policy = train_option_policy
+        self.train_broadcast_policy = train_broadcast_policy
         self.torch_compile = torch_compile
         self.fixed_trigger: FixedTrigger | None = fixed_trigger  # checked by set_fixed_trigger in _setup_model
         self._action_noise_terms: dict[Hashable, float] = {}
@@ -339,6 +340,8 @@ class MAPPOC(OnPolicyAlgorithm):
         # statistics: in its saved transform, or as reward_rms if it was saved before RewardTransform existed.
         saved = self.__dict__.pop("reward_transform", None)
         saved_rms = self.__dict__.pop("reward_rms", None)
+        for old in RENAMED:  # a model saved under earlier names (MAPPOC.load took the values)
+            self.__dict__.pop(old, None)
         self.reward_transform = RewardTransform(
             self.n_agents, self.gamma, self.reward_scale, self.team_reward, self.normalize_reward
         )
@@ -346,9 +349,9 @@ class MAPPOC(OnPolicyAlgorithm):
         self.loss = MAPPOCLoss(
             self.policy,
             self.vf_coef,
-            self.option_advantage,
-            self.option_advantage_offset,
-            self.normalize_option_advantage,
+            self.broadcast_advantage,
+            self.broadcast_advantage_offset,
+            self.normalize_broadcast_advantage,
             self.normalize_advantage,
         )
         control_space = self.action_space["control"]  # type: ignore[index]
@@ -420,14 +423,14 @@ class MAPPOC(OnPolicyAlgorithm):
             )
         self.fixed_trigger = trigger
 
-    def set_trained_policies(self, control_policy: bool, option_policy: bool) -> None:
+    def set_trained_policies(self, control_policy: bool, broadcast_policy: bool) -> None:
         """Choose which policy levels the updates train (the critic always learns).
 
         :param control_policy: whether ``pi`` (and its log standard deviation, if learned) is trained
-        :param option_policy: whether ``mu`` is trained (never while a fixed trigger decides)
+        :param broadcast_policy: whether ``mu`` is trained (never while a fixed trigger decides)
         """
         self.train_control_policy = bool(control_policy)
-        self.train_option_policy = bool(option_policy)
+        self.train_broadcast_policy = bool(broadcast_policy)
 
     def set_action_noise_std(self, std: float | None, source: Hashable = None) -> None:
         """Set one source's extra Gaussian noise on the controls; the noise used is the largest of all sources.
@@ -513,24 +516,26 @@ class MAPPOC(OnPolicyAlgorithm):
                 forced = None
                 if self.fixed_trigger is not None:
                     forced = th.as_tensor(self.fixed_trigger(obs), device=self.device)  # type: ignore[arg-type]
-                comm, control = self._sample_actions(
+                broadcast, control = self._sample_actions(
                     obs_as_tensor(obs, self.device),  # type: ignore[arg-type]
                     self.action_noise_std,
                     forced,
                 )
-            comm, control = comm.cpu().numpy(), control.cpu().numpy()
+            broadcast, control = broadcast.cpu().numpy(), control.cpu().numpy()
             clipped = np.clip(control, self._control_low, self._control_high)
-            new_obs, _, dones, infos = env.step([{"comm": c, "control": u} for c, u in zip(comm, clipped, strict=True)])
+            new_obs, _, dones, infos = env.step(
+                [{"broadcast": c, "control": u} for c, u in zip(broadcast, clipped, strict=True)]
+            )
             check_finite(new_obs)  # before the policy acts on them
             reset_infos = getattr(env, "reset_infos", None)
             for idx in np.flatnonzero(dones) if reset_infos is not None else ():
                 infos[idx]["reset_info"] = reset_infos[idx]  # as workers report it (the VecEnv keeps the latest only)
-            steps.append((obs, comm, control, dones, infos))
+            steps.append((obs, broadcast, control, dones, infos))
             obs = new_obs
-        observations, comm, control, dones, infos = zip(*steps, strict=True)
+        observations, broadcast, control, dones, infos = zip(*steps, strict=True)
         return Rollout(
             _stack_dicts(list(observations), axis=0),
-            np.stack(comm),
+            np.stack(broadcast),
             np.stack(control),
             np.stack(dones),
             list(infos),
@@ -564,7 +569,7 @@ class MAPPOC(OnPolicyAlgorithm):
 
         return Rollout(
             _stack_dicts([trajectory["observations"] for trajectory in trajectories], axis=1),
-            stacked("comm"),
+            stacked("broadcast"),
             stacked("control"),
             stacked("dones"),
             [[trajectory["infos"][step] for trajectory in trajectories] for step in range(n_steps)],
@@ -593,14 +598,14 @@ class MAPPOC(OnPolicyAlgorithm):
         n_steps, n_envs = rollout.dones.shape
         episode_starts = np.concatenate([np.asarray(self._last_episode_starts)[None], rollout.dones[:-1]])
         self._last_obs, self._last_episode_starts = rollout.last_obs, rollout.dones[-1]  # type: ignore[assignment]
-        comm_cost = self._comm_costs(env)
+        broadcast_cost = self._broadcast_costs(env)
         prices, all_rewards, truncated = [], [], []
         for step in range(n_steps):
             infos, dones = rollout.infos[step], rollout.dones[step]
             new_obs = (
                 rollout.last_obs if step == n_steps - 1 else {k: v[step + 1] for k, v in rollout.observations.items()}
             )
-            prices.append(self.reward_transform.price(comm_cost))
+            prices.append(self.reward_transform.price(broadcast_cost))
             rewards = self.reward_transform(agent_rewards(infos), dones)
             self.num_timesteps += n_envs
             callback.update_locals(locals())
@@ -615,7 +620,7 @@ class MAPPOC(OnPolicyAlgorithm):
         with th.no_grad():
             evaluation = self.policy.evaluate_actions(
                 obs_as_tensor({k: v.reshape(flat, *v.shape[2:]) for k, v in rollout.observations.items()}, self.device),
-                th.as_tensor(rollout.comm.reshape(flat, -1), device=self.device),
+                th.as_tensor(rollout.broadcast.reshape(flat, -1), device=self.device),
                 th.as_tensor(rollout.control.reshape(flat, *rollout.control.shape[2:]), device=self.device),
                 th.as_tensor(price.reshape(flat, -1), device=self.device),
             )
@@ -630,7 +635,7 @@ class MAPPOC(OnPolicyAlgorithm):
                     all_rewards[step][idx] += self.gamma * value
             last_values = self.policy.state_values(
                 obs_as_tensor(rollout.last_obs, self.device),
-                th.as_tensor(self.reward_transform.price(comm_cost), device=self.device),
+                th.as_tensor(self.reward_transform.price(broadcast_cost), device=self.device),
             )
 
         def per_step(x: th.Tensor) -> np.ndarray:
@@ -638,12 +643,12 @@ class MAPPOC(OnPolicyAlgorithm):
 
         buffer.extend(
             rollout.observations,
-            rollout.comm,
+            rollout.broadcast,
             rollout.control,
             np.stack(all_rewards),
             episode_starts,
             per_step(evaluation.option_values),
-            per_step(evaluation.log_prob_comm),
+            per_step(evaluation.log_prob_broadcast),
             per_step(evaluation.log_prob_control),
             price,
         )
@@ -660,9 +665,9 @@ class MAPPOC(OnPolicyAlgorithm):
         progress = self._current_progress_remaining
         # Constants or schedules; callbacks (e.g. the curriculum) may replace them between updates.
         clip_pi = FloatSchedule(self.clip_range)(progress)
-        clip_mu = FloatSchedule(self.clip_range_option)(progress)
-        zeta = FloatSchedule(self.option_ent_coef)(progress)
-        train_mu = self.train_option_policy and self.fixed_trigger is None
+        clip_mu = FloatSchedule(self.clip_range_broadcast)(progress)
+        zeta = FloatSchedule(self.broadcast_ent_coef)(progress)
+        train_mu = self.train_broadcast_policy and self.fixed_trigger is None
         # Networks sharing a batched chain with trained ones get zero gradients, but Adam's momentum
         # from earlier training would still move them: restore them after every step instead.
         frozen = [net for net, trained in (("pi", self.train_control_policy), ("mu", train_mu)) if not trained]
@@ -671,12 +676,12 @@ class MAPPOC(OnPolicyAlgorithm):
 
         rollout = self.rollout_buffer.tensors()
         # probability of broadcasting with which the options were drawn (the centred critic's p_i)
-        taken = rollout.old_log_prob_comm.exp()
+        taken = rollout.old_log_prob_broadcast.exp()
         update = UpdateInputs(
             # The networks' inputs depend on stored observations and options only: built once.
-            self.policy.training_inputs(rollout.observations, rollout.comm),
+            self.policy.training_inputs(rollout.observations, rollout.broadcast),
             rollout._replace(observations={}),
-            th.where(rollout.comm.bool(), taken, 1 - taken),
+            th.where(rollout.broadcast.bool(), taken, 1 - taken),
             clip_pi,
             clip_mu,
             zeta,
@@ -708,22 +713,22 @@ class MAPPOC(OnPolicyAlgorithm):
         )
         self.logger.record("train/std", float(th.exp(self.policy.log_std.detach()).mean()))
         self.logger.record("train/clip_range", clip_pi)
-        self.logger.record("train/clip_range_option", clip_mu)
-        self.logger.record("train/option_ent_coef", zeta)
+        self.logger.record("train/clip_range_broadcast", clip_mu)
+        self.logger.record("train/broadcast_ent_coef", zeta)
         self.logger.record("train/action_noise_std", self.action_noise_std)
         self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
-        self.logger.record("rollout/broadcast_rate", float(buffer.comm.mean()))
+        self.logger.record("rollout/broadcast_rate", float(buffer.broadcast.mean()))
 
-    def _comm_costs(self, env: VecEnv) -> np.ndarray:
+    def _broadcast_costs(self, env: VecEnv) -> np.ndarray:
         """The communication cost ``xi`` of every environment, (n_envs,); zeros unless the critic needs it."""
         if not self.policy.option_critic.needs_price:
             return np.zeros(env.num_envs, dtype=np.float32)  # such critics learn it from the rewards
         try:
-            return np.asarray(env.get_attr("comm_cost"), dtype=np.float32)
+            return np.asarray(env.get_attr("broadcast_cost"), dtype=np.float32)
         except AttributeError as err:
             raise ValueError(
                 f"critic={self.policy.critic!r} needs the environment's communication cost (attribute "
-                "'comm_cost', as the sb3_detc envs have) to add it to its option values."
+                "'broadcast_cost', as the sb3_detc envs have) to add it to its option values."
             ) from err
 
     def learn(
@@ -794,12 +799,18 @@ class MAPPOC(OnPolicyAlgorithm):
             normalises the network's observations (see :func:`check_observation_normalization`)
         """
         env = _as_joint_env(env)
-        if env is not None:
-            data, _, _ = load_from_zip_file(path, device="cpu", custom_objects=custom_objects, load_data=True)
-            if isinstance(env, str):  # the fast setting, with the saved number of envs (n_steps is per env)
-                env = make_rollout_workers(env, int((data or {}).get("n_envs", 1)))
-            if data is not None and "action_space" in data:
-                _check_same_agents(env, len(data["action_space"]["comm"].nvec))  # type: ignore[arg-type]
+        data, _, _ = load_from_zip_file(path, device="cpu", custom_objects=custom_objects, load_data=True)
+        data = data or {}
+        if isinstance(env, str):  # the fast setting, with the saved number of envs (n_steps is per env)
+            env = make_rollout_workers(env, int(data.get("n_envs", 1)))
+        if "action_space" in data:
+            action_space = renamed_action_space(data["action_space"])
+            if action_space is not data["action_space"]:  # saved under an earlier name (sb3_detc.renamed)
+                custom_objects = {"action_space": action_space, **(custom_objects or {})}
+            if env is not None:
+                _check_same_agents(env, len(action_space["broadcast"].nvec))  # type: ignore[arg-type]
+        # Attributes saved under earlier names become the current ones (unless given here); _setup_model drops the old.
+        kwargs = {**{RENAMED[key]: value for key, value in data.items() if key in RENAMED}, **kwargs}
         return super().load(  # type: ignore[return-value]
             path,
             env=env,  # type: ignore[arg-type]
@@ -862,8 +873,8 @@ def _truncated(infos: list[dict[str, Any]], dones: np.ndarray) -> list[tuple[int
 
 def _check_same_agents(env: GymEnv, n_agents: int) -> None:
     action_space = env.action_space
-    if isinstance(action_space, spaces.Dict) and "comm" in action_space.spaces:
-        n_env = len(action_space["comm"].nvec)
+    if isinstance(action_space, spaces.Dict) and "broadcast" in action_space.spaces:
+        n_env = len(action_space["broadcast"].nvec)
         if n_env != n_agents:
             raise ValueError(f"the model controls {n_agents} agents but the environment has {n_env}.")
 

@@ -30,6 +30,7 @@ import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
+from stable_baselines3.common.utils import get_device
 from torch import nn
 from torch.nn import functional as F
 
@@ -37,6 +38,7 @@ from sb3_detc.envs.wrappers import JOINT_KEYS
 from sb3_detc.mappoc.batched import AgentBatchedNetworks, ChainInput, NetSpec
 from sb3_detc.mappoc.critics import CRITICS, OptionCritic
 from sb3_detc.network import advance_timer, hold, others_index, relative_views
+from sb3_detc.renamed import renamed_action_space
 
 #: Order of the networks inside the batched chains: ``mu`` (and a critic that reads the state
 #: before the options) do not depend on this step's options and run before the options are
@@ -54,9 +56,9 @@ def broadcast_probability(logits: th.Tensor) -> th.Tensor:
 class HybridAction(NamedTuple):
     """One joint hybrid action of all agents with what training needs about it."""
 
-    comm: th.Tensor  # (B, N) options, int64
+    broadcast: th.Tensor  # (B, N) options, int64
     control: th.Tensor  # (B, N, m) controls (with any extra exploration noise, unclipped)
-    log_prob_comm: th.Tensor  # (B, N) log mu_i(o_i)
+    log_prob_broadcast: th.Tensor  # (B, N) log mu_i(o_i)
     log_prob_control: th.Tensor  # (B, N) log pi_i(u_i)
     option_values: th.Tensor  # (B, N, 2) Q_i(s, o) for both options
 
@@ -64,8 +66,8 @@ class HybridAction(NamedTuple):
 class HybridEvaluation(NamedTuple):
     """Log-probabilities, option entropy and option values of stored hybrid actions."""
 
-    log_prob_comm: th.Tensor  # (B, N)
-    entropy_comm: th.Tensor  # (B, N)
+    log_prob_broadcast: th.Tensor  # (B, N)
+    entropy_broadcast: th.Tensor  # (B, N)
     log_prob_control: th.Tensor  # (B, N)
     option_values: th.Tensor  # (B, N, 2)
 
@@ -81,7 +83,7 @@ class MlpHybridPolicy(BasePolicy):
 
     :param observation_space: joint observation space of an event-triggered env (Dict with
         keys ``local``, ``message``, ``held``, ``age``, ``trigger``, ``trigger_held``)
-    :param action_space: joint action space (Dict with ``comm`` MultiDiscrete and ``control`` Box)
+    :param action_space: joint action space (Dict with ``broadcast`` MultiDiscrete and ``control`` Box)
     :param lr_schedule: learning rate schedule (None: a constant placeholder, for a policy
         loaded on its own with :meth:`load` to act, not to train)
     :param net_arch: hidden layer sizes, either one list for all networks or a dict with keys
@@ -223,6 +225,21 @@ class MlpHybridPolicy(BasePolicy):
         learning_rate = 0.0 if lr_schedule is None else lr_schedule(1)
         self.optimizer = self.optimizer_class(params, lr=learning_rate, **self.optimizer_kwargs)
 
+    @classmethod
+    def load(cls, path: str, device: th.device | str = "auto") -> MlpHybridPolicy:  # type: ignore[override]
+        """Load a policy saved with :meth:`save`, also one saved under earlier names (:mod:`sb3_detc.renamed`).
+
+        :param path: the file
+        :param device: where the policy runs
+        :return: the policy
+        """
+        device = get_device(device)
+        saved = th.load(path, map_location=device, weights_only=False)  # the spaces are pickled gymnasium objects
+        data = {**saved["data"], "action_space": renamed_action_space(saved["data"]["action_space"])}
+        policy = cls(**data)
+        policy.load_state_dict(saved["state_dict"])
+        return policy.to(device)
+
     def _get_constructor_parameters(self) -> dict[str, Any]:
         data = super()._get_constructor_parameters()
         data.update(
@@ -250,31 +267,31 @@ class MlpHybridPolicy(BasePolicy):
         return [*views, self.log_std.detach()] if net == "pi" else views
 
     # ------------------------------------------------------------------ features
-    def network_after(self, obs: PyTorchObs, comm: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
+    def network_after(self, obs: PyTorchObs, broadcast: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
         """Held broadcasts and timers after this step's options (the rule of :mod:`sb3_detc.network`).
 
         :param obs: joint observation, tensors shaped (B, N, ...)
-        :param comm: options (B, N)
+        :param broadcast: broadcast decisions (B, N)
         :return: held broadcasts (B, N, n_msg) and timers (B, N, 1)
         """
-        comm = comm.to(obs["held"].dtype)
-        return hold(obs["held"], obs["message"], comm), advance_timer(obs["age"], comm)
+        broadcast = broadcast.to(obs["held"].dtype)
+        return hold(obs["held"], obs["message"], broadcast), advance_timer(obs["age"], broadcast)
 
     def option_features(self, obs: PyTorchObs) -> th.Tensor:
         """Inputs of ``mu_i``: trigger features now and at the own last broadcast, (B, N, 2 n_trig)."""
         return th.cat([obs["trigger"], obs["trigger_held"]], dim=-1)
 
-    def control_features(self, obs: PyTorchObs, comm: th.Tensor) -> th.Tensor:
+    def control_features(self, obs: PyTorchObs, broadcast: th.Tensor) -> th.Tensor:
         """Inputs of ``pi_i``: networked observation ``x^_i`` after this step's broadcasts.
 
         Own local state, the others' held broadcasts relative to the own current message
         and their ages (Sec. 2, networked observation).
 
         :param obs: joint observation (B, N, ...)
-        :param comm: options (B, N)
+        :param broadcast: broadcast decisions (B, N)
         :return: (B, N, n_local + (N - 1) (n_msg + 1))
         """
-        held, age = self.network_after(obs, comm)
+        held, age = self.network_after(obs, broadcast)
         views = relative_views(held, obs["message"], self.others).flatten(2)
         ages = age[:, self.others, 0] * self.age_scale
         return th.cat([obs["local"], views, ages], dim=-1)
@@ -291,12 +308,12 @@ class MlpHybridPolicy(BasePolicy):
         """
         return self._centralised_features(obs, obs["held"][:, self.everyone], obs["age"][:, self.everyone])
 
-    def afterstate_features(self, obs: PyTorchObs, comm: th.Tensor) -> th.Tensor:
-        """Inputs of the afterstate critic ``W_i`` for both own options, the others' as in ``comm``.
+    def afterstate_features(self, obs: PyTorchObs, broadcast: th.Tensor) -> th.Tensor:
+        """Inputs of the afterstate critic ``W_i`` for both own options, the others' as in ``broadcast``.
 
         The features of :meth:`critic_features` with the held broadcasts after this step's
         broadcasts: variant ``v`` of agent ``i`` applies the hold rule (:func:`hold`, as
-        :meth:`network_after` does) to the options ``comm`` with agent ``i``'s own option
+        :meth:`network_after` does) to the options ``broadcast`` with agent ``i``'s own option
         replaced by ``v``. The ages stay those before the options, the same for both
         variants: a broadcast is worth the information it delivers, and an age reset that
         differs between the options in every state, whatever the broadcast carries, would let
@@ -305,7 +322,7 @@ class MlpHybridPolicy(BasePolicy):
         broadcast at every step even when a broadcast cost more than any information).
 
         :param obs: joint observation (B, N, ...) from before the options
-        :param comm: options (B, N)
+        :param broadcast: broadcast decisions (B, N)
         :return: (B, 2, N, features): ``[:, v, i]`` feeds ``W_i`` for ``o_i = v``
         """
         n = self.n_agents
@@ -314,7 +331,7 @@ class MlpHybridPolicy(BasePolicy):
         variants = []
         for option in (0, 1):
             # row i: everyone's options with agent i's own replaced by `option`, (B, N, N)
-            options = th.where(own, option, comm[:, None, :].expand(-1, n, -1)).to(obs["held"].dtype)
+            options = th.where(own, option, broadcast[:, None, :].expand(-1, n, -1)).to(obs["held"].dtype)
             held = hold(obs["held"][:, None], obs["message"][:, None], options)
             variants.append(self._centralised_features(obs, held, age))
         return th.stack(variants, dim=1)
@@ -332,30 +349,30 @@ class MlpHybridPolicy(BasePolicy):
         return th.cat([obs["local"], views, age[..., 0] * self.age_scale, true], dim=-1)
 
     def option_values(
-        self, q: th.Tensor, comm_price: th.Tensor | None = None, p_broadcast: th.Tensor | None = None
+        self, q: th.Tensor, broadcast_price: th.Tensor | None = None, p_broadcast: th.Tensor | None = None
     ) -> th.Tensor:
         """Both options' values from the critic's outputs: :meth:`.OptionCritic.option_values` of :attr:`option_critic`.
 
         :param q: outputs of the critic network
-        :param comm_price: what a broadcast costs agent ``i`` in the learner's reward units (B, N);
+        :param broadcast_price: what a broadcast costs agent ``i`` in the learner's reward units (B, N);
             read by critics that add it analytically (None: zero)
         :param p_broadcast: probability of broadcasting ``p_i`` with which the options were
             drawn (B, N); needed by the centred critic only
         :return: ``Q_i(s, o)``, (B, N, 2)
         """
-        return self.option_critic.option_values(q, comm_price, p_broadcast)
+        return self.option_critic.option_values(q, broadcast_price, p_broadcast)
 
-    def training_inputs(self, obs: PyTorchObs, comm: th.Tensor) -> list[ChainInput]:
+    def training_inputs(self, obs: PyTorchObs, broadcast: th.Tensor) -> list[ChainInput]:
         """Stacked inputs of all networks for stored observations and options (no parameters involved).
 
         :param obs: joint observations (B, N, ...) from before the options
-        :param comm: stored options (B, N)
+        :param broadcast: stored options (B, N)
         """
         return self.chains.stack(
             {
                 "mu": self.option_features(obs),
-                "q": self.option_critic.features(self, obs, comm),
-                "pi": self.control_features(obs, comm),
+                "q": self.option_critic.features(self, obs, broadcast),
+                "pi": self.control_features(obs, broadcast),
             }
         )
 
@@ -364,42 +381,44 @@ class MlpHybridPolicy(BasePolicy):
         self,
         obs: PyTorchObs,
         deterministic: bool = False,
-        comm: th.Tensor | None = None,
+        broadcast: th.Tensor | None = None,
         action_noise_std: float = 0.0,
-        deterministic_options: bool | None = None,
-        comm_price: th.Tensor | None = None,
+        deterministic_broadcast: bool | None = None,
+        broadcast_price: th.Tensor | None = None,
     ) -> HybridAction:
         """Sample all options, deliver the broadcasts, then sample all controls (same-step delivery).
 
         :param obs: joint observation (B, N, ...)
         :param deterministic: mode of ``mu`` and mean of ``pi`` instead of samples
-        :param comm: options to use instead of sampling them from ``mu`` (e.g. a baseline's)
+        :param broadcast: broadcast decisions to use instead of sampling them from ``mu`` (e.g. a baseline's)
         :param action_noise_std: standard deviation of extra Gaussian exploration noise added
             to the sampled controls (curriculum); log-probabilities refer to the noisy controls
-        :param deterministic_options: mode (True) or sample (False) of ``mu`` regardless of
+        :param deterministic_broadcast: mode (True) or sample (False) of ``mu`` regardless of
             ``deterministic`` (None: as ``deterministic``)
-        :param comm_price: cost of a broadcast in the learner's reward units (B, N), see
+        :param broadcast_price: cost of a broadcast in the learner's reward units (B, N), see
             :meth:`option_values`
         :return: the hybrid action with its log-probabilities and the option values
         """
-        out, comm, control = self._sample(obs, deterministic, comm, action_noise_std, deterministic_options, True)
+        out, broadcast, control = self._sample(
+            obs, deterministic, broadcast, action_noise_std, deterministic_broadcast, True
+        )
         log_std = self.log_std.expand(self.n_agents, -1)
-        log_prob_comm = F.log_softmax(out["mu"], dim=-1).gather(-1, comm[..., None])[..., 0]
+        log_prob_broadcast = F.log_softmax(out["mu"], dim=-1).gather(-1, broadcast[..., None])[..., 0]
         return HybridAction(
-            comm,
+            broadcast,
             control,
-            log_prob_comm,
+            log_prob_broadcast,
             gaussian_log_prob(control, out["pi"], log_std),
-            self.option_values(out["q"], comm_price, broadcast_probability(out["mu"])),
+            self.option_values(out["q"], broadcast_price, broadcast_probability(out["mu"])),
         )
 
     def sample_actions(
         self,
         obs: PyTorchObs,
         action_noise_std: float = 0.0,
-        comm: th.Tensor | None = None,
+        broadcast: th.Tensor | None = None,
         deterministic: bool = False,
-        deterministic_options: bool | None = None,
+        deterministic_broadcast: bool | None = None,
     ) -> tuple[th.Tensor, th.Tensor]:
         """The options and controls :meth:`forward` samples, without evaluating the critic.
 
@@ -409,31 +428,33 @@ class MlpHybridPolicy(BasePolicy):
 
         :param obs: joint observation (B, N, ...)
         :param action_noise_std: extra Gaussian noise on the controls (see :meth:`forward`)
-        :param comm: options to use instead of sampling them (a fixed trigger)
+        :param broadcast: broadcast decisions to use instead of sampling them (a fixed trigger)
         :param deterministic: mode of ``mu`` and mean of ``pi`` instead of samples
-        :param deterministic_options: mode (True) or sample (False) of ``mu`` regardless of
+        :param deterministic_broadcast: mode (True) or sample (False) of ``mu`` regardless of
             ``deterministic`` (None: as ``deterministic``)
         :return: options (B, N) and controls (B, N, m)
         """
-        _, comm, control = self._sample(obs, deterministic, comm, action_noise_std, deterministic_options, False)
-        return comm, control
+        _, broadcast, control = self._sample(
+            obs, deterministic, broadcast, action_noise_std, deterministic_broadcast, False
+        )
+        return broadcast, control
 
     def _sample(
         self,
         obs: PyTorchObs,
         deterministic: bool,
-        comm: th.Tensor | None,
+        broadcast: th.Tensor | None,
         action_noise_std: float,
-        deterministic_options: bool | None,
+        deterministic_broadcast: bool | None,
         with_critic: bool,
     ) -> tuple[dict[str, th.Tensor], th.Tensor, th.Tensor]:
         """Options, then the broadcasts delivered, then controls; with the networks' outputs.
 
         :param obs: joint observation (B, N, ...)
         :param deterministic: mode of ``mu`` and mean of ``pi`` instead of samples
-        :param comm: options to use instead of sampling them (None: sample)
+        :param broadcast: broadcast decisions to use instead of sampling them (None: sample)
         :param action_noise_std: extra Gaussian noise on the controls
-        :param deterministic_options: mode (True) or sample (False) of ``mu`` (None: as ``deterministic``)
+        :param deterministic_broadcast: mode (True) or sample (False) of ``mu`` (None: as ``deterministic``)
         :param with_critic: whether to evaluate the critic too (output ``q``)
         :return: the outputs of ``mu``, ``pi`` (and ``q``), the options, the controls
         """
@@ -442,14 +463,14 @@ class MlpHybridPolicy(BasePolicy):
         if with_critic and not critic.reads_afterstate:
             before["q"] = critic.features(self, obs, None)
         out = self.chains.run(before)
-        if deterministic_options is None:
-            deterministic_options = deterministic
-        if comm is None:
-            comm = self._sample_options(out["mu"], deterministic_options)
-        comm = comm.long()
-        after = {"pi": self.control_features(obs, comm)}
+        if deterministic_broadcast is None:
+            deterministic_broadcast = deterministic
+        if broadcast is None:
+            broadcast = self._sample_options(out["mu"], deterministic_broadcast)
+        broadcast = broadcast.long()
+        after = {"pi": self.control_features(obs, broadcast)}
         if with_critic and critic.reads_afterstate:
-            after["q"] = critic.features(self, obs, comm)
+            after["q"] = critic.features(self, obs, broadcast)
         out.update(self.chains.run(after))
         mean = out["pi"]
         control = mean
@@ -457,7 +478,7 @@ class MlpHybridPolicy(BasePolicy):
             control = mean + th.randn_like(mean) * self.log_std.expand(self.n_agents, -1).exp()
         if action_noise_std > 0:
             control = control + th.randn_like(mean) * action_noise_std
-        return out, comm, control
+        return out, broadcast, control
 
     @staticmethod
     def _sample_options(logits: th.Tensor, deterministic: bool) -> th.Tensor:
@@ -470,57 +491,59 @@ class MlpHybridPolicy(BasePolicy):
     def evaluate_actions(
         self,
         obs: PyTorchObs,
-        comm: th.Tensor,
+        broadcast: th.Tensor,
         control: th.Tensor,
-        comm_price: th.Tensor | None = None,
+        broadcast_price: th.Tensor | None = None,
         p_broadcast: th.Tensor | None = None,
     ) -> HybridEvaluation:
         """Evaluate stored hybrid actions with the current networks (one pass through all chains).
 
         :param obs: joint observations (B, N, ...) from before the options
-        :param comm: stored options (B, N)
+        :param broadcast: stored options (B, N)
         :param control: stored controls (B, N, m)
-        :param comm_price: cost of a broadcast in the learner's reward units (B, N), see :meth:`option_values`
-        :param p_broadcast: probabilities of broadcasting with which ``comm`` was drawn (B, N),
+        :param broadcast_price: cost of a broadcast in the learner's reward units (B, N), see :meth:`option_values`
+        :param p_broadcast: probabilities of broadcasting with which ``broadcast`` was drawn (B, N),
             see :meth:`option_values` (None: those of the current ``mu``)
         """
-        return self.evaluate_inputs(self.training_inputs(obs, comm), comm, control, comm_price, p_broadcast)
+        return self.evaluate_inputs(
+            self.training_inputs(obs, broadcast), broadcast, control, broadcast_price, p_broadcast
+        )
 
     def evaluate_inputs(
         self,
         stacked: list[ChainInput],
-        comm: th.Tensor,
+        broadcast: th.Tensor,
         control: th.Tensor,
-        comm_price: th.Tensor | None = None,
+        broadcast_price: th.Tensor | None = None,
         p_broadcast: th.Tensor | None = None,
     ) -> HybridEvaluation:
         """Like :meth:`evaluate_actions`, from inputs prepared by :meth:`training_inputs`.
 
-        :param stacked: stacked inputs of the same samples as ``comm`` and ``control``
-        :param comm: stored options (B, N)
+        :param stacked: stacked inputs of the same samples as ``broadcast`` and ``control``
+        :param broadcast: stored options (B, N)
         :param control: stored controls (B, N, m)
-        :param comm_price: cost of a broadcast in the learner's reward units (B, N), see :meth:`option_values`
-        :param p_broadcast: probabilities of broadcasting with which ``comm`` was drawn (B, N),
+        :param broadcast_price: cost of a broadcast in the learner's reward units (B, N), see :meth:`option_values`
+        :param p_broadcast: probabilities of broadcasting with which ``broadcast`` was drawn (B, N),
             see :meth:`option_values` (None: those of the current ``mu``)
         """
         out = self.chains.evaluate(stacked)
         log_p = F.log_softmax(out["mu"], dim=-1)
-        log_prob_comm = log_p.gather(-1, comm.long()[..., None])[..., 0]
+        log_prob_broadcast = log_p.gather(-1, broadcast.long()[..., None])[..., 0]
         entropy = -(log_p.exp() * log_p).sum(-1)
         log_std = self.log_std.expand(self.n_agents, -1)
         control_log_prob = gaussian_log_prob(control, out["pi"], log_std)
         if p_broadcast is None:
             p_broadcast = log_p[..., 1].exp().detach()
-        option_values = self.option_values(out["q"], comm_price, p_broadcast)
-        return HybridEvaluation(log_prob_comm, entropy, control_log_prob, option_values)
+        option_values = self.option_values(out["q"], broadcast_price, p_broadcast)
+        return HybridEvaluation(log_prob_broadcast, entropy, control_log_prob, option_values)
 
-    def state_values(self, obs: PyTorchObs, comm_price: th.Tensor | None = None) -> th.Tensor:
+    def state_values(self, obs: PyTorchObs, broadcast_price: th.Tensor | None = None) -> th.Tensor:
         """Option-value critic averaged under the policy over options, ``V_i(s) = sum_o mu_i(o) Q_i(s, o)``.
 
         A critic that reads the afterstate takes the others' options from one sample of their policies.
 
         :param obs: joint observation (B, N, ...)
-        :param comm_price: cost of a broadcast in the learner's reward units (B, N), see :meth:`option_values`
+        :param broadcast_price: cost of a broadcast in the learner's reward units (B, N), see :meth:`option_values`
         :return: values (B, N)
         """
         critic = self.option_critic
@@ -529,15 +552,15 @@ class MlpHybridPolicy(BasePolicy):
             before["q"] = critic.features(self, obs, None)
         out = self.chains.run(before)
         if critic.reads_afterstate:
-            comm = self._sample_options(out["mu"], deterministic=False)
-            out.update(self.chains.run({"q": critic.features(self, obs, comm)}))
-        q = self.option_values(out["q"], comm_price, broadcast_probability(out["mu"]))
+            broadcast = self._sample_options(out["mu"], deterministic=False)
+            out.update(self.chains.run({"q": critic.features(self, obs, broadcast)}))
+        q = self.option_values(out["q"], broadcast_price, broadcast_probability(out["mu"]))
         return (F.softmax(out["mu"], dim=-1) * q).sum(-1)
 
     def _predict(self, observation: PyTorchObs, deterministic: bool = False) -> th.Tensor:
         """Options and controls side by side, (B, N, 1 + m); :meth:`predict` returns them as a Dict."""
         action = self.forward(observation, deterministic=deterministic)
-        return th.cat([action.comm[..., None].to(action.control.dtype), action.control], dim=-1)
+        return th.cat([action.broadcast[..., None].to(action.control.dtype), action.control], dim=-1)
 
     def predict(
         self,
@@ -552,7 +575,7 @@ class MlpHybridPolicy(BasePolicy):
         :param state: unused (no recurrent state), returned as is
         :param episode_start: unused
         :param deterministic: mode of ``mu`` and mean of ``pi``
-        :return: ``{"comm": (N,), "control": (N, m)}`` for one observation, or a list of
+        :return: ``{"broadcast": (N,), "control": (N, m)}`` for one observation, or a list of
             such dicts, one per environment, for a batch (what a VecEnv's ``step`` takes);
             controls are clipped to the action bounds
         :raises ValueError: for the ``(obs, info)`` tuple of a Gymnasium env's ``reset``
@@ -567,9 +590,9 @@ class MlpHybridPolicy(BasePolicy):
         obs_tensor, vectorized = self.obs_to_tensor(observation)
         with th.no_grad():
             joint = self._predict(obs_tensor, deterministic=deterministic)
-        comm = joint[..., 0].long().cpu().numpy()
+        broadcast = joint[..., 0].long().cpu().numpy()
         control = th.clamp(joint[..., 1:], self.control_low, self.control_high).cpu().numpy()
-        actions = [{"comm": c, "control": u} for c, u in zip(comm, control, strict=True)]
+        actions = [{"broadcast": c, "control": u} for c, u in zip(broadcast, control, strict=True)]
         return (actions if vectorized else actions[0]), state
 
     def agent_controller(self, agent: int) -> AgentController:
@@ -685,16 +708,17 @@ def check_joint_spaces(observation_space: spaces.Space, action_space: spaces.Spa
         raise ValueError(f"expected a Dict observation space with keys {sorted(JOINT_KEYS)}, got {keys}; {hint}.")
     if (
         not isinstance(action_space, spaces.Dict)
-        or set(action_space.spaces) != {"comm", "control"}
-        or not isinstance(action_space["comm"], spaces.MultiDiscrete)
+        or set(action_space.spaces) != {"broadcast", "control"}
+        or not isinstance(action_space["broadcast"], spaces.MultiDiscrete)
         or not isinstance(action_space["control"], spaces.Box)
     ):
         raise ValueError(
-            f"expected a Dict action space with 'comm' (MultiDiscrete) and 'control' (Box), got {action_space}; {hint}."
+            "expected a Dict action space with 'broadcast' (MultiDiscrete) and 'control' (Box), "
+            f"got {action_space}; {hint}."
         )
-    n_agents = len(action_space["comm"].nvec)
-    if not np.all(action_space["comm"].nvec == 2):
-        raise ValueError(f"'comm' must be MultiDiscrete([2] * N), got nvec {action_space['comm'].nvec}.")
+    n_agents = len(action_space["broadcast"].nvec)
+    if not np.all(action_space["broadcast"].nvec == 2):
+        raise ValueError(f"'broadcast' must be MultiDiscrete([2] * N), got nvec {action_space['broadcast'].nvec}.")
     control = action_space["control"]
     if control.shape[0] != n_agents or len(control.shape) != 2:
         raise ValueError(f"'control' must have shape (N={n_agents}, m), got {control.shape}.")

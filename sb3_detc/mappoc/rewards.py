@@ -83,15 +83,15 @@ class RewardTransform:
             return 1.0
         return np.sqrt(self.return_rms.var + 1e-8)
 
-    def price(self, comm_cost: np.ndarray) -> np.ndarray:
+    def price(self, broadcast_cost: np.ndarray) -> np.ndarray:
         """What an agent's own broadcast costs in the learner's reward units, (n_envs, N).
 
         The communication cost through the same transformation as the rewards (scaled,
         shared by the team, divided by the return spread; the clipping is ignored).
 
-        :param comm_cost: communication cost of every env (n_envs,)
+        :param broadcast_cost: communication cost of every env (n_envs,)
         """
-        price = np.repeat(comm_cost[:, None] * self.scale, self.n_agents, axis=1)
+        price = np.repeat(broadcast_cost[:, None] * self.scale, self.n_agents, axis=1)
         if self.team:
             price = price / self.n_agents
         return (price / self.spread()).astype(np.float32)

@@ -44,7 +44,7 @@ class RolloutWorker(gym.Wrapper):
     ``info["terminal_observation"]`` and an automatic reset at the end of every episode. The
     copy of the policy runs on the CPU with one thread (batches of one sample).
 
-    :param env: a joint env (Dict observations with an agent axis, ``comm`` x ``control`` actions)
+    :param env: a joint env (Dict observations with an agent axis, ``broadcast`` x ``control`` actions)
     """
 
     def __init__(self, env: gym.Env) -> None:
@@ -100,7 +100,7 @@ class RolloutWorker(gym.Wrapper):
         :param torch_compile: whether to compile the policy's sampling (read when ``policy`` is sent)
         :param triggers: one pickled fixed trigger per env of the vector env, forked for
             it (see ``MAPPOC.set_fixed_trigger``); None: options sampled from the policy
-        :return: ``observations`` before every step (dict of (n_steps, N, ...)), ``comm``
+        :return: ``observations`` before every step (dict of (n_steps, N, ...)), ``broadcast``
             (n_steps, N), ``control`` (n_steps, N, m; sampled, before clipping to the bounds),
             ``dones`` (n_steps,), ``infos`` (one dict per step; at an episode end with
             ``terminal_observation`` and ``reset_info``, the info of the reset that followed) and
@@ -119,7 +119,7 @@ class RolloutWorker(gym.Wrapper):
         self._policy.load_state_dict({key: th.as_tensor(value) for key, value in state_dict.items()})
         space = self.action_space["control"]
         observations = {key: np.empty((n_steps, *value.shape), value.dtype) for key, value in self._obs.items()}
-        comm = np.empty((n_steps, *self.action_space["comm"].shape), np.int64)
+        broadcast = np.empty((n_steps, *self.action_space["broadcast"].shape), np.int64)
         control = np.empty((n_steps, *space.shape), np.float32)
         dones = np.empty(n_steps, bool)
         infos = []
@@ -141,9 +141,9 @@ class RolloutWorker(gym.Wrapper):
                         options, controls = self._act(
                             {key: value[t : t + 1] for key, value in as_tensors.items()}, action_noise_std, forced
                         )
-                    comm[t], control[t] = options[0].numpy(), controls[0].numpy()
+                    broadcast[t], control[t] = options[0].numpy(), controls[0].numpy()
                     obs, _, terminated, truncated, info = self.step(
-                        {"comm": comm[t], "control": np.clip(control[t], space.low, space.high)}
+                        {"broadcast": broadcast[t], "control": np.clip(control[t], space.low, space.high)}
                     )
                     dones[t] = terminated or truncated
                     info["TimeLimit.truncated"] = truncated and not terminated
@@ -155,7 +155,7 @@ class RolloutWorker(gym.Wrapper):
             th.set_num_threads(threads)
         return {
             "observations": observations,
-            "comm": comm,
+            "broadcast": broadcast,
             "control": control,
             "dones": dones,
             "infos": infos,

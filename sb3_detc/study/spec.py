@@ -18,7 +18,7 @@ A study file is YAML::
         cpus: 2                          # optional: cores per trial (default: see below)
         conf: my_hyperparams.yml         # optional: another hyperparameter file (relative to the study file)
         hyperparams:                     # optional: overrides of the entry, as rl-zoo3's --hyperparams
-          option_ent_coef: 0.03
+          broadcast_ent_coef: 0.03
 
 The entry of ``env`` is taken from the package's hyperparameter file of the algorithm
 (``sb3_detc/hyperparams/<algo>.yml``) unless ``conf`` names another one. A trial uses as

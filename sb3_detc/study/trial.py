@@ -41,6 +41,7 @@ from stable_baselines3.common.save_util import load_from_zip_file
 from sb3_detc.callbacks import FixedTriggerCallback
 from sb3_detc.evaluation import Episodes, evaluate_episodes
 from sb3_detc.mappoc.policies import MlpHybridPolicy
+from sb3_detc.renamed import renamed_column
 from sb3_detc.study.spec import StudySpec, Trial
 from sb3_detc.triggers import RandomTrigger
 from sb3_detc.zoo import ExperimentManager
@@ -151,7 +152,7 @@ def merged_progress(folder: Path) -> pd.DataFrame:
         csv = path / "progress.csv"
         if not csv.is_file() or csv.stat().st_size == 0:
             continue
-        rows = pd.read_csv(csv)
+        rows = pd.read_csv(csv).rename(columns=renamed_column)  # also logs of earlier versions
         if k + 1 < len(starts) and "time/total_timesteps" in rows:
             rows = rows[rows["time/total_timesteps"] <= starts[k + 1][0]]
         parts.append(rows)
@@ -232,7 +233,7 @@ def evaluate_policy_modes(
     if own_trigger is not None and hasattr(own_trigger, "fork"):
         own_trigger = own_trigger.fork(seed)
     learned = evaluate_episodes(
-        policy, env, seeds, deterministic=True, deterministic_options=False, fixed_trigger=own_trigger
+        policy, env, seeds, deterministic=True, deterministic_broadcast=False, fixed_trigger=own_trigger
     )
     results = {"learned": learned}
     for mode, skip in (("random_same_rate", learned.savings), ("periodic", 0.0), ("never", 1.0)):

@@ -1,0 +1,65 @@
+"""Files saved under the names sb3-detc used before the broadcast decision had one name.
+
+Every agent's decision to broadcast (1) or stay silent (0) is called ``broadcast`` throughout:
+the action key, ``info["broadcast"]``, ``broadcast_cost``, MAPPOC's ``broadcast_*``
+hyperparameters. Models, policies, run logs and hyperparameter entries saved before used
+``comm``, ``comm_cost`` and ``option_*``. This module is the one place that maps the old names
+to the new ones; loading a model or a policy, reading a run's ``progress.csv`` and reading a
+saved rl-zoo3 configuration go through it, so earlier results stay readable.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from gymnasium import spaces
+
+__all__ = ["RENAMED", "renamed_action_space", "renamed_column", "renamed_keys"]
+
+#: Old name -> new name (saved attributes, hyperparameters, environment arguments).
+RENAMED: dict[str, str] = {
+    "comm_cost": "broadcast_cost",
+    "option_ent_coef": "broadcast_ent_coef",
+    "clip_range_option": "clip_range_broadcast",
+    "normalize_option_advantage": "normalize_broadcast_advantage",
+    "option_advantage": "broadcast_advantage",
+    "option_advantage_offset": "broadcast_advantage_offset",
+    "train_option_policy": "train_broadcast_policy",
+}
+
+#: The action key of the broadcast decision before and now.
+OLD_ACTION_KEY, ACTION_KEY = "comm", "broadcast"
+
+
+def renamed_action_space(space: Any) -> Any:
+    """A joint action space with the decision under its current key (other spaces unchanged).
+
+    :param space: an action space, possibly ``Dict(comm=..., control=...)``
+    :return: the same space with ``comm`` renamed ``broadcast`` (in its place), else ``space`` itself
+    """
+    if not isinstance(space, spaces.Dict) or OLD_ACTION_KEY not in space.spaces:
+        return space
+    return spaces.Dict({ACTION_KEY if key == OLD_ACTION_KEY else key: value for key, value in space.spaces.items()})
+
+
+def renamed_keys(mapping: dict[str, Any]) -> dict[str, Any]:
+    """A mapping with old names replaced by new ones (a new name given as well wins).
+
+    :param mapping: e.g. saved model data, hyperparameters or environment arguments
+    :return: a new dict
+    """
+    renamed = {RENAMED.get(key, key): value for key, value in mapping.items() if key not in RENAMED}
+    for old, value in mapping.items():
+        if old in RENAMED:
+            renamed.setdefault(RENAMED[old], value)
+    return renamed
+
+
+def renamed_column(name: str) -> str:
+    """A logged value's current name (``train/option_ent_coef`` -> ``train/broadcast_ent_coef``).
+
+    :param name: a column of a ``progress.csv``
+    :return: its current name
+    """
+    group, _, key = name.rpartition("/")
+    return f"{group}/{RENAMED.get(key, key)}" if group else RENAMED.get(key, key)
