@@ -107,18 +107,18 @@ def evaluate_episodes(
                 forced = None
                 if fixed_trigger is not None:
                     forced = th.as_tensor(fixed_trigger(batch), device=policy.device)
-                broadcast, control = policy.sample_actions(
+                sampled, control = policy.sample_actions(
                     obs_as_tensor(batch, policy.device),
                     broadcast=forced,
                     deterministic=deterministic,
                     deterministic_broadcast=deterministic_broadcast,
                 )
-            options = broadcast[0].cpu().numpy()
+            broadcast = sampled[0].cpu().numpy()
             control = np.clip(control[0].cpu().numpy(), low, high)
-            obs, reward, terminated, truncated, info = env.step({"broadcast": options, "control": control})
+            obs, reward, terminated, truncated, info = env.step({"broadcast": broadcast, "control": control})
             total += reward
             control_total += float(np.mean(info["control_rewards"]))
-            broadcasts += options
+            broadcasts += broadcast
             steps += 1
             done = terminated or truncated
         records["returns"].append(total)

@@ -188,12 +188,12 @@ def evaluate_trigger(
         done = False
         while not done:
             batch = {key: np.asarray(value)[None] for key, value in obs.items()}
-            options = np.asarray(trigger(batch))[0].astype(np.int64)
-            controls = control(obs, options)
-            obs, _, terminated, truncated, info = env.step({"broadcast": options, "control": controls})
+            broadcast = np.asarray(trigger(batch))[0].astype(np.int64)
+            controls = control(obs, broadcast)
+            obs, _, terminated, truncated, info = env.step({"broadcast": broadcast, "control": controls})
             costs[episode] -= float(np.sum(info["control_rewards"]))
-            broadcasts += int(options.sum())
-            agent_steps += options.size
+            broadcasts += int(broadcast.sum())
+            agent_steps += broadcast.size
             done = terminated or truncated
     sem = float(costs.std(ddof=1) / np.sqrt(n_episodes)) if n_episodes > 1 else 0.0
     return TriggerPoint(

@@ -331,8 +331,8 @@ class MlpHybridPolicy(BasePolicy):
         variants = []
         for option in (0, 1):
             # row i: everyone's options with agent i's own replaced by `option`, (B, N, N)
-            options = th.where(own, option, broadcast[:, None, :].expand(-1, n, -1)).to(obs["held"].dtype)
-            held = hold(obs["held"][:, None], obs["message"][:, None], options)
+            variant = th.where(own, option, broadcast[:, None, :].expand(-1, n, -1)).to(obs["held"].dtype)
+            held = hold(obs["held"][:, None], obs["message"][:, None], variant)
             variants.append(self._centralised_features(obs, held, age))
         return th.stack(variants, dim=1)
 

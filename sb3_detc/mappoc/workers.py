@@ -138,10 +138,10 @@ class RolloutWorker(gym.Wrapper):
                     if trigger is not None:
                         forced = th.as_tensor(trigger({key: value[t : t + 1] for key, value in observations.items()}))
                     with th.no_grad():
-                        options, controls = self._act(
+                        decided, controls = self._act(
                             {key: value[t : t + 1] for key, value in as_tensors.items()}, action_noise_std, forced
                         )
-                    broadcast[t], control[t] = options[0].numpy(), controls[0].numpy()
+                    broadcast[t], control[t] = decided[0].numpy(), controls[0].numpy()
                     obs, _, terminated, truncated, info = self.step(
                         {"broadcast": broadcast[t], "control": np.clip(control[t], space.low, space.high)}
                     )
