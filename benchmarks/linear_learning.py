@@ -57,7 +57,7 @@ HYPERPARAMS = {
     "team_reward": True,
     "policy_kwargs": {"net_arch": [64, 64], "learn_log_std": True},
 }
-#: Option entropy: 0.1 while the control policy learns (iterations 0-100 of 1024 steps), then down to 0.001 at 200.
+#: Broadcast entropy: 0.1 while the control policy learns (iterations 0-100 of 1024 steps), then down to 0.001 at 200.
 ENTROPY_SCHEDULE = {"initial": 0.1, "final": 0.001, "start": 100, "end": 200}
 EVAL_SEED = 10_000
 ENV_ID = "sb3_detc/LinearETC-v0"
@@ -90,7 +90,7 @@ def run(job: dict[str, Any]) -> dict[str, Any]:
 
     :param job: ``broadcast_cost``, ``seed``, ``timesteps``, ``eval_episodes``, ``changes`` (settings
         to change) and either ``recipe`` (:func:`zoo_recipe`) or ``broadcast_advantage``,
-        ``critic`` and ``control_first`` (None for the option entropy schedule, or the
+        ``critic`` and ``control_first`` (None for the broadcast entropy schedule, or the
         arguments of :class:`~sb3_detc.callbacks.ControlFirstCallback` for two stages)
     """
     broadcast_cost, seed, changes, recipe = job["broadcast_cost"], job["seed"], job["changes"], job.get("recipe")
@@ -147,7 +147,7 @@ def main() -> None:
     parser.add_argument("--broadcast-costs", type=float, nargs="+", default=[0.03])
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3])
     parser.add_argument("--from-zoo", action="store_true", help="settings and callbacks of the mappoc.yml entry")
-    parser.add_argument("--option-advantages", nargs="+", help="(not with --from-zoo; default: greedy)")
+    parser.add_argument("--broadcast-advantages", nargs="+", help="(not with --from-zoo; default: greedy)")
     parser.add_argument(
         "--critics", nargs="+", choices=list(CRITICS), help="(not with --from-zoo; default: option_heads)"
     )
@@ -167,7 +167,7 @@ def main() -> None:
     common = {"eval_episodes": args.eval_episodes, "changes": args.set}
     if args.from_zoo:
         if args.broadcast_advantages or args.critics or args.control_first is not None:
-            parser.error("--from-zoo takes the option advantage, critic and stages from the entry (use --set)")
+            parser.error("--from-zoo takes the broadcast advantage, critic and stages from the entry (use --set)")
         recipe = zoo_recipe()
         common.update(recipe=recipe, timesteps=args.timesteps or recipe["n_timesteps"])
         variants = [{}]
@@ -195,7 +195,7 @@ def main() -> None:
         print(f"two stages: ControlFirstCallback({args.control_first})")
     print()
     print(
-        "| broadcast cost | option advantage | critic | seed | savings | cost learned | cost random, same rate "
+        "| broadcast cost | broadcast advantage | critic | seed | savings | cost learned | cost random, same rate "
         "| cost periodic |"
     )
     print("|---|---|---|---|---|---|---|---|")

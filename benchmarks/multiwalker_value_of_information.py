@@ -39,7 +39,7 @@ from sb3_detc.triggers import PeriodicTrigger, RandomTrigger
 #: Skip probabilities of the random triggers.
 RATES = (0.0, 0.25, 0.5, 0.75, 0.85, 0.9, 0.95, 1.0)
 #: Periods of the periodic triggers (savings 1 - 1/k).
-PERIODS = (2, 4, 8)
+PERIODS = (2, 4, 8, 16, 32)
 
 
 def triggers(rates: list[float], periods: list[int], seed: int) -> dict[str, Any]:

@@ -12,17 +12,17 @@ that works lies below random skipping at equal savings, ideally near send-on-del
 
 Variants (``--variants``):
 
-* ``paper``: greedy option advantage ``Q(o) - max Q``, rewards scaled by 0.01, gamma 0.99,
-  undecided initial policy over options (broadcast probability 0.5), option entropy 0.1
+* ``paper``: greedy broadcast advantage ``Q(o) - max Q``, rewards scaled by 0.01, gamma 0.99,
+  undecided initial policy over options (broadcast probability 0.5), broadcast entropy 0.1
   until iteration 50, down to 0.001 at 150 (the settings of ``linear_learning.py``);
 * ``sparse``: greedy advantage, normalised rewards, gamma 0.95, initial broadcast
-  probability 0.1, constant option entropy coefficient 0.01;
-* ``sparse-return``: as ``sparse`` with the sampled option advantage (lambda-return minus
-  the state value) and option entropy coefficient 0.003;
+  probability 0.1, constant broadcast entropy coefficient 0.01;
+* ``sparse-return``: as ``sparse`` with the sampled broadcast advantage (lambda-return minus
+  the state value) and broadcast entropy coefficient 0.003;
 * ``afterstate``: as ``sparse`` with the afterstate critic (``critic="afterstate"``);
 * ``afterstate-paper``: as ``paper`` with the afterstate critic;
-* ``afterstate-normalised``: as ``afterstate`` with normalised option advantages
-  (``normalize_broadcast_advantage=True``) and option entropy coefficient 0.03;
+* ``afterstate-normalised``: as ``afterstate`` with normalised broadcast advantages
+  (``normalize_broadcast_advantage=True``) and broadcast entropy coefficient 0.03;
 * ``centred-normalised``: the same with the centred critic (``critic="centred"``).
 """
 
@@ -61,7 +61,7 @@ SPARSE = {
     "gamma": 0.95,
     "policy_kwargs": {"net_arch": [64, 64], "broadcast_prob_init": 0.1},
 }
-#: variant -> (MAPPOC settings, option entropy schedule or None)
+#: variant -> (MAPPOC settings, broadcast entropy schedule or None)
 VARIANTS: dict[str, tuple[dict[str, Any], dict[str, float] | None]] = {
     "paper": (
         {**BASE, "learning_rate": 1e-4, "reward_scale": 0.01, "policy_kwargs": {"net_arch": [64, 64]}},

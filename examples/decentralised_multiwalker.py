@@ -71,7 +71,7 @@ def run_episode(
         returns += [rewards[w] for w in walkers]
         broadcasts += [actions[w]["broadcast"] for w in walkers]
         steps += 1
-    # The PettingZoo infos carry only broadcast and broadcasts; the package position is in the Box2D world.
+    # The PettingZoo infos carry only `broadcast` and `broadcasts`; the package position is in the Box2D world.
     travel = env.system.physics.package.position.x - start_x
     return {"steps": steps, "returns": returns, "travel": travel, "broadcasts": broadcasts}
 

@@ -37,7 +37,6 @@ from sb3_detc.callbacks import FixedTriggerCallback
 from sb3_detc.evaluation import CommunicationReport, evaluate_communication
 from sb3_detc.mappoc import MAPPOC
 from sb3_detc.mappoc.mappoc import FixedTrigger
-from sb3_detc.renamed import renamed_keys
 from sb3_detc.study.report import report_study, summarise
 from sb3_detc.study.runner import run_study
 from sb3_detc.study.spec import load_study
@@ -80,7 +79,7 @@ def evaluate_run(
     path = run / f"{name}.zip" if model is None else model
     if not path.is_file():
         raise FileNotFoundError(f"no saved model {path}")
-    env = gym.make(env_id, **renamed_keys(config.get("env_kwargs") or {}))  # also runs of earlier versions
+    env = gym.make(env_id, **(config.get("env_kwargs") or {}))
     return evaluate_communication(
         MAPPOC.load(path, device="cpu"),
         env,

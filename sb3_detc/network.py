@@ -3,8 +3,8 @@
 These are pure functions (arrays in, arrays out). They work unchanged on NumPy arrays and
 on PyTorch tensors, so the environment uses them to advance the network and the policy
 uses them to rebuild every agent's networked observation from a stored observation and a
-vector of options. The agent axis is the second-to-last axis of ``held``/``current``
-and the last axis of ``broadcast``; any leading axes (environments, time) broadcast.
+vector of broadcast decisions. The agent axis is the second-to-last axis of ``held``/``current``
+and the last axis of ``broadcast``; leading axes (environments, time) follow NumPy's broadcasting rules.
 
 Notation follows the method reference (Kesper, Trimpe and Baumann, L4DC 2023, Sec. 2):
 ``o_i[k]`` option (1 = broadcast), ``m_i[k]`` message, ``x~_i[k]`` held broadcast,

@@ -7,7 +7,7 @@ logged by :class:`~sb3_detc.callbacks.CommMetricsCallback` into every run's
 average over ``--window`` iterations (the paper: 50); the runs of one algorithm (e.g.
 several seeds) are drawn as their mean and a band from their minimum to their maximum.
 Dashed vertical lines mark the curriculum phases of the first run that logs them
-(``curriculum/phase``, or the start and end of the option entropy decay,
+(``curriculum/phase``, or the start and end of the broadcast entropy decay,
 ``curriculum/broadcast_ent_coef``).
 """
 

@@ -342,7 +342,7 @@ def test_control_first_measures_the_spread_of_stage_two_on_its_own_returns(unit:
 
 # --------------------------------------------------------------------------- baselines
 @pytest.mark.parametrize("skip_prob", [0.55, 0.2])
-def test_random_skip_rate_frozen_mu_and_no_comm_cost(skip_prob: float) -> None:
+def test_random_skip_rate_frozen_mu_and_no_broadcast_cost(skip_prob: float) -> None:
     n_agents, n_envs, n_steps, n_iterations = 3, 2, 128, 2
     model = make_model(n_agents=n_agents, n_envs=n_envs, n_steps=n_steps, batch_size=64, broadcast_cost=0.5)
     mu_before, pi_before = net_slices(model, "mu"), net_slices(model, "pi")
@@ -411,7 +411,7 @@ def test_fixed_trigger_needs_a_callable_and_joint_envs() -> None:
         set_broadcast_cost(DummyVecEnv([lambda: gym.make("CartPole-v1")]), 0.0)
 
 
-def test_joint_env_comm_cost_property() -> None:
+def test_joint_env_broadcast_cost_property() -> None:
     env = linear_etc_v0.joint_env(n_agents=2, max_cycles=5, broadcast_cost=0.3)
     assert env.broadcast_cost == 0.3
     env.reset(seed=0)

@@ -124,7 +124,7 @@ def test_policy_option_values_delegate_to_its_critic(name: str) -> None:
 
 # ------------------------------------------------------------------ a fourth critic
 class StateValueCritic(OptionCritic):
-    """One output on the state before the options, the same value for both options (no option gap)."""
+    """One output on the state before the options, the same value for both options (no broadcast gap)."""
 
     name = "state_value"
     outputs = 1

@@ -22,7 +22,7 @@ def fresh_model(module, kwargs: dict, share_parameters: bool) -> MAPPOC:
     )
 
 
-def sharpen_option_policy(model: MAPPOC, seed: int, scale: float = 4.0) -> None:
+def sharpen_broadcast_policy(model: MAPPOC, seed: int, scale: float = 4.0) -> None:
     """Large random weights for every agent's ``mu`` (only), so its options depend more on its inputs.
 
     Writes into ``mu``'s views from ``net_parameters``: the control policies keep their initial
@@ -86,7 +86,7 @@ def test_decentralised_controllers_match_joint_policy(env_name: str, share_param
     for weight_seed in range(10):
         if 0 < options.mean() < 1:
             break
-        sharpen_option_policy(model, weight_seed)
+        sharpen_broadcast_policy(model, weight_seed)
         options = lockstep(model, module, kwargs, seed=11)
     assert 0 < options.mean() < 1, "no episode had both options"
 
@@ -95,7 +95,7 @@ def test_decentralised_controllers_match_joint_policy(env_name: str, share_param
 def test_deterministic_decide_is_the_mode_of_mu(share_parameters: bool) -> None:
     module, kwargs = ENVS["linear"]
     model = fresh_model(module, kwargs, share_parameters)
-    sharpen_option_policy(model, seed=0)  # logits far from a tie, options that depend on the input
+    sharpen_broadcast_policy(model, seed=0)  # logits far from a tie, options that depend on the input
     policy = model.policy
     space = model.observation_space
     space.seed(0)

@@ -383,7 +383,7 @@ def test_policy_views_equal_the_environments(n_agents: int) -> None:
 
 
 # ------------------------------------------------------------ 3. greedy advantage
-def test_greedy_option_advantage_hand_computed() -> None:
+def test_greedy_broadcast_advantage_hand_computed() -> None:
     q = th.tensor([[[1.0, 3.0], [2.0, -1.0]], [[0.5, 0.5], [-2.0, 4.0]]], requires_grad=True)
     broadcast = th.tensor([[0, 0], [1, 0]])
     expected = th.tensor([[1.0 - 3.0, 0.0], [0.0, -2.0 - 4.0]])
@@ -400,7 +400,7 @@ def test_greedy_option_advantage_hand_computed() -> None:
     th.testing.assert_close(q.grad, th.ones_like(q))
 
 
-def test_option_gap_scale_makes_greedy_advantages_scale_free() -> None:
+def test_broadcast_gap_scale_makes_greedy_advantages_scale_free() -> None:
     q = th.randn(64, 3, 2, generator=th.Generator().manual_seed(0), dtype=th.float64)
     broadcast = th.randint(0, 2, (64, 3), generator=th.Generator().manual_seed(1))
     gap = q[..., 1] - q[..., 0]
@@ -437,7 +437,7 @@ def test_centred_critic_option_values(n_agents: int) -> None:
 
 
 @pytest.mark.parametrize("team_reward", [False, True])
-def test_comm_price_is_what_a_broadcast_takes_from_the_learners_reward(team_reward: bool) -> None:
+def test_broadcast_price_is_what_a_broadcast_takes_from_the_learners_reward(team_reward: bool) -> None:
     """The price the critics add analytically equals the reward change of one broadcast, in the learner's units."""
     env = linear_etc_v0.joint_env(broadcast_cost=0.4)
     model = MAPPOC(
@@ -939,8 +939,8 @@ def test_fixed_trigger_drives_the_rollouts() -> None:
     np.testing.assert_array_equal(age[1:][within], advanced[within])
 
 
-def test_option_advantages_subtract_the_state_value_under_mu() -> None:
-    """V(s) = mu(taken) Q(taken) + mu(other) Q(other); option advantage = lambda-return - V(s)."""
+def test_broadcast_advantages_subtract_the_state_value_under_mu() -> None:
+    """V(s) = mu(taken) Q(taken) + mu(other) Q(other); broadcast advantage = lambda-return - V(s)."""
     buffer = gae_buffer(1, n_envs=1, gamma=0.9, gae_lambda=0.8)
     obs = {key: np.zeros((1, *space.shape), np.float32) for key, space in buffer.observation_space.spaces.items()}
     broadcast = np.array([[1, 0]])
@@ -956,7 +956,7 @@ def test_option_advantages_subtract_the_state_value_under_mu() -> None:
     np.testing.assert_allclose(buffer.broadcast_advantages[0, 0], [1.0 - 3.0, 1.0 - 1.0])
 
 
-def test_option_advantage_modes() -> None:
+def test_broadcast_advantage_modes() -> None:
     with pytest.raises(ValueError, match="broadcast_advantage"):
         MAPPOC("MlpHybridPolicy", "sb3_detc/LinearETC-v0", broadcast_advantage="best")
     model = MAPPOC(
@@ -1019,7 +1019,7 @@ def test_normalize_reward_divides_by_the_running_return_std() -> None:
     assert not np.allclose(factors[0], factors[-1])  # the scale adapts
 
 
-def test_options_are_sampled_with_mu_probabilities() -> None:
+def test_broadcasts_are_sampled_with_mu_probabilities() -> None:
     model = MAPPOC("MlpHybridPolicy", "sb3_detc/LinearETC-v0", n_steps=8, seed=0, policy_kwargs=dict(net_arch=[8]))
     policy = model.policy
     policy.chains.agent_weights("mu")[-1].zero_()  # views into the batched chain

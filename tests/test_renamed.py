@@ -4,9 +4,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import gymnasium as gym
 import numpy as np
 import pytest
 import torch as th
+import yaml
 from gymnasium import spaces
 from stable_baselines3.common.env_util import make_vec_env
 
@@ -15,6 +17,7 @@ from sb3_detc.mappoc import MAPPOC
 from sb3_detc.mappoc.policies import MlpHybridPolicy
 from sb3_detc.plot import read_progress
 from sb3_detc.renamed import RENAMED, renamed_action_space, renamed_column, renamed_keys
+from sb3_detc.study.spec import load_study, same_study
 
 ROOT = Path(__file__).resolve().parents[1]
 ENV_ID = "sb3_detc/LinearETC-v0"
@@ -59,6 +62,9 @@ def test_a_model_saved_under_earlier_names_loads_with_its_values(tmp_path) -> No
         assert getattr(loaded, new) == value
     assert not any(hasattr(loaded, old) for old in RENAMED)  # the old names are gone, also from its next save
     assert MAPPOC.load(tmp_path / "old.zip", clip_range_broadcast=0.1).clip_range_broadcast == 0.1  # given wins
+    assert MAPPOC.load(tmp_path / "old.zip", clip_range_option=0.1).clip_range_broadcast == 0.1  # under either name
+    given = MAPPOC.load(tmp_path / "old.zip", custom_objects={"broadcast_ent_coef": 0.5})
+    assert given.broadcast_ent_coef == 0.5
     obs = env.reset()
     for a, b in zip(loaded.predict(obs, deterministic=True)[0], model.predict(obs, deterministic=True)[0], strict=True):
         np.testing.assert_array_equal(a["control"], b["control"])
@@ -93,3 +99,20 @@ def test_logs_of_earlier_versions_read_under_current_names(tmp_path) -> None:
     columns = read_progress(tmp_path)
     np.testing.assert_array_equal(columns["train/broadcast_ent_coef"], [0.01, 0.02])
     assert "train/option_ent_coef" not in columns and "comm/savings" in columns
+
+
+def test_environment_arguments_and_study_files_of_earlier_versions(tmp_path) -> None:
+    env = gym.make("sb3_detc/LinearETC-v0", comm_cost=0.5)  # as saved rl-zoo3 configurations have it
+    assert env.unwrapped.broadcast_cost == 0.5
+    env.close()
+    study = {
+        "env": "sb3_detc/LinearETC-LQR-v0",
+        "seeds": [0],
+        "n_timesteps": 1024,
+        "algorithms": {"a": {"algo": "mappoc", "hyperparams": {"option_ent_coef": 0.2}}},
+    }
+    (tmp_path / "old.yml").write_text(yaml.safe_dump(study))
+    assert load_study(tmp_path / "old.yml").algorithms[0].hyperparams == {"broadcast_ent_coef": 0.2}
+    current = {**study, "algorithms": {"a": {"algo": "mappoc", "hyperparams": {"broadcast_ent_coef": 0.2}}}}
+    assert same_study(study, current)
+    assert not same_study(study, {**current, "algorithms": {"a": {"algo": "mappoc"}}})

@@ -36,7 +36,7 @@ def test_kwargs_reach_network_and_system():
 
 @settings(max_examples=30, deadline=None)
 @given(st.data())
-def test_held_age_and_cost_follow_the_options(data):
+def test_held_age_and_cost_follow_the_broadcasts(data):
     n_agents = data.draw(st.integers(2, 5))
     n_steps = data.draw(st.integers(1, 25))
     xi = data.draw(st.floats(0.0, 2.0))
@@ -110,7 +110,7 @@ def test_same_seed_same_episode_and_new_episodes_differ():
 
 
 @pytest.mark.parametrize("bad", [-0.1, float("nan"), float("inf")])
-def test_negative_or_non_finite_comm_cost_is_rejected(bad):
+def test_negative_or_non_finite_broadcast_cost_is_rejected(bad):
     with pytest.raises(ValueError, match="broadcast_cost"):
         linear_etc_v0.parallel_env(broadcast_cost=bad)
 

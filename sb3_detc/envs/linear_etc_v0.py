@@ -11,6 +11,7 @@ import gymnasium as gym
 
 from sb3_detc.envs.linear import LinearSystem
 from sb3_detc.envs.wrappers import EventTriggeredNetwork, JointEnv
+from sb3_detc.renamed import renamed_keys
 
 
 def parallel_env(broadcast_cost: float = 0.01, trigger: str = "default", **kwargs) -> EventTriggeredNetwork:
@@ -27,8 +28,11 @@ def parallel_env(broadcast_cost: float = 0.01, trigger: str = "default", **kwarg
 
 
 def joint_env(**kwargs) -> JointEnv:
-    """Joint Gymnasium view (agent axis inside the arrays); keywords as :func:`parallel_env`."""
-    return JointEnv(parallel_env(**kwargs))
+    """Joint Gymnasium view (agent axis inside the arrays); keywords as :func:`parallel_env`.
+
+    Also under their earlier names (``comm_cost``), as saved run configurations have them.
+    """
+    return JointEnv(parallel_env(**renamed_keys(kwargs)))
 
 
 def lqr_joint_env(**kwargs) -> gym.Env:

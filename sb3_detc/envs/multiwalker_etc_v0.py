@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from sb3_detc.envs.multiwalker import MultiwalkerSystem
 from sb3_detc.envs.wrappers import EventTriggeredNetwork, JointEnv
+from sb3_detc.renamed import renamed_keys
 
 
 def parallel_env(broadcast_cost: float = 0.25, trigger: str = "default", **kwargs) -> EventTriggeredNetwork:
@@ -22,5 +23,8 @@ def parallel_env(broadcast_cost: float = 0.25, trigger: str = "default", **kwarg
 
 
 def joint_env(**kwargs) -> JointEnv:
-    """Joint Gymnasium view (agent axis inside the arrays); keywords as :func:`parallel_env`."""
-    return JointEnv(parallel_env(**kwargs))
+    """Joint Gymnasium view (agent axis inside the arrays); keywords as :func:`parallel_env`.
+
+    Also under their earlier names (``comm_cost``), as saved run configurations have them.
+    """
+    return JointEnv(parallel_env(**renamed_keys(kwargs)))

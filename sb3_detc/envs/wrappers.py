@@ -168,7 +168,7 @@ class EventTriggeredNetwork(BaseParallelWrapper):
         broadcast = np.asarray(broadcast)
         if broadcast.shape != (self.n_agents,):
             raise ValueError(
-                f"broadcast must have shape ({self.n_agents},) (one option per agent), got {broadcast.shape}."
+                f"broadcast must have shape ({self.n_agents},) (one decision per agent), got {broadcast.shape}."
             )
         if not np.all((broadcast == 0) | (broadcast == 1)):
             raise ValueError(f"broadcast decisions must be 0 (silent) or 1 (broadcast), got {broadcast.tolist()}.")

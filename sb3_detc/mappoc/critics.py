@@ -122,7 +122,7 @@ class AfterstateCritic(OptionCritic):
 
 
 class CentredCritic(OptionCritic):
-    """Two outputs on the state before the options: a state value ``V_i(s)`` and an option gap ``D_i(s)``.
+    """Two outputs on the state before the options: a state value ``V_i(s)`` and an broadcast gap ``D_i(s)``.
 
     ``Q_i(s, o) = V_i(s) + (o - p_i) (D_i(s) - price_i)`` with ``p_i`` the probability of
     broadcasting with which the options were drawn, so that ``sum_o mu_i(o) Q_i(s, o) = V_i(s)``
@@ -130,7 +130,7 @@ class CentredCritic(OptionCritic):
     others, this is the R-learner of causal inference (Nie and Wager, 2021) for the effect of
     a broadcast: because the options are drawn with known probabilities, ``o - p`` is
     uncorrelated with every function of the state, so the error of ``V_i``, the large part of
-    the value, does not leak into the option gap, the small part on which ``mu`` acts.
+    the value, does not leak into the broadcast gap, the small part on which ``mu`` acts.
     """
 
     name = "centred"

@@ -2,7 +2,7 @@
 
 * control policy ``pi``: PPO's clipped surrogate on GAE advantages of the taken option;
 * critic ``Q``: squared error of the taken option's value against the lambda-return;
-* policy over options ``mu``: PPO's clipped surrogate on an option advantage (greedy:
+* policy over options ``mu``: PPO's clipped surrogate on an broadcast advantage (greedy:
   ``Q(o) - max_o' Q(o')`` with the current critic, or sampled: the lambda-return minus the
   state value at collection time), plus an entropy bonus.
 """
@@ -23,7 +23,7 @@ if TYPE_CHECKING:
 #: Statistics of every gradient step, in the order :class:`MAPPOCLoss` returns them (logged as ``train/<name>``).
 STEP_STATS = ("pi_loss", "mu_loss", "q_loss", "entropy_mu", "clip_pi", "clip_mu", "kl_pi", "kl_mu")
 
-#: Kinds of option advantage in ``mu``'s loss.
+#: Kinds of broadcast advantage in ``mu``'s loss.
 BROADCAST_ADVANTAGES = ("greedy", "return")
 
 
@@ -35,7 +35,7 @@ class UpdateInputs(NamedTuple):
     p_broadcast: th.Tensor  # (B, N) probabilities of broadcasting with which the options were drawn
     clip_pi: float | th.Tensor  # clip range of pi
     clip_mu: float | th.Tensor  # clip range of mu
-    zeta: float | th.Tensor  # option entropy coefficient
+    zeta: float | th.Tensor  # broadcast entropy coefficient
     train_pi: bool  # whether pi's loss is part of the loss
     train_mu: bool  # whether mu's loss and entropy bonus are part of the loss
 
@@ -69,7 +69,7 @@ def greedy_broadcast_advantage(option_values: th.Tensor, broadcast: th.Tensor, o
 
 
 def broadcast_gap_scale(option_values: th.Tensor) -> th.Tensor:
-    """Every agent's root mean square option gap ``Q(1) - Q(0)`` over a batch, detached, (N,).
+    """Every agent's root mean square broadcast gap ``Q(1) - Q(0)`` over a batch, detached, (N,).
 
     :param option_values: ``Q_i(s, o)`` for both options, (B, N, 2)
     """
@@ -104,9 +104,9 @@ class MAPPOCLoss(nn.Module):
     :param policy: the policy whose networks are trained
     :param vf_coef: coefficient of the critic's squared error
     :param broadcast_advantage: ``"greedy"`` or ``"return"`` (see :class:`~sb3_detc.MAPPOC`)
-    :param broadcast_advantage_offset: constant added to the option advantages
-    :param normalize_broadcast_advantage: divide the greedy option advantages by every agent's
-        root mean square option gap over the minibatch (:func:`broadcast_gap_scale`)
+    :param broadcast_advantage_offset: constant added to the broadcast advantages
+    :param normalize_broadcast_advantage: divide the greedy broadcast advantages by every agent's
+        root mean square broadcast gap over the minibatch (:func:`broadcast_gap_scale`)
     :param normalize_advantage: standardise the control advantages (and the sampled option
         advantages) per agent and minibatch
     :raises ValueError: for an unknown ``broadcast_advantage``
@@ -171,7 +171,7 @@ class MAPPOCLoss(nn.Module):
         if update.train_pi:
             loss = loss + pi_loss
 
-        # Options: PPO clipped surrogate on the option advantage, no gradient into Q.
+        # Options: PPO clipped surrogate on the broadcast advantage, no gradient into Q.
         log_ratio_mu = evaluation.log_prob_broadcast - data.old_log_prob_broadcast
         ratio_mu = th.exp(log_ratio_mu)
         mu_loss = clipped_surrogate_loss(self.broadcast_advantages(evaluation, data), ratio_mu, clip_mu)

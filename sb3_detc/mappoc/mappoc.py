@@ -29,7 +29,7 @@ from sb3_detc.mappoc.policies import MlpHybridPolicy, check_joint_spaces
 from sb3_detc.mappoc.rewards import RewardTransform, agent_rewards
 from sb3_detc.mappoc.steps import FusedGradientStep, GradientStep, fusable_adam
 from sb3_detc.mappoc.workers import RolloutWorker, check_finite
-from sb3_detc.renamed import RENAMED, renamed_action_space
+from sb3_detc.renamed import RENAMED, renamed_action_space, renamed_keys
 
 SelfMAPPOC = TypeVar("SelfMAPPOC", bound="MAPPOC")
 
@@ -143,10 +143,10 @@ class MAPPOC(OnPolicyAlgorithm):
         lambda-return minus ``V(s) = sum_o mu(o) Q(s, o)`` at collection time, standardised
         per agent like the control advantages: a sampled advantage that does not rely on the
         critic telling the two options apart)
-    :param broadcast_advantage_offset: constant added to the greedy option advantage (the
+    :param broadcast_advantage_offset: constant added to the greedy broadcast advantage (the
         paper's code used a 0.1 "deliberation" offset; the paper and the default use 0)
-    :param normalize_broadcast_advantage: divide every agent's greedy option advantages by the
-        root mean square of its critic's option gap ``Q(1) - Q(0)`` over the minibatch, so
+    :param normalize_broadcast_advantage: divide every agent's greedy broadcast advantages by the
+        root mean square of its critic's broadcast gap ``Q(1) - Q(0)`` over the minibatch, so
         that ``mu`` moves towards the better option at a rate set by the learning rate and
         the clip range, not by the (often tiny) scale of the value of a single broadcast,
         just as the control advantages are standardised (the paper: raw advantages)
@@ -809,8 +809,11 @@ class MAPPOC(OnPolicyAlgorithm):
                 custom_objects = {"action_space": action_space, **(custom_objects or {})}
             if env is not None:
                 _check_same_agents(env, len(action_space["broadcast"].nvec))  # type: ignore[arg-type]
-        # Attributes saved under earlier names become the current ones (unless given here); _setup_model drops the old.
-        kwargs = {**{RENAMED[key]: value for key, value in data.items() if key in RENAMED}, **kwargs}
+        # Attributes saved under earlier names become the current ones unless given here (as custom objects or
+        # keyword arguments, also under earlier names); _setup_model drops the old names.
+        saved = {RENAMED[key]: value for key, value in data.items() if key in RENAMED}
+        given = {key: value for key, value in (custom_objects or {}).items() if key in saved}
+        kwargs = {**saved, **given, **renamed_keys(kwargs)}
         return super().load(  # type: ignore[return-value]
             path,
             env=env,  # type: ignore[arg-type]

@@ -64,7 +64,7 @@ class HybridAction(NamedTuple):
 
 
 class HybridEvaluation(NamedTuple):
-    """Log-probabilities, option entropy and option values of stored hybrid actions."""
+    """Log-probabilities, broadcast entropy and option values of stored hybrid actions."""
 
     log_prob_broadcast: th.Tensor  # (B, N)
     entropy_broadcast: th.Tensor  # (B, N)
@@ -103,7 +103,7 @@ class MlpHybridPolicy(BasePolicy):
         :data:`~sb3_detc.mappoc.critics.CRITICS`: ``"option_heads"`` (the paper: one output per
         option on the state before the options), ``"afterstate"`` (one output that values the
         network state after the options, with the price of the own broadcast added
-        analytically) or ``"centred"`` (a state value and an option gap on the state before the
+        analytically) or ``"centred"`` (a state value and an broadcast gap on the state before the
         options, centred on the probabilities the options were drawn with); see the classes of
         :mod:`sb3_detc.mappoc.critics`. The critic object is :attr:`option_critic`
     :param ortho_init: orthogonal initialisation (otherwise PyTorch's default init)

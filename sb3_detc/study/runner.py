@@ -23,7 +23,7 @@ from typing import Any
 
 import yaml
 
-from sb3_detc.study.spec import StudyError, StudySpec, load_study
+from sb3_detc.study.spec import StudyError, StudySpec, load_study, same_study
 from sb3_detc.study.trial import read_status, run_trial, trial_folder
 
 __all__ = ["StudyProgress", "prepare_folder", "run_study"]
@@ -55,7 +55,7 @@ def prepare_folder(spec: StudySpec, directory: str | os.PathLike) -> Path:
     folder = Path(directory)
     copy = folder / "study.yml"
     if copy.is_file():
-        if yaml.safe_load(copy.read_text()) != yaml.safe_load(spec.text):
+        if not same_study(yaml.safe_load(copy.read_text()), yaml.safe_load(spec.text)):
             raise StudyError(
                 f"{folder} holds trials of another study file (its study.yml differs from {spec.path}); "
                 "use a new --dir or the study file it was made with"

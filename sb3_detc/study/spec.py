@@ -37,6 +37,7 @@ from typing import Any
 
 import yaml
 
+from sb3_detc.renamed import renamed_keys
 from sb3_detc.zoo import (
     ALGORITHMS,
     HYPERPARAMS_DIR,
@@ -47,7 +48,7 @@ from sb3_detc.zoo import (
     uses_rollout_workers,
 )
 
-__all__ = ["AlgorithmSpec", "StudyError", "StudySpec", "Trial", "load_study"]
+__all__ = ["AlgorithmSpec", "StudyError", "StudySpec", "Trial", "load_study", "same_study"]
 
 #: Keys of a study file and of one algorithm's settings.
 STUDY_KEYS = frozenset({"env", "seeds", "n_timesteps", "checkpoint_interval", "evaluation", "algorithms"})
@@ -197,6 +198,7 @@ def _algorithm(path: Path, env: str, label: Any, settings: Any, seeds: tuple[int
     trial_seeds = _seeds(path, f"the seeds of {label!r}", own) if own is not None else seeds
     if trial_seeds is None:
         raise _fail(path, f"algorithm {label!r} has no seeds (give 'seeds' at the top or in the algorithm)")
+    hyperparams = renamed_keys(hyperparams)  # also a study file of an earlier version
     entry = _checked_entry(path, env, label, algo, conf, hyperparams)
     cpus = settings.get("cpus")
     if cpus is None:
@@ -213,6 +215,27 @@ def _checked_entry(
         return check_hyperparams_file(conf, algo, env, hyperparams)
     except InputError as error:
         raise _fail(path, f"algorithm {label!r}: {error}") from None
+
+
+def same_study(first: Any, second: Any) -> bool:
+    """Whether two study files' contents (parsed YAML) describe the same study, also across renamed hyperparameters.
+
+    :param first: a parsed study file
+    :param second: another
+    """
+
+    def renamed(content: Any) -> Any:
+        if not isinstance(content, dict) or not isinstance(content.get("algorithms"), dict):
+            return content
+        algorithms = {
+            label: {**settings, "hyperparams": renamed_keys(settings["hyperparams"])}
+            if isinstance(settings, dict) and isinstance(settings.get("hyperparams"), dict)
+            else settings
+            for label, settings in content["algorithms"].items()
+        }
+        return {**content, "algorithms": algorithms}
+
+    return renamed(first) == renamed(second)
 
 
 def load_study(path: str | os.PathLike) -> StudySpec:
