@@ -33,6 +33,7 @@ from stable_baselines3.common.env_util import make_vec_env
 
 import sb3_detc  # noqa: F401  (registers the env ids)
 from sb3_detc import MAPPOC
+from sb3_detc.mappoc.critics import CRITICS
 from sb3_detc.triggers import FixedControl
 
 #: MAPPOC settings of the critics' training (those of ``trigger_learning.py``'s sparse variants).
@@ -123,7 +124,7 @@ def main() -> None:
     parser.add_argument("--every", type=int, default=3, help="measure at every k-th step")
     parser.add_argument("--broadcast-cost", type=float, default=0.03, help="only to state the price of a broadcast")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--critics", nargs="*", default=[], choices=["option_heads", "afterstate", "centred"])
+    parser.add_argument("--critics", nargs="*", default=[], choices=list(CRITICS))
     parser.add_argument("--timesteps", type=int, default=100_000, help="training steps of every critic")
     parser.add_argument("--workers", type=int, default=2, help="parallel training processes")
     parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "option_value_truth.json")

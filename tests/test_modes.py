@@ -101,6 +101,9 @@ def test_a_fixed_trigger_decides_and_mu_is_not_trained() -> None:
     assert not all(th.equal(a, b) for a, b in zip(mu, model.policy.net_parameters("mu"), strict=True))
     with pytest.raises(ValueError, match="must be callable"):
         model.set_fixed_trigger(0.5)
+    centred = make_model(policy_kwargs={**TINY, "critic": "centred"})  # needs the probabilities mu drew with
+    with pytest.raises(ValueError, match="use critic='option_heads' or 'afterstate' with a fixed trigger"):
+        centred.set_fixed_trigger(lambda obs: np.ones((1, 2), np.int64))
 
 
 def test_trained_policies_are_chosen_by_level() -> None:

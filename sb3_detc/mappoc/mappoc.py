@@ -24,6 +24,7 @@ from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecEnv,
 
 from sb3_detc.envs.wrappers import EventTriggeredNetwork, JointEnv
 from sb3_detc.mappoc.buffers import HybridRolloutBuffer
+from sb3_detc.mappoc.critics import CRITICS
 from sb3_detc.mappoc.losses import BROADCAST_ADVANTAGES, STEP_STATS, MAPPOCLoss, UpdateInputs
 from sb3_detc.mappoc.policies import MlpHybridPolicy, check_joint_spaces
 from sb3_detc.mappoc.rewards import RewardTransform, agent_rewards
@@ -417,9 +418,10 @@ class MAPPOC(OnPolicyAlgorithm):
         if trigger is not None and not callable(trigger):
             raise ValueError(f"a fixed trigger must be callable (joint observations -> options), got {trigger!r}.")
         if trigger is not None and self.policy.option_critic.needs_draw_probabilities:
+            usable = " or ".join(repr(name) for name, critic in CRITICS.items() if not critic.needs_draw_probabilities)
             raise ValueError(
                 f"critic={self.policy.critic!r} needs the probabilities with which the options were drawn, which a "
-                "fixed trigger does not give; use critic='option_heads' or 'afterstate' with a fixed trigger."
+                f"fixed trigger does not give; use critic={usable} with a fixed trigger."
             )
         self.fixed_trigger = trigger
 

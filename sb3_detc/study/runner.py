@@ -98,6 +98,27 @@ def _make_progress_callback(tune: Any) -> type:
     return StudyProgressCallback
 
 
+def _make_stopper(tune: Any) -> type:
+    class StudyStopper(tune.Stopper):
+        """Ends the study once it was asked to stop and no trial runs any more: pending trials do not start.
+
+        :param stop_file: the file whose existence asks the study to stop
+        :param progress: the study's progress (which trials run)
+        """
+
+        def __init__(self, stop_file: Path, progress: StudyProgress) -> None:
+            self.stop_file = stop_file
+            self.progress = progress
+
+        def __call__(self, trial_id: str, result: dict) -> bool:
+            return False  # trials stop themselves, at the start of a rollout
+
+        def stop_all(self) -> bool:
+            return self.stop_file.exists() and not self.progress.running
+
+    return StudyStopper
+
+
 class StudyProgress:
     """Counts of finished, running, pending and failed trials and an estimate of the time left.
 
@@ -361,6 +382,7 @@ def run_study(
                 name="study",
                 storage_path=str(folder / ".ray"),
                 verbose=0,
+                stop=_make_stopper(tune)(folder / STOP_FILE, progress),
                 callbacks=[_make_progress_callback(tune)(progress)],
                 failure_config=tune.FailureConfig(max_failures=0, fail_fast=False),
             ),
