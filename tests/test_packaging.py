@@ -1,0 +1,28 @@
+"""The package builds without packaging warnings and ships its data files."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import zipfile
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_the_wheel_builds_without_packaging_warnings_and_ships_the_data_files(tmp_path) -> None:
+    command = [sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-v", str(ROOT)]
+    result = subprocess.run(
+        [*command, "-w", str(tmp_path)],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert result.returncode == 0, result.stdout + result.stderr
+    output = result.stdout + result.stderr
+    for warning in ("BuildBackendWarning", "SetuptoolsDeprecationWarning", "absent from the `packages` configuration"):
+        assert warning not in output, output
+    (wheel,) = tmp_path.glob("sb3_detc-*.whl")
+    names = set(zipfile.ZipFile(wheel).namelist())
+    shipped = {f"sb3_detc/{path.relative_to(ROOT / 'sb3_detc')}" for path in (ROOT / "sb3_detc").glob("*/*.yml")}
+    assert {"sb3_detc/hyperparams/mappoc.yml", "sb3_detc/studies/multiwalker_paper.yml"} <= shipped <= names
