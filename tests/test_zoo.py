@@ -118,8 +118,10 @@ def test_sampled_parameters_build_a_model() -> None:
 def test_train_continue_enjoy_plot_through_the_command_line(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     logs = tmp_path / "logs"
     common = ["--env", LINEAR, "-f", str(logs), "--num-threads", "1", "--eval-freq", "-1", "--verbose", "0"]
-    first = cli("sb3_detc.train", "--algo", "mappoc", "-n", "256", "--seed", "1", *common, cwd=tmp_path)
+    tensorboard = ["--tensorboard-log", str(tmp_path / "tb")]  # tensorboard comes with the zoo extra
+    first = cli("sb3_detc.train", "--algo", "mappoc", "-n", "256", "--seed", "1", *common, *tensorboard, cwd=tmp_path)
     assert first.returncode == 0, first.stderr
+    assert list((tmp_path / "tb").rglob("events.out.tfevents.*"))
     run = run_folder(logs, "mappoc", LINEAR, 1)
     model = run / "sb3_detc-LinearETC-v0.zip"
     assert model.is_file()
