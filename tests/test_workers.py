@@ -15,7 +15,7 @@ import sb3_detc  # noqa: F401  (registers the env ids)
 from sb3_detc.callbacks import CommMetricsCallback
 from sb3_detc.mappoc import MAPPOC
 from sb3_detc.mappoc.mappoc import has_rollout_workers
-from sb3_detc.mappoc.workers import RolloutWorker
+from sb3_detc.mappoc.workers import RolloutWorker, check_finite
 from sb3_detc.triggers import PeriodicTrigger, RandomTrigger
 
 ENV_ID = "sb3_detc/LinearETC-v0"
@@ -130,3 +130,9 @@ def test_a_callback_can_stop_a_worker_rollout() -> None:
     for index, env in enumerate(model.get_env().envs):
         for key, value in env.observation.items():
             np.testing.assert_array_equal(model._last_obs[key][index], value)
+
+
+def test_a_non_finite_observation_is_named_by_its_key() -> None:
+    check_finite({"held": np.zeros((2, 3), np.float32), "age": np.ones((2, 1), np.float32)})  # finite: passes
+    with pytest.raises(ValueError, match="non-finite observation in 'age'"):
+        check_finite({"held": np.zeros((2, 3), np.float32), "age": np.array([[0.0], [np.inf]], np.float32)})

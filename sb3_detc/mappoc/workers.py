@@ -32,6 +32,8 @@ def check_finite(obs: dict[str, np.ndarray]) -> None:
     :param obs: an observation (dict of arrays)
     :raises ValueError: naming the first key with a non-finite value
     """
+    if np.isfinite(np.concatenate([np.ravel(value) for value in obs.values()])).all():  # one check per step
+        return
     for key, value in obs.items():
         if not np.all(np.isfinite(value)):
             raise ValueError(f"the environment returned a non-finite observation in '{key}'.")
