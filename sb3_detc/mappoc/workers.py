@@ -130,7 +130,7 @@ class RolloutWorker(gym.Wrapper):
         # One thread: batches of one sample gain nothing from more, and several workers would fight over the cores.
         th.set_num_threads(1)
         try:
-            with th.random.fork_rng(devices=[]):  # in the learner's process (DummyVecEnv), keep its stream
+            with th.random.fork_rng(devices=[]), th.no_grad():  # in the learner's process: keep its stream
                 th.manual_seed(int(seeds[self.worker_index]))
                 as_tensors = {key: th.from_numpy(value) for key, value in observations.items()}  # views
                 for t in range(n_steps):
@@ -139,10 +139,9 @@ class RolloutWorker(gym.Wrapper):
                     forced = None
                     if trigger is not None:
                         forced = th.as_tensor(trigger({key: value[t : t + 1] for key, value in observations.items()}))
-                    with th.no_grad():
-                        decided, controls = self._act(
-                            {key: value[t : t + 1] for key, value in as_tensors.items()}, action_noise_std, forced
-                        )
+                    decided, controls = self._act(
+                        {key: value[t : t + 1] for key, value in as_tensors.items()}, action_noise_std, forced
+                    )
                     broadcast[t], control[t] = decided[0].numpy(), controls[0].numpy()
                     obs, _, terminated, truncated, info = self.step(
                         {"broadcast": broadcast[t], "control": np.clip(control[t], space.low, space.high)}
