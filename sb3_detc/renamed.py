@@ -48,7 +48,7 @@ def renamed_keys(mapping: dict[str, Any]) -> dict[str, Any]:
     :param mapping: e.g. saved model data, hyperparameters or environment arguments
     :return: a new dict
     """
-    renamed = {RENAMED.get(key, key): value for key, value in mapping.items() if key not in RENAMED}
+    renamed = {key: value for key, value in mapping.items() if key not in RENAMED}
     for old, value in mapping.items():
         if old in RENAMED:
             renamed.setdefault(RENAMED[old], value)
