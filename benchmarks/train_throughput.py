@@ -21,7 +21,11 @@ processes (``SubprocVecEnv``) each:
   turned into a vector env of agents with ``pettingzoo_env_to_vec_env_v1`` and
   ``concat_vec_envs_v1(..., 2, num_cpus=2)``, one shared 64 x 64 policy, SB3's PPO with the
   recipe's ``learning_rate=1e-3, batch_size=256`` and SB3 defaults otherwise (2048 steps
-  per vector env per iteration, 10 epochs).
+  per vector env per iteration, 10 epochs);
+* **PPO + SuperSuit, equal gradient steps**: the same vector env, with MAPPOC's samples and
+  gradient steps per update: 1024 steps per vector env (2048 environment steps, 6144 agent
+  samples per iteration), minibatch 96 (32 per walker), 10 epochs, policy and value networks
+  of 3 x 96 tanh each (SB3's PPO learning rate: it does not change the time).
 
 Throughput is counted in *environment* steps (one step of all walkers): SB3's timestep
 counter counts agent steps under SuperSuit, so it is divided by the number of walkers.
@@ -149,13 +153,17 @@ def measure_one_liner(name: str, seed: int, iterations: int) -> dict[str, Any]:
     }
 
 
-def make_ppo_supersuit(seed: int) -> BaseAlgorithm:
+def make_ppo_supersuit(seed: int, equal_gradient_steps: bool) -> BaseAlgorithm:
+    """PPO + SuperSuit: the usual recipe, or with MAPPOC's samples and gradient steps per update."""
     import supersuit as ss
 
     env = ss.pettingzoo_env_to_vec_env_v1(multiwalker_v9.parallel_env())
     env = ss.concat_vec_envs_v1(env, 2, num_cpus=2, base_class="stable_baselines3")
     # SuperSuit's vector env cannot be seeded through SB3 (it has no seed()): seed the learner only.
     th.manual_seed(seed)
+    if equal_gradient_steps:
+        net_arch = dict(pi=[96, 96, 96], vf=[96, 96, 96])
+        return PPO("MlpPolicy", env, n_steps=1024, batch_size=96, policy_kwargs=dict(net_arch=net_arch))
     return PPO("MlpPolicy", env, learning_rate=1e-3, batch_size=256)
 
 
@@ -246,27 +254,34 @@ MAPPOC_VARIANTS = {  # name -> (torch_compile, envs)
 TWO_THREADS = ("MAPPOC, compiled, rollout workers, 2 threads", "PPO + SuperSuit, 2 threads")
 ENV_ONLY = {"joint env only, 2 worker processes": True, "joint env only, in-process": False}
 MATMUL_FLOOR = "MAPPOC gradient step, matrix products only"
-ALGORITHMS = (ONE_LINER, *MAPPOC_VARIANTS, "PPO + SuperSuit", "PPO + SuperSuit, 2 threads", *ENV_ONLY, MATMUL_FLOOR)
+PPO_EQUAL = "PPO + SuperSuit, equal gradient steps"
+#: PPO + SuperSuit variants: name -> with MAPPOC's samples and gradient steps per update
+PPO_VARIANTS = {"PPO + SuperSuit": False, "PPO + SuperSuit, 2 threads": False, PPO_EQUAL: True}
+ALGORITHMS = (ONE_LINER, *MAPPOC_VARIANTS, *PPO_VARIANTS, *ENV_ONLY, MATMUL_FLOOR)
 
 
 def measure_one(name: str, seed: int, iterations: int, ppo_iterations: int) -> dict[str, Any]:
     """One measurement of ``name`` (one of :data:`ALGORITHMS`) in this process."""
     if name == ONE_LINER:  # as a user runs it: PyTorch's default threads
         return measure_one_liner(name, seed, iterations)
-    th.set_num_threads(2 if name in TWO_THREADS else 1)
+    th.set_num_threads(2 if name in TWO_THREADS else 1)  # PPO: its faster setting on 2 cores
     if name in ENV_ONLY:
         return env_only(name, ENV_ONLY[name], 1024 * iterations, seed)
     if name == MATMUL_FLOOR:
         return matmul_floor(name, seed)
-    if name.startswith("PPO + SuperSuit"):
-        return measure(name, make_ppo_supersuit(seed), ppo_iterations, N_WALKERS)
+    if name in PPO_VARIANTS:
+        # The equal-gradient-steps variant's iteration is MAPPOC's (2048 env steps): as many iterations.
+        timed = iterations if PPO_VARIANTS[name] else ppo_iterations
+        return measure(name, make_ppo_supersuit(seed, PPO_VARIANTS[name]), timed, N_WALKERS)
     return measure(name, make_mappoc(seed, *MAPPOC_VARIANTS[name]), iterations, 1)
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--iterations", type=int, default=3, help="MAPPOC iterations (2048 env steps each)")
-    parser.add_argument("--ppo-iterations", type=int, default=2, help="PPO iterations (4096 env steps each)")
+    parser.add_argument(
+        "--iterations", type=int, default=3, help="MAPPOC and equal-gradient-steps PPO iterations (2048 env steps each)"
+    )
+    parser.add_argument("--ppo-iterations", type=int, default=2, help="PPO recipe iterations (4096 env steps each)")
     parser.add_argument("--repeats", type=int, default=2)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--one", choices=ALGORITHMS, help="measure only this algorithm, in this process (JSON)")
@@ -312,7 +327,7 @@ def main() -> None:
             medians[name] = float(np.median([run["steps_per_s"] for run in runs]))
     print()
     print("median env steps/s: " + ", ".join(f"{name} {value:.0f}" for name, value in medians.items()))
-    for reference in (name for name in ("PPO + SuperSuit", "PPO + SuperSuit, 2 threads") if name in results):
+    for reference in (name for name in PPO_VARIANTS if name in results):
         for name in (name for name in (ONE_LINER, *MAPPOC_VARIANTS) if name in results):
             pairs = zip(results[name], results[reference], strict=True)
             per_repeat = ", ".join(f"{a['steps_per_s'] / b['steps_per_s']:.2f}" for a, b in pairs)
