@@ -208,7 +208,11 @@ class ActionNoiseSchedule(_NoiseSchedule):
         self.start, self.end = _boundaries(self.unit, start=(start, 0), end=(end, 900))
 
     def value(self, t: float) -> float:
-        """Noise standard deviation at position ``t``."""
+        """Noise standard deviation at position ``t``.
+
+        :param t: iteration or timestep (as :attr:`unit`)
+        :return: ``initial_std`` until ``start``, linear to 0 at ``end``, then 0
+        """
         return linear_decay(t, self.start, self.end, self.initial_std, 0.0)
 
 
@@ -248,7 +252,11 @@ class TentNoiseSchedule(_NoiseSchedule):
         )
 
     def value(self, t: float) -> float:
-        """Noise standard deviation at position ``t``."""
+        """Noise standard deviation at position ``t``.
+
+        :param t: iteration or timestep (as :attr:`unit`)
+        :return: 0 until ``start``, linear to ``peak_std`` at ``peak``, back to 0 at ``end``, then 0
+        """
         return tent(t, self.start, self.peak, self.end, self.peak_std)
 
 
@@ -287,11 +295,18 @@ class BroadcastEntropySchedule(_Schedule):
         self.start, self.end = _boundaries(self.unit, start=(start, 800), end=(end, 1500))
 
     def value(self, t: float) -> float:
-        """Entropy coefficient at position ``t``."""
+        """Entropy coefficient at position ``t``.
+
+        :param t: iteration or timestep (as :attr:`unit`)
+        :return: ``initial`` until ``start``, linear to ``final`` at ``end``, then ``final``
+        """
         return linear_decay(t, self.start, self.end, self.initial, self.final)
 
     def apply(self, t: float) -> None:
-        """Set ``model.broadcast_ent_coef`` to the value of position ``t`` and log it."""
+        """Set ``model.broadcast_ent_coef`` to the value of position ``t`` and log it.
+
+        :param t: iteration or timestep (as :attr:`unit`)
+        """
         value = self.value(t)
         self.model.broadcast_ent_coef = value
         self.logger.record("curriculum/broadcast_ent_coef", value)
@@ -373,7 +388,12 @@ class CurriculumCallback(BaseCallback):
         }
 
     def phase(self, t: float) -> str:
-        """Phase at position ``t``: ``"I"``, ``"II"``, ``"III"`` (the latest started) or ``"done"``."""
+        """Phase at position ``t``: ``"I"``, ``"II"``, ``"III"`` (the latest started) or ``"done"``.
+
+        :param t: iteration or timestep (as :attr:`unit`)
+        :return: ``"done"`` once ``t`` reaches the latest end of the three phases, else the latest
+            phase whose start ``t`` has reached (``"I"`` before phase II starts)
+        """
         if t >= max(self.noise.end, self.entropy.end, self.tent.end):
             return "done"
         if t >= self.tent.start:
@@ -473,14 +493,21 @@ class ControlFirstCallback(_Schedule):
         self.trigger_normalize_reward = bool(trigger_normalize_reward)
 
     def value(self, t: float) -> float:
-        """Stage at position ``t``: 1 or 2."""
+        """Stage at position ``t``: 1 or 2.
+
+        :param t: iteration or timestep (as :attr:`unit`)
+        :return: 1.0 before ``switch``, 2.0 from ``switch`` on
+        """
         return 1.0 if t < self.switch else 2.0
 
     def _on_training_start(self) -> None:
         self.trigger, self.seed = _seeded_random_trigger(self.trigger, self.seed, self.model)
 
     def apply(self, t: float) -> None:
-        """Put the model into the stage of position ``t`` and log the stage."""
+        """Put the model into the stage of position ``t`` and log the stage.
+
+        :param t: iteration or timestep (as :attr:`unit`)
+        """
         stage = int(self.value(t))
         self.model.set_fixed_trigger(self.trigger if stage == 1 else None)
         self.model.set_trained_policies(control_policy=stage == 1, broadcast_policy=stage == 2)

@@ -20,6 +20,17 @@ import numpy as np
 ArrayT = TypeVar("ArrayT")
 
 
+def initial_network(messages: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The network at an episode's start: every agent's initial message counts as received.
+
+    ``x~_i[0] = m_i[0]``, ``tau_i[0] = 0``.
+
+    :param messages: initial messages of all agents (NumPy), shape (N, d)
+    :return: held broadcasts (a copy), shape (N, d), and timers (zeros), shape (N, 1)
+    """
+    return messages.copy(), np.zeros((messages.shape[0], 1))
+
+
 def hold(held: ArrayT, current: ArrayT, broadcast: ArrayT) -> ArrayT:
     """Zero-order hold of broadcasts.
 
@@ -57,6 +68,16 @@ def others_index(n_agents: int) -> np.ndarray:
     """
     idx = np.arange(n_agents)
     return np.stack([np.delete(idx, i) for i in range(n_agents)])
+
+
+def others_ages(age: ArrayT, others: ArrayT) -> ArrayT:
+    """Every agent's view of the others' timers.
+
+    :param age: timers of all agents, shape (..., N, 1)
+    :param others: index from :func:`others_index`, shape (N, N - 1)
+    :return: shape (..., N, N - 1); entry ``[i, k]`` is the age of agent ``others[i, k]``'s held broadcast
+    """
+    return age[..., others, 0]
 
 
 def relative_views(held: ArrayT, own: ArrayT, others: ArrayT) -> ArrayT:

@@ -36,7 +36,12 @@ class RandomTrigger:
         self.rng = np.random.default_rng(seed)
 
     def __call__(self, obs: dict[str, np.ndarray]) -> np.ndarray:
-        """Options for a batch of joint observations, (B, N)."""
+        """Options for a batch of joint observations, (B, N).
+
+        :param obs: a batch of joint observations, arrays shaped (B, N, ...) by key; only the
+            shape of ``age`` (B, N, 1) is read
+        :return: options (B, N), int64: 1 (broadcast) with probability ``1 - skip_prob``, independently
+        """
         shape = obs["age"].shape[:-1]
         return (self.rng.random(shape) >= self.skip_prob).astype(np.int64)
 
@@ -74,7 +79,12 @@ class PeriodicTrigger:
         return self
 
     def __call__(self, obs: dict[str, np.ndarray]) -> np.ndarray:
-        """Options for a batch of joint observations, (B, N)."""
+        """Options for a batch of joint observations, (B, N).
+
+        :param obs: a batch of joint observations, arrays shaped (B, N, ...) by key; reads ``age``
+            (B, N, 1), the ages of information in steps before this step's decision
+        :return: options (B, N), int64: 1 (broadcast) where ``age + 1 >= period``, else 0
+        """
         age = np.asarray(obs["age"])[..., 0]
         # Ages are whole numbers of steps (float32 in the observation): compare with half a step of margin.
         return (age + 1 > self.period - 0.5).astype(np.int64)
@@ -102,12 +112,22 @@ class SendOnDelta:
         self.norm = norm
 
     def distance(self, obs: dict[str, np.ndarray]) -> np.ndarray:
-        """How far every agent's trigger features moved since its last broadcast, (B, N)."""
+        """How far every agent's trigger features moved since its last broadcast, (B, N).
+
+        :param obs: a batch of joint observations, arrays shaped (B, N, ...) by key; reads
+            ``trigger`` and ``trigger_held`` (B, N, n_trig)
+        :return: norms (of order ``norm``) of ``trigger - trigger_held``, (B, N), float64
+        """
         moved = np.asarray(obs["trigger"], dtype=np.float64) - np.asarray(obs["trigger_held"], dtype=np.float64)
         return np.linalg.norm(moved, ord=self.norm, axis=-1)
 
     def __call__(self, obs: dict[str, np.ndarray]) -> np.ndarray:
-        """Options for a batch of joint observations, (B, N)."""
+        """Options for a batch of joint observations, (B, N).
+
+        :param obs: a batch of joint observations, arrays shaped (B, N, ...) by key; reads
+            ``trigger`` and ``trigger_held`` (see :meth:`distance`)
+        :return: options (B, N), int64: 1 (broadcast) where :meth:`distance` exceeds ``delta``, else 0
+        """
         return (self.distance(obs) > self.delta).astype(np.int64)
 
     def fork(self, seed: int) -> SendOnDelta:

@@ -912,7 +912,7 @@ def test_policy_level_switches(train_control_policy: bool, train_broadcast_polic
     """A level that is switched off stays exactly as it was, also after it was trained (Adam's momentum)."""
     model = make_model(n_agents=2, n_epochs=2, batch_size=8)
     model.learn(32)  # both levels train: the optimizer has momentum for both
-    model.train_control_policy, model.train_broadcast_policy = train_control_policy, train_broadcast_policy
+    model.set_trained_policies(control_policy=train_control_policy, broadcast_policy=train_broadcast_policy)
     mu_before, pi_before = net_slices(model.policy, "mu"), net_slices(model.policy, "pi")
     model.learn(32)
     for net, before, trained in (("mu", mu_before, train_broadcast_policy), ("pi", pi_before, train_control_policy)):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import multiprocessing
+import os
 
 import numpy as np
 import pytest
@@ -31,6 +32,13 @@ def make_model(**kwargs) -> MAPPOC:
     env = make_vec_env(ENV_ID, n_envs=1, seed=0, env_kwargs={"n_agents": 2, "max_cycles": 20})
     settings = {"n_steps": 16, "batch_size": 16, "n_epochs": 1, "policy_kwargs": TINY, "seed": 0, **kwargs}
     return MAPPOC("MlpHybridPolicy", env, **settings)
+
+
+@pytest.mark.parametrize("cores, workers", [(1, 1), (2, 2), (3, 2), (6, 4), (7, 4), (8, 8), (64, 8)])
+def test_default_workers_divide_the_paper_iteration(monkeypatch: pytest.MonkeyPatch, cores: int, workers: int) -> None:
+    """One worker per core, rounded down to a power of two (at most 8): 2048 steps split evenly."""
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: set(range(cores)), raising=False)
+    assert default_n_envs() == workers and PAPER_ITERATION % workers == 0
 
 
 def test_the_one_liner_builds_the_fast_setting() -> None:

@@ -6,7 +6,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from sb3_detc.network import advance_timer, hold, others_index, relative_views
+from sb3_detc.network import advance_timer, hold, initial_network, others_ages, others_index, relative_views
 
 
 def reference_network(messages: np.ndarray, options: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -97,3 +97,20 @@ def test_relative_views_subtract_the_receivers_own_message():
             np.testing.assert_array_equal(views[i, k], held[j] - own[i])
     views_t = relative_views(torch.as_tensor(held), torch.as_tensor(own), torch.as_tensor(others))
     np.testing.assert_array_equal(views_t.numpy(), views)
+
+
+def test_an_episode_starts_with_every_initial_message_received():
+    messages = np.arange(6.0).reshape(3, 2)
+    held, age = initial_network(messages)
+    np.testing.assert_array_equal(held, messages)
+    np.testing.assert_array_equal(age, np.zeros((3, 1)))
+    messages[0, 0] = 99.0  # the network keeps its own copy
+    assert held[0, 0] == 0.0
+
+
+def test_others_ages_follow_the_others_index():
+    age = np.array([[5.0], [0.0], [2.0]])
+    others = others_index(3)
+    np.testing.assert_array_equal(others_ages(age, others), [[0.0, 2.0], [5.0, 2.0], [5.0, 0.0]])
+    batched = others_ages(torch.as_tensor(np.stack([age, age + 1])), torch.as_tensor(others))
+    np.testing.assert_array_equal(batched.numpy(), [[[0, 2], [5, 2], [5, 0]], [[1, 3], [6, 3], [6, 1]]])

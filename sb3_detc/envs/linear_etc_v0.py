@@ -31,6 +31,12 @@ def joint_env(**kwargs) -> JointEnv:
     """Joint Gymnasium view (agent axis inside the arrays); keywords as :func:`parallel_env`.
 
     Also under their earlier names (``comm_cost``), as saved run configurations have them.
+
+    :param kwargs: keyword arguments of :func:`parallel_env` (earlier names mapped to the current
+        ones by :func:`~sb3_detc.renamed.renamed_keys`): ``broadcast_cost`` and ``trigger`` for
+        the :class:`EventTriggeredNetwork`, everything else for
+        :class:`~sb3_detc.envs.linear.LinearSystem`
+    :return: a :class:`JointEnv` around the network of :func:`parallel_env`
     """
     return JointEnv(parallel_env(**renamed_keys(kwargs)))
 
@@ -41,6 +47,13 @@ def lqr_joint_env(**kwargs) -> gym.Env:
     Only *when* to communicate is left to learn (the classic event-triggered setting, in
     which send-on-delta is the reference); the action's ``control`` entry is ignored (see
     :class:`~sb3_detc.triggers.FixedControl`). Keywords as :func:`parallel_env`.
+
+    :param kwargs: keyword arguments of :func:`joint_env`, which passes them on to
+        :func:`parallel_env` (``broadcast_cost`` and ``trigger`` for the
+        :class:`EventTriggeredNetwork`, everything else for
+        :class:`~sb3_detc.envs.linear.LinearSystem`; earlier names accepted)
+    :return: a :class:`~sb3_detc.triggers.FixedControl` around the env of :func:`joint_env`, its
+        controls from :func:`~sb3_detc.triggers.lqr_on_held_states`
     """
     from sb3_detc.triggers import FixedControl  # triggers builds on the env modules
 

@@ -26,5 +26,11 @@ def joint_env(**kwargs) -> JointEnv:
     """Joint Gymnasium view (agent axis inside the arrays); keywords as :func:`parallel_env`.
 
     Also under their earlier names (``comm_cost``), as saved run configurations have them.
+
+    :param kwargs: keyword arguments of :func:`parallel_env` (earlier names mapped to the current
+        ones by :func:`~sb3_detc.renamed.renamed_keys`): ``broadcast_cost`` and ``trigger`` for
+        the :class:`EventTriggeredNetwork`, everything else for
+        :class:`~sb3_detc.envs.multiwalker.MultiwalkerSystem`
+    :return: a :class:`JointEnv` around the network of :func:`parallel_env`
     """
     return JointEnv(parallel_env(**renamed_keys(kwargs)))

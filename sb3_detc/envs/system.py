@@ -78,7 +78,12 @@ class CommunicatingSystem(ParallelEnv):
         raise NotImplementedError
 
     def reset_arrays(self, seed: int | None = None) -> tuple[SystemObs, dict[str, Any]]:
-        """Array-level reset (agent axis first), see :meth:`_reset_arrays`."""
+        """Array-level reset (agent axis first), see :meth:`_reset_arrays`.
+
+        :param seed: seed of the episode's random generator, or None to continue it
+        :return: the first observation (:class:`SystemObs`: ``local`` (N, n_local), ``message``
+            (N, n_msg), ``trigger`` (N, n_trig)) and an info dict
+        """
         obs, info = self._reset_arrays(seed)
         self.agents = list(self.possible_agents)
         self._last_obs = obs
@@ -117,20 +122,41 @@ class CommunicatingSystem(ParallelEnv):
 
     # ------------------------------------------------------------ PettingZoo API
     def observation_space(self, agent: str) -> spaces.Box:
-        """Local state space of one agent."""
+        """Local state space of one agent.
+
+        :param agent: name of the agent (all agents share one space)
+        :return: ``local_space``, a ``Box`` of shape (n_local,)
+        """
         return self.local_space
 
     def action_space(self, agent: str) -> spaces.Box:
-        """Control space of one agent."""
+        """Control space of one agent.
+
+        :param agent: name of the agent (all agents share one space)
+        :return: ``control_space``, a ``Box`` of shape (m,)
+        """
         return self.control_space
 
     def reset(self, seed: int | None = None, options: dict | None = None) -> tuple[dict, dict]:
-        """PettingZoo reset: per-agent local states and infos."""
+        """PettingZoo reset: per-agent local states and infos.
+
+        :param seed: seed of the episode's random generator, or None to continue it
+        :param options: unused (PettingZoo API)
+        :return: agent name -> local state, float32 of shape (n_local,), and agent name -> a copy
+            of the reset's info dict, for every agent of ``possible_agents``
+        """
         obs, info = self.reset_arrays(seed)
         return self._per_agent(obs.local), {a: dict(info) for a in self.possible_agents}
 
     def step(self, actions: dict) -> tuple[dict, dict, dict, dict, dict]:
-        """PettingZoo step: a control for every live agent."""
+        """PettingZoo step: a control for every live agent.
+
+        :param actions: agent name -> control of shape (m,), for every agent (all agents live
+            together); entries of other names are ignored
+        :return: five dicts keyed by agent name, over every agent of ``possible_agents``: local
+            states (float32, shape (n_local,)), rewards (float), terminated and truncated (bool,
+            the same for all agents) and infos (a copy of the step's info dict each)
+        """
         missing = set(self.agents) - set(actions)
         if self.agents and missing:
             raise ValueError(f"actions are missing for agents {sorted(missing)}.")

@@ -22,7 +22,7 @@ from gymnasium import spaces
 from pettingzoo.utils.wrappers import BaseParallelWrapper
 
 from sb3_detc.envs.system import CommunicatingSystem, SystemObs
-from sb3_detc.network import advance_timer, hold, others_index, relative_views
+from sb3_detc.network import advance_timer, hold, initial_network, others_ages, others_index, relative_views
 
 #: Which :class:`SystemObs` field feeds the policy over options, by name.
 TRIGGER_SOURCES = ("default", "local", "message")
@@ -143,8 +143,7 @@ class EventTriggeredNetwork(BaseParallelWrapper):
         """
         obs, info = self.system.reset_arrays(seed)
         self.agents = list(self.possible_agents)
-        self.held = obs.message.copy()
-        self.age = np.zeros((self.n_agents, 1))
+        self.held, self.age = initial_network(obs.message)
         self.trigger_held = self._trigger_of(obs).copy()
         self.broadcasts = np.zeros(self.n_agents, dtype=np.int64)
         self.last_broadcast = np.zeros(self.n_agents, dtype=np.int64)
@@ -201,7 +200,7 @@ class EventTriggeredNetwork(BaseParallelWrapper):
         :return: per-agent observations of :meth:`observation_space`
         """
         neighbours = relative_views(joint_obs["held"], joint_obs["message"], self.others)
-        ages = joint_obs["age"][self.others, 0]
+        ages = others_ages(joint_obs["age"], self.others)
         return {
             agent: {
                 "local": joint_obs["local"][i],

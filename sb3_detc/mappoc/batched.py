@@ -131,7 +131,12 @@ class ChainInput(NamedTuple):
     variants: int = 1
 
     def select(self, idx: th.Tensor) -> ChainInput:
-        """The same inputs for the samples ``idx`` of the batch axis."""
+        """The same inputs for the samples ``idx`` of the batch axis.
+
+        :param idx: indices of the samples to keep (1-D), into the batch axis B
+        :return: the same chain, networks and variants, ``x`` shaped
+            (groups, len(idx), variants x agents per group, width)
+        """
         return ChainInput(self.chain, self.nets, self.x[:, idx], self.variants)
 
 

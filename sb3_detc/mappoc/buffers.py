@@ -25,7 +25,12 @@ class HybridRolloutSamples(NamedTuple):
     broadcast_price: th.Tensor  # (B, N) the learner's reward lost by the own broadcast (afterstate critic)
 
     def select(self, idx: th.Tensor) -> HybridRolloutSamples:
-        """The samples ``idx`` of the batch axis."""
+        """The samples ``idx`` of the batch axis.
+
+        :param idx: indices of the samples to keep (1-D), e.g. a minibatch of
+            :meth:`HybridRolloutBuffer.minibatch_indices`
+        :return: those samples, every field indexed by ``idx`` on its first axis (observations per key)
+        """
         observations = {key: value[idx] for key, value in self.observations.items()}
         return HybridRolloutSamples(observations, *(field[idx] for field in self[1:]))
 

@@ -111,7 +111,13 @@ class AfterstateCritic(OptionCritic):
     reads_afterstate = True
 
     def features(self, policy: MlpHybridPolicy, obs: PyTorchObs, broadcast: th.Tensor | None) -> th.Tensor:
-        """The afterstates of both own options (see :meth:`OptionCritic.features`), (B, 2, N, features)."""
+        """The afterstates of both own options (see :meth:`OptionCritic.features`), (B, 2, N, features).
+
+        :param policy: the policy whose feature builders to use
+        :param obs: joint observation (B, N, ...) from before the options
+        :param broadcast: this step's options (B, N); required (the others' options in every afterstate)
+        :return: (B, 2, N, features): ``[:, v, i]`` is agent ``i``'s afterstate for its own option ``v``
+        """
         assert broadcast is not None, "the afterstate critic reads this step's options"
         return policy.afterstate_features(obs, broadcast)
 
@@ -122,7 +128,7 @@ class AfterstateCritic(OptionCritic):
 
 
 class CentredCritic(OptionCritic):
-    """Two outputs on the state before the options: a state value ``V_i(s)`` and an broadcast gap ``D_i(s)``.
+    """Two outputs on the state before the options: a state value ``V_i(s)`` and a broadcast gap ``D_i(s)``.
 
     ``Q_i(s, o) = V_i(s) + (o - p_i) (D_i(s) - price_i)`` with ``p_i`` the probability of
     broadcasting with which the options were drawn, so that ``sum_o mu_i(o) Q_i(s, o) = V_i(s)``

@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from sb3_detc.mappoc.policies import AgentController
-from sb3_detc.network import advance_timer, hold, others_index, relative_views
+from sb3_detc.network import advance_timer, hold, initial_network, others_ages, others_index, relative_views
 
 #: This step's broadcasts as they go over the radio: ``{sender index: message (n_msg,)}``.
 Radio = dict[int, np.ndarray]
@@ -58,8 +58,7 @@ class Inbox:
         messages = np.asarray(messages)
         if messages.ndim != 2 or messages.shape[0] != self.n_agents:
             raise ValueError(f"messages must have shape ({self.n_agents}, n_msg), got {messages.shape}.")
-        self.held = messages.copy()
-        self.age = np.zeros((self.n_agents, 1))
+        self.held, self.age = initial_network(messages)
 
     def receive(self, radio: Radio) -> None:
         """File this step's broadcasts: senders' messages replace the held ones, their age becomes 0.
@@ -88,7 +87,7 @@ class Inbox:
             raise RuntimeError("the inbox has no messages yet: call reset() at the start of an episode.")
         own = np.asarray(own_message)[None]  # (1, n_msg)
         neighbours = relative_views(self.held, own, self._others)[0]  # (N - 1, n_msg)
-        return neighbours, self.age[self._others[0], 0]
+        return neighbours, others_ages(self.age, self._others)[0]
 
 
 def run_decentralised_step(

@@ -2,7 +2,7 @@
 
 * control policy ``pi``: PPO's clipped surrogate on GAE advantages of the taken option;
 * critic ``Q``: squared error of the taken option's value against the lambda-return;
-* policy over options ``mu``: PPO's clipped surrogate on an broadcast advantage (greedy:
+* policy over options ``mu``: PPO's clipped surrogate on a broadcast advantage (greedy:
   ``Q(o) - max_o' Q(o')`` with the current critic, or sampled: the lambda-return minus the
   state value at collection time), plus an entropy bonus.
 """

@@ -64,10 +64,18 @@ class Rollout(NamedTuple):
     last_obs: dict[str, np.ndarray]  # (n_envs, N, ...) after the last step
 
 
+def available_cores() -> int:
+    """CPU cores this process may run on."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+
+
 def default_n_envs() -> int:
-    """Envs that MAPPOC builds from an env id: one rollout worker per available CPU core, at most 8."""
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-    return max(1, min(cores, 8))
+    """Envs that MAPPOC builds from an env id: one rollout worker per available CPU core, at most 8.
+
+    A power of two (the largest not above the cores), so that the paper's iteration of 2048
+    steps divides evenly among the workers.
+    """
+    return 1 << (max(1, min(available_cores(), 8)).bit_length() - 1)
 
 
 def make_rollout_workers(env_id: str, n_envs: int, seed: int | None = None) -> VecEnv:
@@ -173,13 +181,13 @@ class MAPPOC(OnPolicyAlgorithm):
         ``target_kl``, a gradient step (loss, gradients, clipping, Adam update) is one
         compiled graph (:mod:`sb3_detc.mappoc.steps`). On a CPU about twice the gradient
         steps per second and faster rollouts (``benchmarks/results/train_throughput.log``), for a one-off
-        compilation of tens of seconds with a warm compile cache, minutes with a cold one (and a
+        compilation of tens of seconds with a warm compile cache, about a minute with a cold one (and a
         few seconds whenever a new variant appears, e.g. a first fixed trigger), so worth it for
         long runs. ``"auto"``: compile
         when a C++ compiler is found, the device is the CPU and ``learn`` runs at least
         :data:`COMPILE_FROM_TIMESTEPS` steps
     :param n_envs: number of envs built from an env id (None: :func:`default_n_envs`, one
-        per CPU core, at most 8); only for an env id
+        per CPU core rounded down to a power of two, at most 8); only for an env id
     :param fixed_trigger: take the options from this trigger instead of ``mu`` (see
         :meth:`set_fixed_trigger`; None: from ``mu``)
     :param stats_window_size: window size of the rollout logging (episodes)

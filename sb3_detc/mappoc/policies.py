@@ -37,7 +37,7 @@ from torch.nn import functional as F
 from sb3_detc.envs.wrappers import JOINT_KEYS
 from sb3_detc.mappoc.batched import AgentBatchedNetworks, ChainInput, NetSpec
 from sb3_detc.mappoc.critics import CRITICS, OptionCritic
-from sb3_detc.network import advance_timer, hold, others_index, relative_views
+from sb3_detc.network import advance_timer, hold, others_ages, others_index, relative_views
 from sb3_detc.renamed import renamed_action_space
 
 #: Order of the networks inside the batched chains: ``mu`` (and a critic that reads the state
@@ -49,7 +49,11 @@ OUTPUT_GAINS = {"mu": 0.01, "q": 1.0, "pi": 0.01}
 
 
 def broadcast_probability(logits: th.Tensor) -> th.Tensor:
-    """Probability of broadcasting under ``mu`` from its logits (..., 2): ``sigmoid(logit_1 - logit_0)``."""
+    """Probability of broadcasting under ``mu`` from its logits (..., 2): ``sigmoid(logit_1 - logit_0)``.
+
+    :param logits: outputs of ``mu``, (..., 2): the logits of silent (0) and broadcast (1)
+    :return: probabilities of broadcasting, (...)
+    """
     return th.sigmoid(logits[..., 1] - logits[..., 0])
 
 
@@ -73,7 +77,13 @@ class HybridEvaluation(NamedTuple):
 
 
 def gaussian_log_prob(x: th.Tensor, mean: th.Tensor, log_std: th.Tensor) -> th.Tensor:
-    """Log-density of a diagonal Gaussian, summed over the last axis."""
+    """Log-density of a diagonal Gaussian, summed over the last axis.
+
+    :param x: points at which to evaluate the density (..., m)
+    :param mean: means (..., m), broadcastable against ``x``
+    :param log_std: log standard deviations (..., m), broadcastable against ``x``
+    :return: log-densities (...)
+    """
     z = (x - mean) * th.exp(-log_std)
     return (-0.5 * z.pow(2) - log_std - 0.5 * math.log(2 * math.pi)).sum(-1)
 
@@ -103,7 +113,7 @@ class MlpHybridPolicy(BasePolicy):
         :data:`~sb3_detc.mappoc.critics.CRITICS`: ``"option_heads"`` (the paper: one output per
         option on the state before the options), ``"afterstate"`` (one output that values the
         network state after the options, with the price of the own broadcast added
-        analytically) or ``"centred"`` (a state value and an broadcast gap on the state before the
+        analytically) or ``"centred"`` (a state value and a broadcast gap on the state before the
         options, centred on the probabilities the options were drawn with); see the classes of
         :mod:`sb3_detc.mappoc.critics`. The critic object is :attr:`option_critic`
     :param ortho_init: orthogonal initialisation (otherwise PyTorch's default init)
@@ -278,7 +288,11 @@ class MlpHybridPolicy(BasePolicy):
         return hold(obs["held"], obs["message"], broadcast), advance_timer(obs["age"], broadcast)
 
     def option_features(self, obs: PyTorchObs) -> th.Tensor:
-        """Inputs of ``mu_i``: trigger features now and at the own last broadcast, (B, N, 2 n_trig)."""
+        """Inputs of ``mu_i``: trigger features now and at the own last broadcast, (B, N, 2 n_trig).
+
+        :param obs: joint observation (B, N, ...); reads ``trigger`` and ``trigger_held``
+        :return: (B, N, 2 n_trig)
+        """
         return th.cat([obs["trigger"], obs["trigger_held"]], dim=-1)
 
     def control_features(self, obs: PyTorchObs, broadcast: th.Tensor) -> th.Tensor:
@@ -293,7 +307,7 @@ class MlpHybridPolicy(BasePolicy):
         """
         held, age = self.network_after(obs, broadcast)
         views = relative_views(held, obs["message"], self.others).flatten(2)
-        ages = age[:, self.others, 0] * self.age_scale
+        ages = others_ages(age, self.others) * self.age_scale
         return th.cat([obs["local"], views, ages], dim=-1)
 
     def critic_features(self, obs: PyTorchObs) -> th.Tensor:

@@ -57,14 +57,22 @@ class RolloutWorker(gym.Wrapper):
         self.worker_index = 0
 
     def reset(self, **kwargs: Any) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
-        """Reset the env and remember the observation the next rollout starts from."""
+        """Reset the env and remember the observation the next rollout starts from.
+
+        :param kwargs: passed to the wrapped env's ``reset`` (``seed``, ``options``)
+        :return: the wrapped env's first observation and info
+        """
         obs, info = self.env.reset(**kwargs)
         check_finite(obs)
         self._obs = obs
         return obs, info
 
     def step(self, action: Any) -> tuple[dict[str, np.ndarray], float, bool, bool, dict[str, Any]]:
-        """Step the env and remember the observation."""
+        """Step the env and remember the observation.
+
+        :param action: joint action, passed to the wrapped env (``{"broadcast": (N,), "control": (N, m)}``)
+        :return: the wrapped env's observation, reward, terminated, truncated and info
+        """
         obs, reward, terminated, truncated, info = self.env.step(action)
         check_finite(obs)
         self._obs = obs

@@ -179,19 +179,29 @@ class StudyProgress:
         )
 
     def show(self, force: bool = False) -> None:
-        """Print the progress line (at most every :data:`PROGRESS_EVERY` seconds unless forced)."""
+        """Print the progress line (at most every :data:`PROGRESS_EVERY` seconds unless forced).
+
+        :param force: print it even if the last line is more recent than :data:`PROGRESS_EVERY` seconds
+        """
         now = time.monotonic()
         if force or now - self._last_line >= PROGRESS_EVERY:
             print(self.line(), file=self.stream, flush=True)
             self._last_line = now
 
     def started(self, name: str) -> None:
-        """A trial started (or resumed)."""
+        """A trial started (or resumed).
+
+        :param name: the trial's name (:attr:`Trial.name <sb3_detc.study.spec.Trial.name>`), a key of ``budgets``
+        """
         self.running.add(name)
         self.show(force=True)
 
     def result(self, name: str, steps: int) -> None:
-        """A trial reported its step count."""
+        """A trial reported its step count.
+
+        :param name: the trial's name, a key of ``budgets``
+        :param steps: environment steps the trial has trained so far (its model's step count)
+        """
         self.steps[name] = steps
         now = time.monotonic()
         samples = self.history.setdefault(name, deque())

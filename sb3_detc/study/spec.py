@@ -29,7 +29,6 @@ torch threads (the workers wait while it updates, and it waits while they collec
 
 from __future__ import annotations
 
-import hashlib
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -122,11 +121,6 @@ class StudySpec:
     eval_seed: int
     algorithms: tuple[AlgorithmSpec, ...] = field(default_factory=tuple)
 
-    @property
-    def digest(self) -> str:
-        """A fingerprint of the study's content (a study folder belongs to one study)."""
-        return hashlib.sha256(self.text.encode()).hexdigest()[:16]
-
     def trials(self) -> list[Trial]:
         """Every (algorithm, seed) trial: each algorithm's first seed (in the file's order), then the second ones, ...
 
@@ -140,7 +134,11 @@ class StudySpec:
         return [trial for _, _, trial in sorted(trials, key=lambda item: item[:2])]
 
     def budget(self, algorithm: AlgorithmSpec) -> int:
-        """Training steps of one trial of ``algorithm``."""
+        """Training steps of one trial of ``algorithm``.
+
+        :param algorithm: one of :attr:`algorithms`
+        :return: the study's ``n_timesteps`` if it has one, else the ``n_timesteps`` of the algorithm's entry
+        """
         return int(self.n_timesteps if self.n_timesteps is not None else algorithm.entry["n_timesteps"])
 
 

@@ -67,7 +67,12 @@ SUCCESS_TRAVEL = 0.5
 
 
 def trial_folder(directory: str | os.PathLike, trial: Trial) -> Path:
-    """The folder of ``trial`` in the study folder ``directory``."""
+    """The folder of ``trial`` in the study folder ``directory``.
+
+    :param directory: the study folder
+    :param trial: the trial
+    :return: ``<directory>/trials/<label>/seed<seed>`` (not created here)
+    """
     return Path(directory) / "trials" / trial.algorithm.label / f"seed{trial.seed}"
 
 
@@ -78,7 +83,11 @@ def _write_json(path: Path, content: dict[str, Any]) -> None:
 
 
 def read_status(folder: Path) -> dict[str, Any]:
-    """A trial's ``status.json`` (``{"status": "pending"}`` if it has none)."""
+    """A trial's ``status.json`` (``{"status": "pending"}`` if it has none).
+
+    :param folder: the trial folder
+    :return: the parsed content of ``status.json``, or ``{"status": "pending"}``
+    """
     path = folder / "status.json"
     return json.loads(path.read_text()) if path.is_file() else {"status": "pending"}
 
