@@ -3,8 +3,7 @@
 ``python -m sb3_detc.compare`` (``make run``) runs a study (:mod:`sb3_detc.study`) of
 ``mappoc`` (learned communication) and ``ppo_random_skip`` (random skips, the paper's
 baseline) with the package's hyperparameter entries, for every seed (``--seeds``, default
-0, 1 and 2), on Ray on this machine (one core per run; with fewer cores than seeds, every
-seed still trains at once, sharing the cores, rather than waiting for a second round). Every final policy then runs the
+0, 1 and 2), on Ray on this machine (one core per run). Every final policy then runs the
 same 50 seeded evaluation episodes with the training communication cost, with its own
 options (MAPPOC sampling from its policy over options, the baseline with its random
 trigger), with random skips at its own rate, always and never broadcasting. The default
@@ -37,7 +36,7 @@ from rl_zoo3.utils import get_callback_list, get_saved_hyperparams
 from sb3_detc.callbacks import FixedTriggerCallback
 from sb3_detc.evaluation import CommunicationReport, evaluate_communication
 from sb3_detc.mappoc import MAPPOC
-from sb3_detc.mappoc.mappoc import FixedTrigger, available_cores
+from sb3_detc.mappoc.mappoc import FixedTrigger
 from sb3_detc.study.report import report_study, summarise
 from sb3_detc.study.runner import run_study
 from sb3_detc.study.spec import load_study
@@ -223,8 +222,7 @@ def _main() -> None:
             f"{args.env} sets the controls and ppo_random_skip's options are random: the baseline has nothing "
             "to learn, so it trains one iteration and is evaluated as it is"
         )
-    cpus = None if args.address is not None else max(available_cores(), len(args.seeds))
-    statuses = run_study(load_study(path), folder, address=args.address, cpus=cpus)
+    statuses = run_study(load_study(path), folder, address=args.address)
     if any(status != "done" for status in statuses.values()):
         raise SystemExit(1)
     report = report_study(folder)

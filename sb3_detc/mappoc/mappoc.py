@@ -64,18 +64,14 @@ class Rollout(NamedTuple):
     last_obs: dict[str, np.ndarray]  # (n_envs, N, ...) after the last step
 
 
-def available_cores() -> int:
-    """CPU cores this process may run on."""
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-
-
 def default_n_envs() -> int:
     """Envs that MAPPOC builds from an env id: one rollout worker per available CPU core, at most 8.
 
     A power of two (the largest not above the cores), so that the paper's iteration of 2048
     steps divides evenly among the workers.
     """
-    return 1 << (max(1, min(available_cores(), 8)).bit_length() - 1)
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    return 1 << (max(1, min(cores, 8)).bit_length() - 1)
 
 
 def make_rollout_workers(env_id: str, n_envs: int, seed: int | None = None) -> VecEnv:
