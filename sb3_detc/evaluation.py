@@ -66,6 +66,23 @@ class Episodes:
         return float(1.0 - self.broadcasts.sum() / (self.lengths.sum() * self.broadcasts.shape[1]))
 
 
+#: Most envs that :func:`evaluate_episodes` runs side by side.
+MAX_SIDE_BY_SIDE = 64
+
+
+@dataclass
+class _Running:
+    """An episode in progress in one of the envs."""
+
+    index: int  # position of its seed
+    obs: dict[str, np.ndarray]
+    start_x: float
+    broadcasts: np.ndarray  # (N,) broadcasts so far of every agent
+    total: float = 0.0
+    control_total: float = 0.0
+    steps: int = 0
+
+
 def evaluate_episodes(
     policy: MlpHybridPolicy,
     env: gym.Env | str,
@@ -75,6 +92,12 @@ def evaluate_episodes(
     fixed_trigger: FixedTrigger | None = None,
 ) -> Episodes:
     """Run a policy for whole episodes, one per seed, and record each.
+
+    Where every episode has its seed and ``env`` can be made again (``env.spec``, as for an
+    env from ``gym.make`` or an id), the episodes run side by side in ``env`` and copies
+    made with ``gym.make(env.spec)`` (at most :data:`MAX_SIDE_BY_SIDE` at once), with one
+    policy call per step for all of them; otherwise one after another in ``env``. Episode
+    ``k`` is reset with ``seeds[k]`` either way, and the results are in the order of ``seeds``.
 
     :param policy: the policy (of a trained model, ``model.policy``, or loaded on its own)
     :param env: a joint env (not vectorised) or its registered id
@@ -95,40 +118,64 @@ def evaluate_episodes(
     policy.set_training_mode(False)
     low, high = env.action_space["control"].low, env.action_space["control"].high
     n_agents = env.action_space["broadcast"].shape[0]
-    records: dict[str, list] = {field: [] for field in Episodes.__dataclass_fields__}
-    for seed in seeds:
-        obs, info = env.reset(seed=seed)
-        start_x = info.get("package_x", math.nan)
-        done, total, control_total, steps = False, 0.0, 0.0, 0
-        broadcasts = np.zeros(n_agents, np.int64)
-        while not done:
-            batch = {key: value[None] for key, value in obs.items()}
+    side_by_side = all(seed is not None for seed in seeds) and env.spec is not None
+    copies = [gym.make(env.spec) for _ in range(min(len(seeds), MAX_SIDE_BY_SIDE) - 1)] if side_by_side else []
+    envs = [env, *copies]
+    pending = iter(enumerate(seeds))
+    running: dict[int, _Running] = {}  # env position -> its episode
+    records: list[dict | None] = [None] * len(seeds)
+
+    def start(slot: int) -> None:
+        index, seed = next(pending, (None, None))
+        if index is not None:
+            obs, info = envs[slot].reset(seed=seed)
+            running[slot] = _Running(index, obs, info.get("package_x", math.nan), np.zeros(n_agents, np.int64))
+
+    try:
+        for slot in range(len(envs)):
+            start(slot)
+        while running:
+            slots = list(running)
+            batch = {key: np.stack([running[slot].obs[key] for slot in slots]) for key in running[slots[0]].obs}
             with th.no_grad():
                 forced = None
                 if fixed_trigger is not None:
                     forced = th.as_tensor(fixed_trigger(batch), device=policy.device)
-                sampled, control = policy.sample_actions(
+                sampled, controls = policy.sample_actions(
                     obs_as_tensor(batch, policy.device),
                     broadcast=forced,
                     deterministic=deterministic,
                     deterministic_broadcast=deterministic_broadcast,
                 )
-            broadcast = sampled[0].cpu().numpy()
-            control = np.clip(control[0].cpu().numpy(), low, high)
-            obs, reward, terminated, truncated, info = env.step({"broadcast": broadcast, "control": control})
-            total += reward
-            control_total += float(np.mean(info["control_rewards"]))
-            broadcasts += broadcast
-            steps += 1
-            done = terminated or truncated
-        records["returns"].append(total)
-        records["control_returns"].append(control_total)
-        records["lengths"].append(steps)
-        records["broadcasts"].append(broadcasts)
-        records["terminated"].append(bool(terminated))
-        records["failed"].append(bool(info.get("failed", False)))
-        records["package_travel"].append(info.get("package_x", math.nan) - start_x)
-    return Episodes(**{field: np.asarray(values) for field, values in records.items()})
+            sampled, controls = sampled.cpu().numpy(), np.clip(controls.cpu().numpy(), low, high)
+            for row, slot in enumerate(slots):
+                episode = running[slot]
+                obs, reward, terminated, truncated, info = envs[slot].step(
+                    {"broadcast": sampled[row], "control": controls[row]}
+                )
+                episode.obs = obs
+                episode.total += reward
+                episode.control_total += float(np.mean(info["control_rewards"]))
+                episode.broadcasts += sampled[row]
+                episode.steps += 1
+                if terminated or truncated:
+                    records[episode.index] = {
+                        "returns": episode.total,
+                        "control_returns": episode.control_total,
+                        "lengths": episode.steps,
+                        "broadcasts": episode.broadcasts,
+                        "terminated": bool(terminated),
+                        "failed": bool(info.get("failed", False)),
+                        "package_travel": info.get("package_x", math.nan) - episode.start_x,
+                    }
+                    del running[slot]
+                    start(slot)
+    finally:
+        for copy in copies:
+            copy.close()
+    return Episodes(
+        **{field: np.asarray([record[field] for record in records]) for field in Episodes.__dataclass_fields__}
+    )
 
 
 def evaluate_communication(
