@@ -416,6 +416,24 @@ def test_progress_counts_stopped_trials_as_unfinished(monkeypatch):
     assert progress.pending == 0 and progress.done == 0
 
 
+def test_progress_of_a_budget_below_one_iteration_stops_at_100_percent(monkeypatch):
+    """make run's baseline trains one iteration (1024 steps) for a budget of 1 step."""
+    from sb3_detc.study import runner
+
+    clock = [0.0]
+    monkeypatch.setattr(runner.time, "monotonic", lambda: clock[0])
+    progress = runner.StudyProgress({"a/seed0": 1, "b/seed0": 10_000}, stream=None)
+    progress.show = lambda force=False: None
+    progress.started("a/seed0")
+    progress.started("b/seed0")
+    for t, steps in ((0, 0), (100, 1000)):
+        clock[0] = t
+        progress.result("a/seed0", steps * 1024 // 1000)
+        progress.result("b/seed0", steps)
+    assert "(a/seed0 100 %, b/seed0 10 %)" in progress.line()
+    assert progress.seconds_left() == pytest.approx(9000 / (10 + 10.24))  # nothing left of a/seed0, not -1023
+
+
 def test_intervals_are_the_same_on_every_call_and_leave_numpys_generator_alone():
     from sb3_detc.study.report import interval_estimates
 

@@ -159,7 +159,7 @@ class StudyProgress:
     def seconds_left(self) -> float:
         """Estimated seconds until every trial has trained (evaluation not counted)."""
         left = sum(
-            budget - self.steps.get(name, 0)
+            max(0, budget - self.steps.get(name, 0))
             for name, budget in self.budgets.items()
             if name not in self.finished_names or name in self.stopped_names
         )
@@ -168,7 +168,9 @@ class StudyProgress:
     def line(self) -> str:
         """The progress line."""
         running = ", ".join(
-            f"{name} {100 * self.steps.get(name, 0) / self.budgets[name]:.0f} %" for name in sorted(self.running)
+            # A budget below one iteration trains the whole iteration: 100 %, not more.
+            f"{name} {100 * min(1.0, self.steps.get(name, 0) / self.budgets[name]):.0f} %"
+            for name in sorted(self.running)
         )
         return (
             f"[study] {self.done} done, {len(self.running)} running"
