@@ -7,7 +7,9 @@ processes (``SubprocVecEnv``) each:
   "sb3_detc/MultiwalkerETC-v0").learn(6_144_000)`` with every default (MAPPOC builds its
   rollout workers from the id and compiles for a run that long), timed over its first
   iterations; its warm-up is everything from the constructor to the end of the first
-  iteration (worker start, compilation);
+  iteration (worker start, compilation), with its parts in the JSON of ``--one``: the start
+  (constructor and set-up), the first rollout (the workers compile their sampling) and the
+  first update (the learner compiles its gradient step);
 * **MAPPOC** on ``sb3_detc/MultiwalkerETC-v0`` with the paper's hyperparameters: 2048
   environment steps per iteration (2 envs x 1024), minibatch 32, 10 epochs, three agents
   with their own networks (policy over options, control policy and option-value critic,
@@ -141,6 +143,11 @@ def measure_one_liner(name: str, seed: int, iterations: int) -> dict[str, Any]:
     return {
         "name": name,
         "warm_up_s": timer.starts[1] - start,
+        # the warm-up's parts: constructor and learn() set-up (workers start), the first rollout
+        # (the workers compile their sampling), the first update (the learner compiles its step)
+        "start_s": timer.starts[0] - start,
+        "first_rollout_s": timer.ends[0] - timer.starts[0],
+        "first_update_s": timer.starts[1] - timer.ends[0],
         "env_steps": iterations * model.n_steps * model.n_envs,
         "seconds": seconds,
         "steps_per_s": iterations * model.n_steps * model.n_envs / seconds,
