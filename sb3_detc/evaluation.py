@@ -98,6 +98,8 @@ def evaluate_episodes(
     made with ``gym.make(env.spec)`` (at most :data:`MAX_SIDE_BY_SIDE` at once), with one
     policy call per step for all of them; otherwise one after another in ``env``. Episode
     ``k`` is reset with ``seeds[k]`` either way, and the results are in the order of ``seeds``.
+    The copies have the settings of ``env.spec``: what was changed in ``env`` after it was
+    made (e.g. its broadcast cost set by hand) does not carry over.
 
     :param policy: the policy (of a trained model, ``model.policy``, or loaded on its own)
     :param env: a joint env (not vectorised) or its registered id
