@@ -377,13 +377,20 @@ def test_a_killed_study_resumes_from_its_checkpoints(tmp_path):
     assert np.all(np.diff(steps) > 0) and steps[-1] == 12288  # one row per iteration, none twice
 
 
-def test_progress_counts_trials_and_estimates_the_time_left_from_recent_progress(monkeypatch):
+def quiet_progress(monkeypatch, budgets, **kwargs):
+    """A StudyProgress that prints nothing, on a clock the test sets: (progress, clock)."""
     from sb3_detc.study import runner
 
     clock = [0.0]
     monkeypatch.setattr(runner.time, "monotonic", lambda: clock[0])
+    progress = runner.StudyProgress(budgets, stream=None, **kwargs)
+    progress.show = lambda force=False: None
+    return progress, clock
+
+
+def test_progress_counts_trials_and_estimates_the_time_left_from_recent_progress(monkeypatch):
+    progress, clock = quiet_progress(monkeypatch, {"a/seed0": 10_000, "b/seed0": 10_000}, done=3)
     lines = []
-    progress = runner.StudyProgress({"a/seed0": 10_000, "b/seed0": 10_000}, done=3, stream=None)
     progress.show = lambda force=False: lines.append(progress.line())
     progress.started("a/seed0")
     for t, steps in ((0, 0), (100, 100), (1000, 1000), (1700, 8000)):  # slow at first, then 10 steps/s
@@ -399,12 +406,7 @@ def test_progress_counts_trials_and_estimates_the_time_left_from_recent_progress
 
 
 def test_progress_counts_stopped_trials_as_unfinished(monkeypatch):
-    from sb3_detc.study import runner
-
-    clock = [0.0]
-    monkeypatch.setattr(runner.time, "monotonic", lambda: clock[0])
-    progress = runner.StudyProgress({"a/seed0": 10_000, "b/seed0": 10_000}, stream=None)
-    progress.show = lambda force=False: None
+    progress, clock = quiet_progress(monkeypatch, {"a/seed0": 10_000, "b/seed0": 10_000})
     progress.started("a/seed0")
     for t, steps in ((0, 0), (100, 1000)):
         clock[0] = t
@@ -418,12 +420,7 @@ def test_progress_counts_stopped_trials_as_unfinished(monkeypatch):
 
 def test_progress_of_a_budget_below_one_iteration_stops_at_100_percent(monkeypatch):
     """make run's baseline trains one iteration (1024 steps) for a budget of 1 step."""
-    from sb3_detc.study import runner
-
-    clock = [0.0]
-    monkeypatch.setattr(runner.time, "monotonic", lambda: clock[0])
-    progress = runner.StudyProgress({"a/seed0": 1, "b/seed0": 10_000}, stream=None)
-    progress.show = lambda force=False: None
+    progress, clock = quiet_progress(monkeypatch, {"a/seed0": 1, "b/seed0": 10_000})
     progress.started("a/seed0")
     progress.started("b/seed0")
     for t, steps in ((0, 0), (100, 1000)):

@@ -51,6 +51,21 @@ def test_hyperparameter_files_build_models(algo: str, env_id: str) -> None:
     env.close()
 
 
+@pytest.mark.parametrize("algo", sorted(zoo.ALGORITHMS))
+def test_multiwalker_entries_train_without_a_cxx_compiler(algo: str) -> None:
+    """The paper's entries compile where a compiler exists and fall back to eager steps, not an error, elsewhere."""
+    from torch._inductor import config
+
+    entry = zoo.check_hyperparams_file(zoo.HYPERPARAMS_DIR / f"{algo}.yml", algo, MULTIWALKER)
+    kwargs = {k: v for k, v in entry.items() if k not in zoo.ZOO_KEYS}
+    kwargs["policy_kwargs"] = eval(kwargs["policy_kwargs"])
+    env = make_vec_env(MULTIWALKER, n_envs=1, env_kwargs=entry.get("env_kwargs"))
+    with config.patch({"cpp.cxx": ("no-such-cxx-compiler",)}):
+        model = zoo.ALGORITHMS[algo](env=env, **kwargs)  # with torch_compile=True: RuntimeError
+    assert model.torch_compile == "auto" and type(model.gradient_step).__name__ == "GradientStep"
+    env.close()
+
+
 def test_multiwalker_entry_has_the_paper_settings() -> None:
     entry = zoo.check_hyperparams_file(zoo.HYPERPARAMS_DIR / "mappoc.yml", "mappoc", MULTIWALKER)
     assert entry["n_steps"] * entry["n_envs"] == 2048
