@@ -1067,3 +1067,22 @@ def test_broadcast_prob_init_outside_the_open_interval_is_rejected(p: float) -> 
 def test_negative_or_non_finite_age_scale_is_rejected(scale: float) -> None:
     with pytest.raises(ValueError, match="age_scale"):
         MAPPOC("MlpHybridPolicy", "sb3_detc/LinearETC-v0", n_steps=8, policy_kwargs=dict(age_scale=scale))
+
+
+def test_warming_up_the_compiled_step_changes_nothing_and_the_update_reuses_it() -> None:
+    """``warm_up`` compiles on copies: parameters and optimizer state stay; the first update does not recompile."""
+    th._dynamo.reset()
+    warmed = make_model(n_agents=3, n_steps=32, torch_compile=True)
+    start = parameters(warmed), copy.deepcopy(warmed.policy.optimizer.state_dict())
+    assert warmed.gradient_step.needs_warm_up
+    placeholders = warmed.rollout_buffer.tensors(partial=True)  # zeros: no rollout yet
+    warmed.gradient_step.warm_up(warmed.update_inputs(placeholders, 0.2, 0.1, 0.05, True), th.arange(16))
+    assert not warmed.gradient_step.needs_warm_up
+    for key, value in parameters(warmed).items():
+        assert th.equal(value, start[0][key]), key
+    assert warmed.policy.optimizer.state_dict() == start[1]  # no state yet, as before a first step
+    with th._dynamo.config.patch(error_on_recompile=True):
+        warmed.learn(64)
+    other = make_model(n_agents=3, n_steps=32, torch_compile=True).learn(64)  # compiles at its first update
+    for key, value in parameters(other).items():
+        th.testing.assert_close(parameters(warmed)[key], value, rtol=0, atol=0)

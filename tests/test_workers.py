@@ -136,3 +136,32 @@ def test_a_non_finite_observation_is_named_by_its_key() -> None:
     check_finite({"held": np.zeros((2, 3), np.float32), "age": np.ones((2, 1), np.float32)})  # finite: passes
     with pytest.raises(ValueError, match="non-finite observation in 'age'"):
         check_finite({"held": np.zeros((2, 3), np.float32), "age": np.array([[0.0], [np.inf]], np.float32)})
+
+
+class WarmAtRolloutEnd(BaseCallback):
+    """Records at every rollout's end whether the model's gradient step still has to be compiled."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.needs_warm_up: list[bool] = []
+
+    def _on_rollout_end(self) -> None:
+        self.needs_warm_up.append(self.model.gradient_step.needs_warm_up)
+
+    def _on_step(self) -> bool:
+        return True
+
+
+def test_worker_processes_sample_while_the_learner_compiles_its_step() -> None:
+    """With worker processes the step is compiled during the first rollout; training is as with in-process workers."""
+    results = []
+    for vec_env_cls in (SubprocVecEnv, DummyVecEnv):
+        model = make(True, vec_env_cls=vec_env_cls, torch_compile=True, policy_kwargs={"net_arch": [16, 16]})
+        callback = WarmAtRolloutEnd()
+        model.learn(192, callback=callback)
+        model.get_env().close()
+        results.append((callback.needs_warm_up, {k: v.clone() for k, v in model.policy.state_dict().items()}))
+    (in_processes, trained), (in_learner, expected) = results
+    assert in_processes == [False, False] and in_learner == [True, False]
+    for key, value in expected.items():
+        th.testing.assert_close(trained[key], value, rtol=0, atol=0)

@@ -204,9 +204,14 @@ class HybridRolloutBuffer:
         self.returns = self.advantages + self.values
         self.broadcast_advantages = self.returns - self.state_values
 
-    def tensors(self) -> HybridRolloutSamples:
-        """The whole rollout as tensors, environments and steps flattened into one batch axis."""
-        if not self.full:
+    def tensors(self, partial: bool = False) -> HybridRolloutSamples:
+        """The whole rollout as tensors, environments and steps flattened into one batch axis.
+
+        :param partial: also before the rollout is complete (steps not stored yet hold zeros or
+            an earlier rollout's values: inputs of the right shapes, e.g. to compile the update)
+        :raises RuntimeError: if the rollout is incomplete and ``partial`` is False
+        """
+        if not (self.full or partial):
             raise RuntimeError("HybridRolloutBuffer needs a full rollout; keep adding steps.")
         total = self.buffer_size * self.n_envs
 

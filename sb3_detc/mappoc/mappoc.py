@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import functools
 import os
 import pathlib
 import pickle
 import warnings
 from collections.abc import Callable, Hashable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from typing import Any, ClassVar, NamedTuple, TypeVar
 
 import numpy as np
@@ -23,7 +25,7 @@ from stable_baselines3.common.utils import FloatSchedule, explained_variance, ob
 from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecEnv, unwrap_vec_normalize
 
 from sb3_detc.envs.wrappers import EventTriggeredNetwork, JointEnv
-from sb3_detc.mappoc.buffers import HybridRolloutBuffer
+from sb3_detc.mappoc.buffers import HybridRolloutBuffer, HybridRolloutSamples
 from sb3_detc.mappoc.critics import CRITICS
 from sb3_detc.mappoc.losses import BROADCAST_ADVANTAGES, STEP_STATS, MAPPOCLoss, UpdateInputs
 from sb3_detc.mappoc.policies import MlpHybridPolicy, check_joint_spaces
@@ -558,7 +560,8 @@ class MAPPOC(OnPolicyAlgorithm):
         state = {key: value.detach().cpu().numpy() for key, value in self.policy.state_dict().items()}
         seeds = th.randint(2**31 - 1, (n_envs,)).tolist()
         trigger = self.fixed_trigger
-        trajectories = env.env_method(
+        collect = functools.partial(
+            env.env_method,
             "collect_rollout",
             pickle.dumps(self.policy) if new_policy else None,
             state,
@@ -568,6 +571,14 @@ class MAPPOC(OnPolicyAlgorithm):
             self._compiled,
             None if trigger is None else [pickle.dumps(trigger.fork(seed)) for seed in seeds],  # type: ignore[attr-defined]
         )
+        if self.gradient_step.needs_warm_up and isinstance(env, SubprocVecEnv):
+            # The learner waits for the worker processes: compile its gradient step meanwhile.
+            with ThreadPoolExecutor(max_workers=1) as waiter:
+                collected = waiter.submit(collect)
+                self._warm_up_gradient_step()
+                trajectories = collected.result()
+        else:
+            trajectories = collect()
         self._workers_hold = (self.policy, env)
 
         def stacked(key: str) -> Any:  # (steps, n_envs, ...)
@@ -680,20 +691,7 @@ class MAPPOC(OnPolicyAlgorithm):
         frozen_views = [view for net in frozen for view in self.policy.net_parameters(net)]
         frozen_values = [view.clone() for view in frozen_views]
 
-        rollout = self.rollout_buffer.tensors()
-        # probability of broadcasting with which the options were drawn (the centred critic's p_i)
-        taken = rollout.old_log_prob_broadcast.exp()
-        update = UpdateInputs(
-            # The networks' inputs depend on stored observations and options only: built once.
-            self.policy.training_inputs(rollout.observations, rollout.broadcast),
-            rollout._replace(observations={}),
-            th.where(rollout.broadcast.bool(), taken, 1 - taken),
-            clip_pi,
-            clip_mu,
-            zeta,
-            self.train_control_policy,
-            train_mu,
-        )
+        update = self.update_inputs(self.rollout_buffer.tensors(), clip_pi, clip_mu, zeta, train_mu)
         stats: dict[str, list[float]] = {name: [] for name in STEP_STATS}
         continue_training = True
         for epoch in range(self.n_epochs):
@@ -724,6 +722,46 @@ class MAPPOC(OnPolicyAlgorithm):
         self.logger.record("train/action_noise_std", self.action_noise_std)
         self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
         self.logger.record("rollout/broadcast_rate", float(buffer.broadcast.mean()))
+
+    def update_inputs(
+        self, rollout: HybridRolloutSamples, clip_pi: float, clip_mu: float, zeta: float, train_mu: bool
+    ) -> UpdateInputs:
+        """What every gradient step of an update needs of the rollout and of the update's settings.
+
+        :param rollout: the rollout buffer's samples (:meth:`HybridRolloutBuffer.tensors`)
+        :param clip_pi: clip range of the control policy
+        :param clip_mu: clip range of the policy over options
+        :param zeta: entropy coefficient of the policy over options
+        :param train_mu: whether the policy over options is trained
+        :return: the inputs of :attr:`gradient_step`
+        """
+        # probability of broadcasting with which the options were drawn (the centred critic's p_i)
+        taken = rollout.old_log_prob_broadcast.exp()
+        return UpdateInputs(
+            # The networks' inputs depend on stored observations and options only: built once.
+            self.policy.training_inputs(rollout.observations, rollout.broadcast),
+            rollout._replace(observations={}),
+            th.where(rollout.broadcast.bool(), taken, 1 - taken),
+            clip_pi,
+            clip_mu,
+            zeta,
+            self.train_control_policy,
+            train_mu,
+        )
+
+    def _warm_up_gradient_step(self) -> None:
+        """Compile the gradient step before the first update, on inputs of the update's shapes and settings."""
+        progress = self._current_progress_remaining
+        update = self.update_inputs(
+            self.rollout_buffer.tensors(partial=True),
+            FloatSchedule(self.clip_range)(progress),
+            FloatSchedule(self.clip_range_broadcast)(progress),
+            FloatSchedule(self.broadcast_ent_coef)(progress),
+            self.train_broadcast_policy and self.fixed_trigger is None,
+        )
+        samples = self.rollout_buffer.buffer_size * self.rollout_buffer.n_envs
+        # the first minibatch's shape; not drawn at random: the update's minibatches stay as they were
+        self.gradient_step.warm_up(update, th.arange(min(self.batch_size, samples), device=self.device))
 
     def _broadcast_costs(self, env: VecEnv) -> np.ndarray:
         """The communication cost ``xi`` of every environment, (n_envs,); zeros unless the critic needs it."""

@@ -160,6 +160,19 @@ class GradientStep:
         self.max_grad_norm = max_grad_norm
         self.target_kl = target_kl
         self.loss_fn = th.compile(loss) if compile_loss else loss
+        #: whether the next call compiles the loss (see :meth:`warm_up`)
+        self.needs_warm_up = compile_loss
+
+    def warm_up(self, update: UpdateInputs, idx: th.Tensor) -> None:
+        """Compile the loss and its backward pass now (its gradients are discarded; parameters and optimizer stay).
+
+        :param update: inputs of the shapes and settings of the coming update (any values)
+        :param idx: indices of a minibatch
+        """
+        loss, _ = self.loss_fn(update, idx)
+        loss.backward()
+        self.optimizer.zero_grad(set_to_none=True)
+        self.needs_warm_up = False
 
     def __call__(self, update: UpdateInputs, idx: th.Tensor) -> tuple[th.Tensor, bool]:
         """One step on the minibatch ``idx``.
@@ -169,6 +182,7 @@ class GradientStep:
         :return: the step's statistics (:data:`STEP_STATS`), and whether the step was applied
             (False: the update should stop)
         """
+        self.needs_warm_up = False
         loss, step_stats = self.loss_fn(update, idx)
         if self.target_kl is not None and step_stats[KL_PI].item() > 1.5 * self.target_kl:
             return step_stats, False
@@ -201,6 +215,25 @@ class FusedGradientStep:
         #: the loss module's names of the optimizer's parameters, in the optimizer's order
         self.names = [names[id(param)] for param in optimizer.param_groups[0]["params"]]
         self.compiled = th.compile(self.step)
+        #: whether the next call compiles the step (see :meth:`warm_up`)
+        self.needs_warm_up = True
+
+    def warm_up(self, update: UpdateInputs, idx: th.Tensor) -> None:
+        """Compile the step now, by applying it to copies of the parameters and of the optimizer's state.
+
+        Leaves parameters and optimizer state as they are; the next call reuses the compiled step.
+
+        :param update: inputs of the shapes and settings of the coming update (any values)
+        :param idx: indices of a minibatch
+        """
+        originals = self.optimizer.param_groups[0]["params"]
+        without_state = [param for param in originals if not self.optimizer.state.get(param)]
+        state = tuple([tensor.clone() for tensor in tensors] for tensors in adam_state(self.optimizer))
+        for param in without_state:  # as before: the first real step creates it
+            del self.optimizer.state[param]
+        params = [th.nn.Parameter(param.detach().clone()) for param in originals]
+        self._apply(params, state, update, idx)  # type: ignore[arg-type]
+        self.needs_warm_up = False
 
     def __call__(self, update: UpdateInputs, idx: th.Tensor) -> tuple[th.Tensor, bool]:
         """One step on the minibatch ``idx``, always applied.
@@ -209,16 +242,25 @@ class FusedGradientStep:
         :param idx: indices of the minibatch's samples
         :return: the step's statistics (:data:`STEP_STATS`), and True
         """
+        self.needs_warm_up = False
+        return self._apply(self.optimizer.param_groups[0]["params"], adam_state(self.optimizer), update, idx), True
+
+    def _apply(
+        self,
+        params: list[th.Tensor],
+        state: tuple[list[th.Tensor], list[th.Tensor], list[th.Tensor]],
+        update: UpdateInputs,
+        idx: th.Tensor,
+    ) -> th.Tensor:
+        """Run the compiled step on these parameters and Adam state (updated in place); return its statistics."""
         group = self.optimizer.param_groups[0]
-        params = group["params"]
         # Scheduled numbers as tensors: a float would be compiled in, and each new value recompile the step.
         scalars = {
             name: th.tensor(getattr(update, name), dtype=th.float64, device=params[0].device)
             for name in ("clip_pi", "clip_mu", "zeta")
         }
-        state = adam_state(self.optimizer)
         adam_tensors = (params, *state, *adam_scalars(state[0], group["lr"], group["betas"]))
-        return self.compiled(adam_tensors, self.names, update._replace(**scalars), idx), True
+        return self.compiled(adam_tensors, self.names, update._replace(**scalars), idx)
 
     def step(
         self,
