@@ -26,3 +26,14 @@ def test_the_wheel_builds_without_packaging_warnings_and_ships_the_data_files(tm
     names = set(zipfile.ZipFile(wheel).namelist())
     shipped = {f"sb3_detc/{path.relative_to(ROOT / 'sb3_detc')}" for path in (ROOT / "sb3_detc").glob("*/*.yml")}
     assert {"sb3_detc/hyperparams/mappoc.yml", "sb3_detc/studies/multiwalker_paper.yml"} <= shipped <= names
+
+
+def test_the_editable_install_prints_no_packaging_warnings(tmp_path) -> None:
+    """``make install`` installs in editable mode: setuptools' editable notices are warnings that pip shows."""
+    command = [sys.executable, "-m", "pip", "install", "--no-deps", "--no-build-isolation", "--ignore-installed"]
+    command += ["-e", str(ROOT)]  # into a folder of its own: the installed package stays as it is
+    result = subprocess.run([*command, "--prefix", str(tmp_path)], capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stdout + result.stderr
+    output = result.stdout + result.stderr
+    for warning in ("BuildBackendWarning", "SetuptoolsDeprecationWarning", "Editable installation."):
+        assert warning not in output, output
