@@ -1076,7 +1076,7 @@ def test_warming_up_the_compiled_step_changes_nothing_and_the_update_reuses_it()
     start = parameters(warmed), copy.deepcopy(warmed.policy.optimizer.state_dict())
     assert warmed.gradient_step.needs_warm_up
     placeholders = warmed.rollout_buffer.tensors(partial=True)  # zeros: no rollout yet
-    warmed.gradient_step.warm_up(warmed.update_inputs(placeholders, 0.2, 0.1, 0.05, True), th.arange(16))
+    warmed.gradient_step.warm_up(warmed.update_inputs(placeholders), th.arange(16))
     assert not warmed.gradient_step.needs_warm_up
     for key, value in parameters(warmed).items():
         assert th.equal(value, start[0][key]), key

@@ -679,19 +679,14 @@ class MAPPOC(OnPolicyAlgorithm):
         """Update every agent's ``pi``, ``mu`` and ``Q`` with PPO on the collected rollout (Sec. 3)."""
         self.policy.set_training_mode(True)
         self._update_learning_rate(self.policy.optimizer)
-        progress = self._current_progress_remaining
-        # Constants or schedules; callbacks (e.g. the curriculum) may replace them between updates.
-        clip_pi = FloatSchedule(self.clip_range)(progress)
-        clip_mu = FloatSchedule(self.clip_range_broadcast)(progress)
-        zeta = FloatSchedule(self.broadcast_ent_coef)(progress)
-        train_mu = self.train_broadcast_policy and self.fixed_trigger is None
+        update = self.update_inputs(self.rollout_buffer.tensors())
+        clip_pi, clip_mu, zeta, train_mu = update.clip_pi, update.clip_mu, update.zeta, update.train_mu
         # Networks sharing a batched chain with trained ones get zero gradients, but Adam's momentum
         # from earlier training would still move them: restore them after every step instead.
         frozen = [net for net, trained in (("pi", self.train_control_policy), ("mu", train_mu)) if not trained]
         frozen_views = [view for net in frozen for view in self.policy.net_parameters(net)]
         frozen_values = [view.clone() for view in frozen_views]
 
-        update = self.update_inputs(self.rollout_buffer.tensors(), clip_pi, clip_mu, zeta, train_mu)
         stats: dict[str, list[float]] = {name: [] for name in STEP_STATS}
         continue_training = True
         for epoch in range(self.n_epochs):
@@ -723,18 +718,17 @@ class MAPPOC(OnPolicyAlgorithm):
         self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
         self.logger.record("rollout/broadcast_rate", float(buffer.broadcast.mean()))
 
-    def update_inputs(
-        self, rollout: HybridRolloutSamples, clip_pi: float, clip_mu: float, zeta: float, train_mu: bool
-    ) -> UpdateInputs:
-        """What every gradient step of an update needs of the rollout and of the update's settings.
+    def update_inputs(self, rollout: HybridRolloutSamples) -> UpdateInputs:
+        """What every gradient step of an update needs of the rollout and of the update's settings now.
+
+        The settings (clip ranges, broadcast entropy coefficient, which levels train) are constants
+        or schedules of the remaining progress; callbacks (e.g. the curriculum) may change them
+        between updates.
 
         :param rollout: the rollout buffer's samples (:meth:`HybridRolloutBuffer.tensors`)
-        :param clip_pi: clip range of the control policy
-        :param clip_mu: clip range of the policy over options
-        :param zeta: entropy coefficient of the policy over options
-        :param train_mu: whether the policy over options is trained
         :return: the inputs of :attr:`gradient_step`
         """
+        progress = self._current_progress_remaining
         # probability of broadcasting with which the options were drawn (the centred critic's p_i)
         taken = rollout.old_log_prob_broadcast.exp()
         return UpdateInputs(
@@ -742,23 +736,16 @@ class MAPPOC(OnPolicyAlgorithm):
             self.policy.training_inputs(rollout.observations, rollout.broadcast),
             rollout._replace(observations={}),
             th.where(rollout.broadcast.bool(), taken, 1 - taken),
-            clip_pi,
-            clip_mu,
-            zeta,
+            FloatSchedule(self.clip_range)(progress),
+            FloatSchedule(self.clip_range_broadcast)(progress),
+            FloatSchedule(self.broadcast_ent_coef)(progress),
             self.train_control_policy,
-            train_mu,
+            self.train_broadcast_policy and self.fixed_trigger is None,
         )
 
     def _warm_up_gradient_step(self) -> None:
         """Compile the gradient step before the first update, on inputs of the update's shapes and settings."""
-        progress = self._current_progress_remaining
-        update = self.update_inputs(
-            self.rollout_buffer.tensors(partial=True),
-            FloatSchedule(self.clip_range)(progress),
-            FloatSchedule(self.clip_range_broadcast)(progress),
-            FloatSchedule(self.broadcast_ent_coef)(progress),
-            self.train_broadcast_policy and self.fixed_trigger is None,
-        )
+        update = self.update_inputs(self.rollout_buffer.tensors(partial=True))
         samples = self.rollout_buffer.buffer_size * self.rollout_buffer.n_envs
         # the first minibatch's shape; not drawn at random: the update's minibatches stay as they were
         self.gradient_step.warm_up(update, th.arange(min(self.batch_size, samples), device=self.device))
