@@ -617,13 +617,14 @@ class MAPPOC(OnPolicyAlgorithm):
         self._last_obs, self._last_episode_starts = rollout.last_obs, rollout.dones[-1]  # type: ignore[assignment]
         broadcast_cost = self._broadcast_costs(env)
         prices, all_rewards, truncated = [], [], []
+        env_rewards = agent_rewards([info for infos in rollout.infos for info in infos]).reshape(n_steps, n_envs, -1)
         for step in range(n_steps):
             infos, dones = rollout.infos[step], rollout.dones[step]
             new_obs = (
                 rollout.last_obs if step == n_steps - 1 else {k: v[step + 1] for k, v in rollout.observations.items()}
             )
             prices.append(self.reward_transform.price(broadcast_cost))
-            rewards = self.reward_transform(agent_rewards(infos), dones)
+            rewards = self.reward_transform(env_rewards[step], dones)
             self.num_timesteps += n_envs
             callback.update_locals(locals())
             if not callback.on_step():

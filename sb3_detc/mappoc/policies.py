@@ -573,8 +573,8 @@ class MlpHybridPolicy(BasePolicy):
 
     def _predict(self, observation: PyTorchObs, deterministic: bool = False) -> th.Tensor:
         """Options and controls side by side, (B, N, 1 + m); :meth:`predict` returns them as a Dict."""
-        action = self.forward(observation, deterministic=deterministic)
-        return th.cat([action.broadcast[..., None].to(action.control.dtype), action.control], dim=-1)
+        broadcast, control = self.sample_actions(observation, deterministic=deterministic)  # the critic is not needed
+        return th.cat([broadcast[..., None].to(control.dtype), control], dim=-1)
 
     def predict(
         self,

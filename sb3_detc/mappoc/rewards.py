@@ -16,9 +16,9 @@ from stable_baselines3.common.running_mean_std import RunningMeanStd
 
 
 def agent_rewards(infos: list[dict[str, Any]]) -> np.ndarray:
-    """Every env's per-agent rewards of one step, (n_envs, N), checked to be finite.
+    """The per-agent rewards in a list of infos (e.g. every env's of one step), (len(infos), N), checked to be finite.
 
-    :param infos: the step's infos, one per env, each with ``agent_rewards`` (N,)
+    :param infos: infos, each with ``agent_rewards`` (N,)
     :raises ValueError: if an info lacks ``agent_rewards`` or a reward is not finite
     """
     try:
@@ -27,8 +27,10 @@ def agent_rewards(infos: list[dict[str, Any]]) -> np.ndarray:
         raise ValueError(
             "MAPPOC needs per-agent rewards in info['agent_rewards']: use a joint sb3_detc env (JointEnv)."
         ) from err
-    if not np.all(np.isfinite(rewards)):
-        raise ValueError(f"the environment returned non-finite rewards: {rewards.tolist()}.")
+    finite = np.isfinite(rewards).all(axis=-1)
+    if not finite.all():
+        first = int(np.argmin(finite))
+        raise ValueError(f"the environment returned non-finite rewards: {rewards[first].tolist()} (info {first}).")
     return rewards
 
 

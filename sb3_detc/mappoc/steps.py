@@ -23,6 +23,8 @@ from sb3_detc.mappoc.losses import STEP_STATS, MAPPOCLoss, UpdateInputs
 
 #: Position of the control policy's approximate KL divergence in a step's statistics.
 KL_PI = STEP_STATS.index("kl_pi")
+#: Steps of the fused gradient step whose Adam scalars are computed together (:func:`adam_scalars`).
+ADAM_ROWS = 64
 
 
 def fusable_adam(optimizer: th.optim.Optimizer) -> bool:
@@ -81,21 +83,25 @@ def clip_by_total_norm(grads: Sequence[th.Tensor], max_norm: float) -> list[th.T
     return [g * scale for g in grads]
 
 
-def adam_scalars(steps: Sequence[th.Tensor], lr: float, betas: tuple[float, float]) -> tuple[th.Tensor, th.Tensor]:
-    """Every parameter's step size and square root of the second bias correction in the coming Adam step.
+def adam_scalars(
+    steps: Sequence[th.Tensor], lr: float, betas: tuple[float, float], n_steps: int = 1
+) -> tuple[th.Tensor, th.Tensor]:
+    """Every parameter's step size and square root of the second bias correction in the coming Adam steps.
 
     What ``optimizer.step()`` computes from Python floats (in double precision) before it
     touches a tensor. Computed outside the compiled step and passed in: inside, the compiler
     inlines scalar arithmetic into the loops over parameter elements and evaluates two powers
     per eight elements.
 
-    :param steps: step counters before the step, one per parameter
+    :param steps: step counters before the first of these steps, one per parameter
     :param lr: learning rate
     :param betas: decay rates of the moments
-    :return: ``lr / (1 - beta1 ** t)`` and ``sqrt(1 - beta2 ** t)`` per parameter, float32,
-        with ``t`` the counter after the step
+    :param n_steps: number of coming steps
+    :return: ``lr / (1 - beta1 ** t)`` and ``sqrt(1 - beta2 ** t)``, float32, shaped
+        (n_steps, parameters): row ``k`` for step ``k``, with ``t`` the counter after that step
     """
-    t = th.stack(list(steps)).double() + 1
+    ahead = th.arange(1, n_steps + 1, dtype=th.float64, device=steps[0].device)
+    t = th.stack(list(steps)).double() + ahead[:, None]
     step_sizes = lr / (1 - betas[0] ** t)
     bias_correction2_sqrts = (1 - betas[1] ** t).sqrt()
     return step_sizes.float(), bias_correction2_sqrts.float()
@@ -214,9 +220,17 @@ class FusedGradientStep:
         names = {id(param): name for name, param in loss.named_parameters()}
         #: the loss module's names of the optimizer's parameters, in the optimizer's order
         self.names = [names[id(param)] for param in optimizer.param_groups[0]["params"]]
-        self.compiled = th.compile(self.step)
+        # The C++ wrapper runs the graph's kernels without a Python function around them.
+        self.compiled = th.compile(self.step, options={"cpp_wrapper": True})
         #: whether the next call compiles the step (see :meth:`warm_up`)
         self.needs_warm_up = True
+        # Computed at an update's first step: its scheduled numbers as tensors (for this update),
+        # and the Adam scalars of the coming steps (for this update, step counter, lr and betas).
+        self._settings_for: UpdateInputs | None = None
+        self._settings: dict[str, th.Tensor] = {}
+        self._adam_for: tuple[UpdateInputs, th.Tensor, float, tuple[float, float]] | None = None
+        self._adam_rows: tuple[th.Tensor, th.Tensor] = (th.empty(0), th.empty(0))
+        self._row = ADAM_ROWS
 
     def warm_up(self, update: UpdateInputs, idx: th.Tensor) -> None:
         """Compile the step now, by applying it to copies of the parameters and of the optimizer's state.
@@ -254,13 +268,29 @@ class FusedGradientStep:
     ) -> th.Tensor:
         """Run the compiled step on these parameters and Adam state (updated in place); return its statistics."""
         group = self.optimizer.param_groups[0]
-        # Scheduled numbers as tensors: a float would be compiled in, and each new value recompile the step.
-        scalars = {
-            name: th.tensor(getattr(update, name), dtype=th.float64, device=params[0].device)
-            for name in ("clip_pi", "clip_mu", "zeta")
-        }
-        adam_tensors = (params, *state, *adam_scalars(state[0], group["lr"], group["betas"]))
-        return self.compiled(adam_tensors, self.names, update._replace(**scalars), idx)
+        if update is not self._settings_for:
+            # Scheduled numbers as tensors: a float would be compiled in, and each new value recompile the step.
+            self._settings = {
+                name: th.tensor(getattr(update, name), dtype=th.float64, device=params[0].device)
+                for name in ("clip_pi", "clip_mu", "zeta")
+            }
+            self._settings_for = update
+        steps, lr, betas = state[0], group["lr"], group["betas"]
+        last = self._adam_for
+        if (
+            self._row == ADAM_ROWS
+            or last is None
+            or last[0] is not update
+            or last[1] is not steps[0]
+            or last[2:] != (lr, betas)
+        ):
+            # The step counters advance by one per step: the scalars of the coming steps at once.
+            self._adam_rows = adam_scalars(steps, lr, betas, ADAM_ROWS)
+            self._adam_for, self._row = (update, steps[0], lr, betas), 0
+        step_sizes, bias_correction2_sqrts = (rows[self._row] for rows in self._adam_rows)
+        self._row += 1
+        adam_tensors = (params, *state, step_sizes, bias_correction2_sqrts)
+        return self.compiled(adam_tensors, self.names, update._replace(**self._settings), idx)
 
     def step(
         self,
