@@ -58,6 +58,9 @@ from sb3_detc.triggers import PeriodicTrigger, RandomTrigger
 
 #: The Gymnasium id of the joint view, in a namespace of its own (not ``sb3_detc/``).
 ENV_ID = "myteam/Consensus-v0"
+#: The id with the module that registers it: MAPPOC's worker processes import the module
+#: to make the env (``gymnasium.make("module:id")``), whoever started the training.
+WORKER_ENV_ID = f"custom_system:{ENV_ID}"
 
 
 # ----------------------------------------------------------------------------- 1. the system
@@ -246,7 +249,7 @@ def train(timesteps: int, seed: int) -> MAPPOC:
     """
     model = MAPPOC(
         "MlpHybridPolicy",
-        ENV_ID,
+        WORKER_ENV_ID,
         n_steps=1024,
         batch_size=256,
         n_epochs=10,

@@ -138,6 +138,8 @@ def test_bad_parameters_are_rejected(example: ModuleType, kwargs: dict) -> None:
 
 
 # ----------------------------------------------------------------------------- the script and rl-zoo3
+# The envs run in MAPPOC's worker processes, which import the example by the module named in its id.
+@pytest.mark.filterwarnings("error:worker processes could not make")
 def test_example_trains_evaluates_and_runs_decentralised(example: ModuleType, capsys: pytest.CaptureFixture) -> None:
     example.main(["--timesteps", "1024", "--episodes", "2", "--seed", "1"])
     out = capsys.readouterr().out
