@@ -43,7 +43,7 @@ from rl_zoo3.utils import ALGOS, get_class_by_name, get_latest_run_id, get_model
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.logger import CSVOutputFormat
-from stable_baselines3.common.vec_env import SubprocVecEnv
+from stable_baselines3.common.vec_env import SubprocVecEnv, VecEnv
 
 from sb3_detc.mappoc import MAPPOC
 from sb3_detc.mappoc.critics import CRITICS
@@ -228,19 +228,40 @@ class ExperimentManager(rl_zoo3.exp_manager.ExperimentManager):
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         register()
         super().__init__(*args, **kwargs)
+        #: the vector env class of the evaluation envs (``--vec-env``), once training envs got another
+        self.eval_vec_env_class: type[VecEnv] | None = None
 
     def _preprocess_hyperparams(self, hyperparams: dict[str, Any]) -> Any:
         """rl-zoo3's preprocessing; an entry with rollout-worker envs (:data:`ROLLOUT_WORKER`) gets worker processes.
 
         Rollout workers pay off only in their own processes (``SubprocVecEnv``), so an entry
-        that names them as ``env_wrapper`` runs them there whatever ``--vec-env`` says.
+        that names them as ``env_wrapper`` trains in them whatever ``--vec-env`` says; its
+        evaluation envs, which step one at a time with the learner's policy, stay as
+        ``--vec-env`` says (default: in the learner's process, without a message per step).
 
         :param hyperparams: the entry, as read from the file and the command line
         :return: what rl-zoo3's preprocessing returns
         """
         if uses_rollout_workers(hyperparams):
+            self.eval_vec_env_class = self.vec_env_class
             self.vec_env_class = SubprocVecEnv
         return super()._preprocess_hyperparams(hyperparams)
+
+    def create_envs(self, n_envs: int, eval_env: bool = False, no_log: bool = False) -> VecEnv:
+        """rl-zoo3's envs; evaluation envs of the class in :attr:`eval_vec_env_class` where it is set.
+
+        :param n_envs: number of envs
+        :param eval_env: whether the envs are for evaluation
+        :param no_log: whether to write no monitor files
+        :return: the vector env
+        """
+        training = self.vec_env_class
+        if eval_env and self.eval_vec_env_class is not None:
+            self.vec_env_class = self.eval_vec_env_class
+        try:
+            return super().create_envs(n_envs, eval_env, no_log)
+        finally:
+            self.vec_env_class = training
 
     def create_callbacks(self) -> None:
         """rl-zoo3's callbacks (progress bar, checkpoints, evaluation) and a :class:`CSVLogCallback`."""

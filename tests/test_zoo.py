@@ -66,6 +66,35 @@ def test_multiwalker_entries_train_without_a_cxx_compiler(algo: str) -> None:
     env.close()
 
 
+@pytest.mark.parametrize("vec_env", ["dummy", "subproc"])
+def test_rollout_worker_entries_train_in_worker_processes_and_evaluate_as_vec_env_says(
+    tmp_path: Path, vec_env: str
+) -> None:
+    from argparse import Namespace
+
+    from stable_baselines3.common.callbacks import EvalCallback
+    from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
+
+    manager = zoo.ExperimentManager(
+        Namespace(),
+        "mappoc",
+        MULTIWALKER,
+        str(tmp_path),
+        eval_freq=1000,
+        vec_env_type=vec_env,
+        n_timesteps=2048,
+        config=str(zoo.HYPERPARAMS_DIR / "mappoc.yml"),
+    )
+    model, _ = manager.setup_experiment()  # the envs, the model and the callbacks
+    (evaluation,) = [callback for callback in manager.callbacks if isinstance(callback, EvalCallback)]
+    try:
+        assert isinstance(model.get_env(), SubprocVecEnv)
+        assert type(evaluation.eval_env) is {"dummy": DummyVecEnv, "subproc": SubprocVecEnv}[vec_env]
+    finally:
+        model.get_env().close()
+        evaluation.eval_env.close()
+
+
 def test_multiwalker_entry_has_the_paper_settings() -> None:
     entry = zoo.check_hyperparams_file(zoo.HYPERPARAMS_DIR / "mappoc.yml", "mappoc", MULTIWALKER)
     assert entry["n_steps"] * entry["n_envs"] == 2048
