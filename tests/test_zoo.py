@@ -95,6 +95,17 @@ def test_rollout_worker_entries_train_in_worker_processes_and_evaluate_as_vec_en
         evaluation.eval_env.close()
 
 
+def test_the_evaluation_runs_its_episodes_side_by_side_unless_told_otherwise() -> None:
+    def n_eval_envs(*argv: str) -> list[str]:
+        args = zoo.check_train_arguments(["--env", LINEAR, *argv])
+        return [args[i + 1] for i, arg in enumerate(args) if arg == "--n-eval-envs"]
+
+    assert n_eval_envs() == ["5"]  # rl-zoo3's 5 evaluation episodes
+    assert n_eval_envs("--eval-episodes", "8") == ["8"]
+    assert n_eval_envs("--n-eval-envs", "1") == ["1"]  # the user's choice, alone
+    assert n_eval_envs("--algo", "ppo") == []  # rl-zoo3's own algorithms keep its defaults
+
+
 def test_multiwalker_entry_has_the_paper_settings() -> None:
     entry = zoo.check_hyperparams_file(zoo.HYPERPARAMS_DIR / "mappoc.yml", "mappoc", MULTIWALKER)
     assert entry["n_steps"] * entry["n_envs"] == 2048
