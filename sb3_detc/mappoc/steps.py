@@ -224,11 +224,11 @@ class FusedGradientStep:
         self.compiled = th.compile(self.step, options={"cpp_wrapper": True})
         #: whether the next call compiles the step (see :meth:`warm_up`)
         self.needs_warm_up = True
-        # Computed at an update's first step: its scheduled numbers as tensors (for this update),
-        # and the Adam scalars of the coming steps (for this update, step counter, lr and betas).
-        self._settings_for: UpdateInputs | None = None
-        self._settings: dict[str, th.Tensor] = {}
-        self._adam_for: tuple[UpdateInputs, th.Tensor, float, tuple[float, float]] | None = None
+        # Computed at an update's first step: the update as the compiled step takes it (its
+        # scheduled numbers as tensors), and the Adam scalars of its coming steps (within an
+        # update only these steps advance the counters; lr and the optimizer's state change between updates).
+        self._update: UpdateInputs | None = None
+        self._compiled_update: UpdateInputs | None = None
         self._adam_rows: tuple[th.Tensor, th.Tensor] = (th.empty(0), th.empty(0))
         self._row = ADAM_ROWS
 
@@ -268,29 +268,21 @@ class FusedGradientStep:
     ) -> th.Tensor:
         """Run the compiled step on these parameters and Adam state (updated in place); return its statistics."""
         group = self.optimizer.param_groups[0]
-        if update is not self._settings_for:
+        if update is not self._update:
             # Scheduled numbers as tensors: a float would be compiled in, and each new value recompile the step.
-            self._settings = {
+            settings = {
                 name: th.tensor(getattr(update, name), dtype=th.float64, device=params[0].device)
                 for name in ("clip_pi", "clip_mu", "zeta")
             }
-            self._settings_for = update
-        steps, lr, betas = state[0], group["lr"], group["betas"]
-        last = self._adam_for
-        if (
-            self._row == ADAM_ROWS
-            or last is None
-            or last[0] is not update
-            or last[1] is not steps[0]
-            or last[2:] != (lr, betas)
-        ):
+            self._update, self._compiled_update, self._row = update, update._replace(**settings), ADAM_ROWS
+        if self._row == ADAM_ROWS:
             # The step counters advance by one per step: the scalars of the coming steps at once.
-            self._adam_rows = adam_scalars(steps, lr, betas, ADAM_ROWS)
-            self._adam_for, self._row = (update, steps[0], lr, betas), 0
+            self._adam_rows = adam_scalars(state[0], group["lr"], group["betas"], ADAM_ROWS)
+            self._row = 0
         step_sizes, bias_correction2_sqrts = (rows[self._row] for rows in self._adam_rows)
         self._row += 1
         adam_tensors = (params, *state, step_sizes, bias_correction2_sqrts)
-        return self.compiled(adam_tensors, self.names, update._replace(**self._settings), idx)
+        return self.compiled(adam_tensors, self.names, self._compiled_update, idx)
 
     def step(
         self,
