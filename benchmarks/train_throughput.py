@@ -9,7 +9,8 @@ processes (``SubprocVecEnv``) each:
   iterations; its warm-up is everything from the constructor to the end of the first
   iteration (worker start, compilation), with its parts in the JSON of ``--one``: the start
   (constructor and set-up), the first rollout (the workers compile their sampling) and the
-  first update (the learner compiles its gradient step);
+  first update (the learner compiles its gradient step); and the same with
+  ``overlap_rollouts=True`` (the workers sample the next rollout during every update);
 * **MAPPOC** on ``sb3_detc/MultiwalkerETC-v0`` with the paper's hyperparameters: 2048
   environment steps per iteration (2 envs x 1024), minibatch 32, 10 epochs, three agents
   with their own networks (policy over options, control policy and option-value critic,
@@ -129,10 +130,13 @@ class IterationTimer(BaseCallback):
         return len(self.starts) <= self.stop_at
 
 
-def measure_one_liner(name: str, seed: int, iterations: int) -> dict[str, Any]:
-    """The documented one-liner with the paper's budget, timed over ``iterations`` iterations after the first."""
+def measure_one_liner(name: str, seed: int, iterations: int, overlap_rollouts: bool = False) -> dict[str, Any]:
+    """The documented one-liner with the paper's budget, timed over ``iterations`` iterations after the first.
+
+    With ``overlap_rollouts`` the workers sample every rollout after the first during the update before it.
+    """
     start = time.perf_counter()
-    model = MAPPOC("MlpHybridPolicy", "sb3_detc/MultiwalkerETC-v0", seed=seed)
+    model = MAPPOC("MlpHybridPolicy", "sb3_detc/MultiwalkerETC-v0", seed=seed, overlap_rollouts=overlap_rollouts)
     timer = IterationTimer(stop_at=iterations + 1)
     model.learn(PAPER_TIMESTEPS, callback=timer)
     model.get_env().close()
@@ -247,6 +251,7 @@ def matmul_floor(name: str, seed: int, repeats: int = 500) -> dict[str, Any]:
 
 
 ONE_LINER = "MAPPOC, one-liner"
+ONE_LINER_OVERLAP = "MAPPOC, one-liner, overlapping rollouts"
 #: The paper's budget: 3000 iterations of 2048 environment steps.
 PAPER_TIMESTEPS = 6_144_000
 MAPPOC_VARIANTS = {  # name -> (torch_compile, envs)
@@ -264,13 +269,13 @@ MATMUL_FLOOR = "MAPPOC gradient step, matrix products only"
 PPO_EQUAL = "PPO + SuperSuit, equal gradient steps"
 #: PPO + SuperSuit variants: name -> with MAPPOC's samples and gradient steps per update
 PPO_VARIANTS = {"PPO + SuperSuit": False, "PPO + SuperSuit, 2 threads": False, PPO_EQUAL: True}
-ALGORITHMS = (ONE_LINER, *MAPPOC_VARIANTS, *PPO_VARIANTS, *ENV_ONLY, MATMUL_FLOOR)
+ALGORITHMS = (ONE_LINER, ONE_LINER_OVERLAP, *MAPPOC_VARIANTS, *PPO_VARIANTS, *ENV_ONLY, MATMUL_FLOOR)
 
 
 def measure_one(name: str, seed: int, iterations: int, ppo_iterations: int) -> dict[str, Any]:
     """One measurement of ``name`` (one of :data:`ALGORITHMS`) in this process."""
-    if name == ONE_LINER:  # as a user runs it: PyTorch's default threads
-        return measure_one_liner(name, seed, iterations)
+    if name in (ONE_LINER, ONE_LINER_OVERLAP):  # as a user runs it: PyTorch's default threads
+        return measure_one_liner(name, seed, iterations, overlap_rollouts=name == ONE_LINER_OVERLAP)
     th.set_num_threads(2 if name in TWO_THREADS else 1)  # PPO: its faster setting on 2 cores
     if name in ENV_ONLY:
         return env_only(name, ENV_ONLY[name], 1024 * iterations, seed)
@@ -335,7 +340,7 @@ def main() -> None:
     print()
     print("median env steps/s: " + ", ".join(f"{name} {value:.0f}" for name, value in medians.items()))
     for reference in (name for name in PPO_VARIANTS if name in results):
-        for name in (name for name in (ONE_LINER, *MAPPOC_VARIANTS) if name in results):
+        for name in (name for name in (ONE_LINER, ONE_LINER_OVERLAP, *MAPPOC_VARIANTS) if name in results):
             pairs = zip(results[name], results[reference], strict=True)
             per_repeat = ", ".join(f"{a['steps_per_s'] / b['steps_per_s']:.2f}" for a, b in pairs)
             print(f"ratio {name} / {reference}: {medians[name] / medians[reference]:.2f} (per repeat: {per_repeat})")

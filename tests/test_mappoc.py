@@ -467,7 +467,11 @@ def test_clipped_surrogate_loss_hand_computed() -> None:
     ratio = th.tensor([[1.5, 1.5], [0.5, 0.9]])
     # Per sample min(A r, A clip(r)): 1.2, -1.5 / 1.0, -1.8; mean over the batch, sum over agents.
     expected = -((1.2 + 1.0) / 2 + (-1.5 - 1.8) / 2)
-    th.testing.assert_close(clipped_surrogate_loss(advantages, ratio, 0.2), th.tensor(expected))
+    th.testing.assert_close(clipped_surrogate_loss(advantages, ratio, 0.2, th.ones(2, 2)), th.tensor(expected))
+    # Samples of an earlier policy weigh old / behaviour probability (the decoupled objective).
+    weights = th.tensor([[2.0, 0.5], [1.0, 3.0]])
+    expected = -((2 * 1.2 + 1.0) / 2 + (0.5 * -1.5 + 3 * -1.8) / 2)
+    th.testing.assert_close(clipped_surrogate_loss(advantages, ratio, 0.2, weights), th.tensor(expected))
 
 
 # ------------------------------------------------------------------------ 4. GAE
@@ -740,6 +744,9 @@ def test_fused_gradient_step_updates_like_backward_and_the_optimizer(
         policy_kwargs={"learn_log_std": True},
     )
     model.learn(32)  # a rollout and a first (fused) update: the optimizer has state
+    buffer, rng = model.rollout_buffer, np.random.default_rng(0)
+    for name in ("behaviour_log_prob_broadcast", "behaviour_log_prob_control"):  # as if sampled by an earlier policy
+        getattr(buffer, name)[...] -= np.abs(rng.normal(0.0, 0.1, getattr(buffer, name).shape))
     eager = GradientStep(model.loss, model.policy.optimizer, max_grad_norm, None)
     start = parameters(model), copy.deepcopy(model.policy.optimizer.state_dict())
     results = []

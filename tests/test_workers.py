@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 from typing import Any
 
 import numpy as np
@@ -165,3 +166,94 @@ def test_worker_processes_sample_while_the_learner_compiles_its_step() -> None:
     assert in_processes == [False, False] and in_learner == [True, False]
     for key, value in expected.items():
         th.testing.assert_close(trained[key], value, rtol=0, atol=0)
+
+
+class Snapshots(BaseCallback):
+    """At every rollout's end: the policy's parameters (which the next overlapping rollout samples with), the buffer."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.states: list[dict[str, th.Tensor]] = []
+        self.samples: list[Any] = []
+
+    def _on_rollout_end(self) -> None:
+        self.states.append({key: value.clone() for key, value in self.model.policy.state_dict().items()})
+        self.samples.append(self.model.rollout_buffer.tensors())
+
+    def _on_step(self) -> bool:
+        return True
+
+
+def test_overlapping_rollouts_are_sampled_before_the_update_and_weighted_by_the_policy_that_sampled_them() -> None:
+    """With overlap_rollouts, rollout k is sampled with the parameters of rollout k - 1's end (before its update).
+
+    Its old log-probabilities are those of the policy at the update's start, its behaviour
+    log-probabilities those of the parameters that sampled it; the first rollout is sampled in turn.
+    """
+    model = make(True, vec_env_cls=SubprocVecEnv, overlap_rollouts=True, learning_rate=3e-3, policy_kwargs={})
+    threads = th.get_num_threads()
+    callback = Snapshots()
+    model.learn(4 * 96, callback=callback)
+    model.get_env().close()
+    assert model.num_timesteps == 4 * 96 and model.last_rollout_in_workers and not model.has_pending_rollout
+    assert th.get_num_threads() == threads
+    spare = copy.deepcopy(model.policy)
+
+    def evaluated(state: dict[str, th.Tensor], data: Any) -> Any:
+        spare.load_state_dict(state)
+        with th.no_grad():
+            return spare.evaluate_actions(data.observations, data.broadcast, data.control, data.broadcast_price)
+
+    for k, data in enumerate(callback.samples):
+        current, sampling = evaluated(callback.states[k], data), evaluated(callback.states[max(k - 1, 0)], data)
+        th.testing.assert_close(data.old_log_prob_control, current.log_prob_control)
+        th.testing.assert_close(data.old_log_prob_broadcast, current.log_prob_broadcast)
+        th.testing.assert_close(data.behaviour_log_prob_control, sampling.log_prob_control)
+        th.testing.assert_close(data.behaviour_log_prob_broadcast, sampling.log_prob_broadcast)
+        moved = not th.allclose(data.behaviour_log_prob_control, data.old_log_prob_control)
+        assert moved == (k > 0), k  # the first rollout is the update's own; the others lag one update behind
+
+
+def test_an_error_in_an_overlapping_update_keeps_the_sampled_rollout_for_the_next_learn(tmp_path) -> None:
+    model = make(True, vec_env_cls=SubprocVecEnv, overlap_rollouts=True, policy_kwargs={"net_arch": [16, 16]})
+    threads = th.get_num_threads()
+
+    def failing_update() -> None:
+        raise RuntimeError("the update failed")
+
+    model.train = failing_update  # type: ignore[method-assign]
+    with pytest.raises(RuntimeError, match="the update failed"):
+        model.learn(3 * 96)
+    assert model.num_timesteps == 96 and model.has_pending_rollout and th.get_num_threads() == threads
+    del model.train
+    model.save(tmp_path / "model.zip")  # without the rollout
+    model.learn(96, reset_num_timesteps=False)  # takes the rollout sampled during the failed update
+    assert model.num_timesteps == 2 * 96 and not model.has_pending_rollout
+    assert MAPPOC.load(tmp_path / "model.zip").overlap_rollouts
+    model.train = failing_update  # type: ignore[method-assign]
+    with pytest.raises(RuntimeError):
+        model.learn(3 * 96, reset_num_timesteps=False)
+    assert model.has_pending_rollout
+    del model.train
+    model.learn(96)  # resets the envs: the rollout kept is dropped
+    assert model.num_timesteps == 96 and not model.has_pending_rollout
+    model.get_env().close()
+
+
+def test_overlap_needs_worker_processes_and_otherwise_changes_nothing() -> None:
+    """With the rollout workers in the learner's process the rollouts are sampled in turn, as without overlap."""
+    trained = []
+    for overlap in (False, True):
+        model = make(True, overlap_rollouts=overlap, policy_kwargs={"net_arch": [16, 16]})
+        model.learn(3 * 96)
+        assert not model.has_pending_rollout
+        buffer = model.rollout_buffer
+        np.testing.assert_array_equal(buffer.behaviour_log_prob_control, buffer.log_prob_control)
+        trained.append(model.policy.state_dict())
+    for key, value in trained[0].items():
+        th.testing.assert_close(trained[1][key], value, rtol=0, atol=0)
+
+
+def test_overlap_rollouts_must_be_a_bool() -> None:
+    with pytest.raises(ValueError, match="overlap_rollouts must be True or False"):
+        make(True, overlap_rollouts="yes")

@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
+import copy
 import functools
 import os
 import pathlib
 import pickle
 import warnings
 from collections.abc import Callable, Hashable, Sequence
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor, wait
 from typing import Any, ClassVar, NamedTuple, TypeVar
 
 import numpy as np
@@ -64,6 +65,13 @@ class Rollout(NamedTuple):
     dones: np.ndarray  # (T, n_envs) episode ends
     infos: list[list[dict[str, Any]]]  # T lists of n_envs infos; at an episode end also "reset_info"
     last_obs: dict[str, np.ndarray]  # (n_envs, N, ...) after the last step
+
+
+class PendingRollout(NamedTuple):
+    """A rollout that the rollout workers sample while the learner updates (``overlap_rollouts``)."""
+
+    rollout: Future[Rollout]  # the workers' steps, once they are done
+    behaviour: dict[str, th.Tensor]  # the policy's parameters that sample it (a copy)
 
 
 def default_n_envs() -> int:
@@ -184,6 +192,17 @@ class MAPPOC(OnPolicyAlgorithm):
         long runs. ``"auto"``: compile
         when a C++ compiler is found, the device is the CPU and ``learn`` runs at least
         :data:`COMPILE_FROM_TIMESTEPS` steps
+    :param overlap_rollouts: let the rollout workers (in worker processes) sample the next rollout
+        while the learner updates on the last one, with the parameters from before that update,
+        instead of waiting for the update: the learner then trains with one thread and workers
+        and learner share the cores. The update corrects for the one update the samples lag
+        behind: PPO's ratio and clipping refer to the policy at the update's start, and every
+        sample's surrogate is weighted by its probability under that policy over its probability
+        under the policy that sampled it (the decoupled objective of Hilton, Cobbe and Schulman,
+        2022, "Batch size-invariance for policy optimization"; the critic's error and the
+        entropy are not weighted). Settings that callbacks change in ``on_rollout_start`` (noise,
+        fixed trigger) reach the sampling one rollout later. Without worker processes (or with a
+        fixed trigger that cannot run in them) rollouts are sampled in turn, as without it
     :param n_envs: number of envs built from an env id (None: :func:`default_n_envs`, one
         per CPU core rounded down to a power of two, at most 8); only for an env id
     :param fixed_trigger: take the options from this trigger instead of ``mu`` (see
@@ -234,6 +253,7 @@ class MAPPOC(OnPolicyAlgorithm):
         train_control_policy: bool = True,
         train_broadcast_policy: bool = True,
         torch_compile: bool | str = "auto",
+        overlap_rollouts: bool = False,
         n_envs: int | None = None,
         fixed_trigger: FixedTrigger | None = None,
         stats_window_size: int = 100,
@@ -244,6 +264,8 @@ class MAPPOC(OnPolicyAlgorithm):
         device: th.device | str = "auto",
         _init_setup_model: bool = True,
     ) -> None:
+        if not isinstance(overlap_rollouts, bool):
+            raise ValueError(f"overlap_rollouts must be True or False, got {overlap_rollouts!r}.")
         if torch_compile not in (True, False, "auto"):
             raise ValueError(f"torch_compile must be True, False or 'auto', got {torch_compile!r}.")
         if broadcast_advantage not in BROADCAST_ADVANTAGES:
@@ -319,6 +341,13 @@ class MAPPOC(OnPolicyAlgorithm):
         self.train_control_policy = train_control_policy
         self.train_broadcast_policy = train_broadcast_policy
         self.torch_compile = torch_compile
+        self.overlap_rollouts = overlap_rollouts
+        #: the rollout the workers sample during the update (``overlap_rollouts``), None between ``learn`` calls
+        #: unless ``learn`` stopped on an error with one sampled, which the next ``learn`` takes
+        self._pending: PendingRollout | None = None
+        self._waiter: ThreadPoolExecutor | None = None
+        self._learner_threads: int | None = None  # the learner's threads while a rollout is pending
+        self._behaviour_hold: tuple[MlpHybridPolicy, MlpHybridPolicy] | None = None  # (policy, its spare copy)
         self.fixed_trigger: FixedTrigger | None = fixed_trigger  # checked by set_fixed_trigger in _setup_model
         self._action_noise_terms: dict[Hashable, float] = {}
         #: whether the last rollout was sampled inside rollout workers (None: no rollout yet)
@@ -388,12 +417,21 @@ class MAPPOC(OnPolicyAlgorithm):
                 self.loss, optimizer, self.max_grad_norm, self.target_kl, compile_loss=compiled
             )
 
-    def _setup_learn(self, total_timesteps: int, *args: Any, **kwargs: Any) -> tuple[int, BaseCallback]:
+    def _setup_learn(
+        self,
+        total_timesteps: int,
+        callback: MaybeCallback = None,
+        reset_num_timesteps: bool = True,
+        tb_log_name: str = "run",
+        progress_bar: bool = False,
+    ) -> tuple[int, BaseCallback]:
         if self.torch_compile == "auto":
             compiled = self.device.type == "cpu" and total_timesteps >= COMPILE_FROM_TIMESTEPS and has_cxx_compiler()
             if compiled != self._compiled:
                 self._setup_steps(compiled)
-        return super()._setup_learn(total_timesteps, *args, **kwargs)
+        if reset_num_timesteps or self._last_obs is None:  # the envs are reset: a kept rollout started elsewhere
+            self._pending = None
+        return super()._setup_learn(total_timesteps, callback, reset_num_timesteps, tb_log_name, progress_bar)
 
     def _excluded_save_params(self) -> list[str]:
         return [
@@ -405,6 +443,10 @@ class MAPPOC(OnPolicyAlgorithm):
             "_workers_hold",
             "_action_noise_terms",
             "_compiled",
+            "_pending",
+            "_waiter",
+            "_learner_threads",
+            "_behaviour_hold",
         ]
 
     # ------------------------------------------------------------------ modes
@@ -495,7 +537,9 @@ class MAPPOC(OnPolicyAlgorithm):
         views (same-step delivery), with :attr:`action_noise_std` extra noise; the env receives
         the controls clipped to their bounds. The steps are sampled first, inside rollout
         workers where the env has them (:mod:`sb3_detc.mappoc.workers`), else here; then every
-        step goes through :meth:`_record_rollout` in order.
+        step goes through :meth:`_record_rollout` in order. With ``overlap_rollouts`` the steps
+        were sampled by the workers during the last update, and the workers start on the next
+        rollout before this one returns (unless ``learn`` ends with it).
 
         :param env: the training environment
         :param callback: callback called at each step (and at the beginning and end of the rollout)
@@ -506,14 +550,71 @@ class MAPPOC(OnPolicyAlgorithm):
         assert self._last_obs is not None, "No previous observation was provided"
         self.policy.set_training_mode(False)
         rollout_buffer.reset()
+        pending = self._wait_for_pending()  # before the callbacks: the workers' pipes are free again
+        self._pending = None
         callback.on_rollout_start()  # callbacks may change the mode, the noise or the cost here
-        trigger = self.fixed_trigger
-        self.last_rollout_in_workers = (trigger is None or hasattr(trigger, "fork")) and has_rollout_workers(env)
-        if self.last_rollout_in_workers:
+        behaviour = None
+        if pending is not None:
+            rollout, behaviour = pending.rollout.result(), pending.behaviour
+            self.last_rollout_in_workers = True
+        elif self._in_workers(env):
             rollout = self._sample_in_workers(env, n_rollout_steps)
+            self.last_rollout_in_workers = True
         else:
             rollout = self._sample_here(env, n_rollout_steps)
-        return self._record_rollout(rollout, env, callback, rollout_buffer)  # type: ignore[arg-type]
+            self.last_rollout_in_workers = False
+        if not self._record_rollout(rollout, env, callback, rollout_buffer, behaviour):  # type: ignore[arg-type]
+            return False
+        another_follows = self.num_timesteps < self._total_timesteps  # learn's loop goes on
+        if self.overlap_rollouts and another_follows and self._in_workers(env, processes=True):
+            self._start_pending(env, n_rollout_steps)
+        return True
+
+    @property
+    def has_pending_rollout(self) -> bool:
+        """Whether the workers hold a rollout sampled for the next ``learn`` (``overlap_rollouts``).
+
+        Only after a ``learn`` stopped by an error during an update; a ``learn`` that resets the
+        envs (``reset_num_timesteps=True``) or :meth:`set_env` drops it.
+        """
+        return self._pending is not None
+
+    def _in_workers(self, env: VecEnv, processes: bool = False) -> bool:
+        """Whether the next rollout can be sampled in rollout workers (in worker processes, if ``processes``).
+
+        :param env: the training env
+        :param processes: whether the workers must run in processes of their own
+        """
+        trigger = self.fixed_trigger
+        in_workers = (trigger is None or hasattr(trigger, "fork")) and has_rollout_workers(env)
+        return in_workers and (isinstance(env, SubprocVecEnv) or not processes)
+
+    def _start_pending(self, env: VecEnv, n_steps: int) -> None:
+        """Let the workers sample the next rollout with a copy of the current parameters; the learner goes on.
+
+        :param env: the training env (of rollout workers in worker processes)
+        :param n_steps: steps per env
+        """
+        behaviour = {key: value.detach().clone() for key, value in self.policy.state_dict().items()}
+        sample = self._worker_rollout(env, n_steps, behaviour)
+        if self._waiter is None:
+            self._waiter = ThreadPoolExecutor(max_workers=1, thread_name_prefix="rollout")
+        self._pending = PendingRollout(self._waiter.submit(sample), behaviour)
+        # The workers take the cores: more learner threads would only wait for them.
+        self._learner_threads = th.get_num_threads()
+        th.set_num_threads(1)
+
+    def _wait_for_pending(self) -> PendingRollout | None:
+        """Wait until the pending rollout (if any) is sampled and give the learner its threads back.
+
+        :return: the pending rollout, still :attr:`_pending`
+        """
+        if self._pending is not None:
+            wait([self._pending.rollout])
+        if self._learner_threads is not None:
+            th.set_num_threads(self._learner_threads)
+            self._learner_threads = None
+        return self._pending
 
     def _sample_here(self, env: VecEnv, n_steps: int) -> Rollout:
         """Sample and step ``n_steps`` steps of every env in this process."""
@@ -552,49 +653,70 @@ class MAPPOC(OnPolicyAlgorithm):
 
     def _sample_in_workers(self, env: VecEnv, n_steps: int) -> Rollout:
         """Let every env sample and step ``n_steps`` steps with a copy of the current policy (in parallel)."""
+        sample = self._worker_rollout(env, n_steps, self.policy.state_dict())
+        if self.gradient_step.needs_warm_up and isinstance(env, SubprocVecEnv):
+            # The learner waits for the worker processes: compile its gradient step meanwhile.
+            with ThreadPoolExecutor(max_workers=1) as waiter:
+                collected = waiter.submit(sample)
+                self._warm_up_gradient_step()
+                return collected.result()
+        return sample()
+
+    def _worker_rollout(self, env: VecEnv, n_steps: int, state: dict[str, th.Tensor]) -> Callable[[], Rollout]:
+        """What lets every env sample and step ``n_steps`` steps with the policy's parameters ``state`` (in parallel).
+
+        The policy (if new to the workers), the settings and the seeds are taken now; the returned
+        call sends them and waits for the steps (also from another thread: it reads nothing of
+        the model).
+
+        :param env: the training env (of rollout workers)
+        :param n_steps: steps per env
+        :param state: the parameters to sample with, unchanged until the call returns
+        """
         n_envs = env.num_envs
         new_policy = self._workers_hold != (self.policy, env)
         if new_policy:
             for index in range(n_envs):
                 env.env_method("set_worker_index", index, indices=index)
-        state = {key: value.detach().cpu().numpy() for key, value in self.policy.state_dict().items()}
         seeds = th.randint(2**31 - 1, (n_envs,)).tolist()
         trigger = self.fixed_trigger
         collect = functools.partial(
             env.env_method,
             "collect_rollout",
             pickle.dumps(self.policy) if new_policy else None,
-            state,
+            {key: value.detach().cpu().numpy() for key, value in state.items()},
             n_steps,
             self.action_noise_std,
             seeds,
             self._compiled,
             None if trigger is None else [pickle.dumps(trigger.fork(seed)) for seed in seeds],  # type: ignore[attr-defined]
         )
-        if self.gradient_step.needs_warm_up and isinstance(env, SubprocVecEnv):
-            # The learner waits for the worker processes: compile its gradient step meanwhile.
-            with ThreadPoolExecutor(max_workers=1) as waiter:
-                collected = waiter.submit(collect)
-                self._warm_up_gradient_step()
-                trajectories = collected.result()
-        else:
-            trajectories = collect()
         self._workers_hold = (self.policy, env)
 
-        def stacked(key: str) -> Any:  # (steps, n_envs, ...)
-            return np.stack([trajectory[key] for trajectory in trajectories], axis=1)
+        def sample() -> Rollout:
+            trajectories = collect()
 
-        return Rollout(
-            _stack_dicts([trajectory["observations"] for trajectory in trajectories], axis=1),
-            stacked("broadcast"),
-            stacked("control"),
-            stacked("dones"),
-            [[trajectory["infos"][step] for trajectory in trajectories] for step in range(n_steps)],
-            _stack_dicts([trajectory["last_obs"] for trajectory in trajectories], axis=0),
-        )
+            def stacked(key: str) -> Any:  # (steps, n_envs, ...)
+                return np.stack([trajectory[key] for trajectory in trajectories], axis=1)
+
+            return Rollout(
+                _stack_dicts([trajectory["observations"] for trajectory in trajectories], axis=1),
+                stacked("broadcast"),
+                stacked("control"),
+                stacked("dones"),
+                [[trajectory["infos"][step] for trajectory in trajectories] for step in range(n_steps)],
+                _stack_dicts([trajectory["last_obs"] for trajectory in trajectories], axis=0),
+            )
+
+        return sample
 
     def _record_rollout(
-        self, rollout: Rollout, env: VecEnv, callback: BaseCallback, buffer: HybridRolloutBuffer
+        self,
+        rollout: Rollout,
+        env: VecEnv,
+        callback: BaseCallback,
+        buffer: HybridRolloutBuffer,
+        behaviour: dict[str, th.Tensor] | None = None,
     ) -> bool:
         """Take sampled steps into training, in order, whoever sampled them.
 
@@ -610,6 +732,8 @@ class MAPPOC(OnPolicyAlgorithm):
         :param env: the training environment
         :param callback: callback called at each step and at the end of the rollout
         :param buffer: the buffer to fill
+        :param behaviour: the parameters that sampled the steps if they are not the current ones
+            (``overlap_rollouts``), for the log-probabilities of the behaviour policy
         :return: True if the rollout was completed, False if a callback stopped it
         """
         n_steps, n_envs = rollout.dones.shape
@@ -635,13 +759,15 @@ class MAPPOC(OnPolicyAlgorithm):
 
         price = np.stack(prices)
         flat = n_steps * n_envs
+        steps = (
+            obs_as_tensor({k: v.reshape(flat, *v.shape[2:]) for k, v in rollout.observations.items()}, self.device),
+            th.as_tensor(rollout.broadcast.reshape(flat, -1), device=self.device),
+            th.as_tensor(rollout.control.reshape(flat, *rollout.control.shape[2:]), device=self.device),
+            th.as_tensor(price.reshape(flat, -1), device=self.device),
+        )
         with th.no_grad():
-            evaluation = self.policy.evaluate_actions(
-                obs_as_tensor({k: v.reshape(flat, *v.shape[2:]) for k, v in rollout.observations.items()}, self.device),
-                th.as_tensor(rollout.broadcast.reshape(flat, -1), device=self.device),
-                th.as_tensor(rollout.control.reshape(flat, *rollout.control.shape[2:]), device=self.device),
-                th.as_tensor(price.reshape(flat, -1), device=self.device),
-            )
+            evaluation = self.policy.evaluate_actions(*steps)
+            sampled = None if behaviour is None else self._behaviour_policy(behaviour).evaluate_actions(*steps)
             if truncated:
                 terminal = _stack_dicts([obs for _, _, obs in truncated], axis=0)
                 at = [(step, idx) for step, idx, _ in truncated]
@@ -669,11 +795,24 @@ class MAPPOC(OnPolicyAlgorithm):
             per_step(evaluation.log_prob_broadcast),
             per_step(evaluation.log_prob_control),
             price,
+            None if sampled is None else (per_step(sampled.log_prob_broadcast), per_step(sampled.log_prob_control)),
         )
         buffer.compute_returns_and_advantage(last_values=last_values.cpu().numpy(), dones=rollout.dones[-1])
         callback.update_locals(locals())
         callback.on_rollout_end()
         return True
+
+    def _behaviour_policy(self, state: dict[str, th.Tensor]) -> MlpHybridPolicy:
+        """A spare copy of the policy with the parameters ``state`` (of a rollout sampled earlier).
+
+        :param state: the parameters
+        """
+        if self._behaviour_hold is None or self._behaviour_hold[0] is not self.policy:
+            self._behaviour_hold = (self.policy, copy.deepcopy(self.policy))
+        spare = self._behaviour_hold[1]
+        spare.load_state_dict(state)
+        spare.set_training_mode(False)
+        return spare
 
     # ------------------------------------------------------------------ updates
     def train(self) -> None:
@@ -731,7 +870,7 @@ class MAPPOC(OnPolicyAlgorithm):
         """
         progress = self._current_progress_remaining
         # probability of broadcasting with which the options were drawn (the centred critic's p_i)
-        taken = rollout.old_log_prob_broadcast.exp()
+        taken = rollout.behaviour_log_prob_broadcast.exp()
         return UpdateInputs(
             # The networks' inputs depend on stored observations and options only: built once.
             self.policy.training_inputs(rollout.observations, rollout.broadcast),
@@ -782,14 +921,21 @@ class MAPPOC(OnPolicyAlgorithm):
         :param progress_bar: display a progress bar using tqdm and rich
         :return: the trained model
         """
-        return super().learn(
-            total_timesteps=int(total_timesteps),
-            callback=callback,
-            log_interval=log_interval,
-            tb_log_name=tb_log_name,
-            reset_num_timesteps=reset_num_timesteps,
-            progress_bar=progress_bar,
-        )
+        try:
+            return super().learn(
+                total_timesteps=int(total_timesteps),
+                callback=callback,
+                log_interval=log_interval,
+                tb_log_name=tb_log_name,
+                reset_num_timesteps=reset_num_timesteps,
+                progress_bar=progress_bar,
+            )
+        finally:
+            # Stopped by an error during an update (``overlap_rollouts``): the workers finish their rollout, which
+            # the next learn (without reset_num_timesteps) takes if it was sampled.
+            pending = self._wait_for_pending()
+            if pending is not None and pending.rollout.exception() is not None:
+                self._pending = None
 
     def set_env(self, env: GymEnv | EventTriggeredNetwork, force_reset: bool = True) -> None:
         """Use a new environment (a PettingZoo event-triggered env is adapted to the joint view).
@@ -803,6 +949,7 @@ class MAPPOC(OnPolicyAlgorithm):
         env = _as_joint_env(env)
         _check_same_agents(env, self.n_agents)  # type: ignore[arg-type]
         _check_vec_normalize(env)  # type: ignore[arg-type]
+        self._pending = None  # a rollout kept from an interrupted learn (overlap_rollouts) is of the old env
         super().set_env(env, force_reset=force_reset)  # type: ignore[arg-type]
 
     @classmethod
