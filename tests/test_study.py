@@ -122,6 +122,13 @@ def test_the_shipped_study_files_load():
         "mappoc_paper": 2,
         "random_skip_paper": 2,
         "control_first": 2,
+        "mappoc_paper_overlap": 2,
+    }
+    # the trials of the algorithms that ran before rollouts overlapped keep them in turn
+    overlap = {a.label: a.hyperparams.get("overlap_rollouts", True) for a in paper.algorithms}
+    assert overlap == {
+        **dict.fromkeys(("mappoc_paper", "random_skip_paper", "control_first"), False),
+        "mappoc_paper_overlap": True,
     }
     assert all(paper.budget(a) == 6_144_000 for a in paper.algorithms)
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+import os
 from typing import Any
 
 import numpy as np
@@ -15,7 +16,7 @@ from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecNorm
 import sb3_detc  # noqa: F401  (registers the env ids)
 from sb3_detc.callbacks import CommMetricsCallback
 from sb3_detc.mappoc import MAPPOC
-from sb3_detc.mappoc.mappoc import has_rollout_workers
+from sb3_detc.mappoc.mappoc import WORKER_NICENESS, has_rollout_workers
 from sb3_detc.mappoc.workers import RolloutWorker, check_finite
 from sb3_detc.triggers import PeriodicTrigger, RandomTrigger
 
@@ -194,9 +195,13 @@ def test_overlapping_rollouts_are_sampled_before_the_update_and_weighted_by_the_
     threads = th.get_num_threads()
     callback = Snapshots()
     model.learn(4 * 96, callback=callback)
-    model.get_env().close()
     assert model.num_timesteps == 4 * 96 and model.last_rollout_in_workers and not model.has_pending_rollout
     assert th.get_num_threads() == threads
+    # The workers yield the cores to the learner's update (and stay so)
+    learner = os.getpriority(os.PRIO_PROCESS, 0)
+    workers = [os.getpriority(os.PRIO_PROCESS, process.pid) for process in model.get_env().processes]
+    assert workers == [min(learner + WORKER_NICENESS, 19)] * 2
+    model.get_env().close()
     spare = copy.deepcopy(model.policy)
 
     def evaluated(state: dict[str, th.Tensor], data: Any) -> Any:

@@ -51,6 +51,10 @@ FixedTrigger = Callable[[dict[str, np.ndarray]], np.ndarray]
 #: Environment steps per iteration of the paper (all envs together), MAPPOC's default.
 PAPER_ITERATION = 2048
 
+#: With ``overlap_rollouts``: how much lower the rollout workers' scheduling priority is than the learner's while
+#: they sample during its update (niceness), so that the learner's one thread keeps its core.
+WORKER_NICENESS = 5
+
 #: With ``torch_compile="auto"``: the shortest ``learn`` that compiles (compiling takes tens of
 #: seconds, minutes with a cold compile cache).
 COMPILE_FROM_TIMESTEPS = 200_000
@@ -596,11 +600,12 @@ class MAPPOC(OnPolicyAlgorithm):
         :param n_steps: steps per env
         """
         behaviour = {key: value.detach().clone() for key, value in self.policy.state_dict().items()}
-        sample = self._worker_rollout(env, n_steps, behaviour)
+        # The learner trains with one thread meanwhile: it keeps its core, the workers take what is left.
+        niceness = os.getpriority(os.PRIO_PROCESS, 0) + WORKER_NICENESS if hasattr(os, "getpriority") else None
+        sample = self._worker_rollout(env, n_steps, behaviour, niceness)
         if self._waiter is None:
             self._waiter = ThreadPoolExecutor(max_workers=1, thread_name_prefix="rollout")
         self._pending = PendingRollout(self._waiter.submit(sample), behaviour)
-        # The workers take the cores: more learner threads would only wait for them.
         self._learner_threads = th.get_num_threads()
         th.set_num_threads(1)
 
@@ -662,7 +667,9 @@ class MAPPOC(OnPolicyAlgorithm):
                 return collected.result()
         return sample()
 
-    def _worker_rollout(self, env: VecEnv, n_steps: int, state: dict[str, th.Tensor]) -> Callable[[], Rollout]:
+    def _worker_rollout(
+        self, env: VecEnv, n_steps: int, state: dict[str, th.Tensor], niceness: int | None = None
+    ) -> Callable[[], Rollout]:
         """What lets every env sample and step ``n_steps`` steps with the policy's parameters ``state`` (in parallel).
 
         The policy (if new to the workers), the settings and the seeds are taken now; the returned
@@ -672,6 +679,7 @@ class MAPPOC(OnPolicyAlgorithm):
         :param env: the training env (of rollout workers)
         :param n_steps: steps per env
         :param state: the parameters to sample with, unchanged until the call returns
+        :param niceness: the workers' scheduling priority, at least (see ``RolloutWorker.collect_rollout``)
         """
         n_envs = env.num_envs
         new_policy = self._workers_hold != (self.policy, env)
@@ -690,6 +698,7 @@ class MAPPOC(OnPolicyAlgorithm):
             seeds,
             self._compiled,
             None if trigger is None else [pickle.dumps(trigger.fork(seed)) for seed in seeds],  # type: ignore[attr-defined]
+            niceness,
         )
         self._workers_hold = (self.policy, env)
 

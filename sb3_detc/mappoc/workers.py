@@ -9,7 +9,8 @@ once per iteration; each environment then samples options and controls and steps
 for the whole rollout, in parallel with the others, and returns the trajectory. The
 learner evaluates log-probabilities and option values of the whole rollout in one batch
 and then goes through the steps in order (rewards, callbacks, episode statistics), so
-training is exactly on-policy, as without workers.
+training is exactly on-policy, as without workers; with MAPPOC's ``overlap_rollouts`` the workers
+sample the next rollout during the update instead, one update behind (see there).
 
 Use it as the outermost wrapper of every environment, e.g.
 ``make_vec_env(env_id, n_envs=2, vec_env_cls=SubprocVecEnv, wrapper_class=RolloutWorker)``
@@ -18,6 +19,7 @@ Use it as the outermost wrapper of every environment, e.g.
 
 from __future__ import annotations
 
+import os
 import pickle
 from typing import Any
 
@@ -99,6 +101,7 @@ class RolloutWorker(gym.Wrapper):
         seeds: list[int],
         torch_compile: bool = False,
         triggers: list[bytes] | None = None,
+        niceness: int | None = None,
     ) -> dict[str, Any]:
         """Sample ``n_steps`` steps with the policy, from the observation the env is in.
 
@@ -110,6 +113,9 @@ class RolloutWorker(gym.Wrapper):
         :param torch_compile: whether to compile the policy's sampling (read when ``policy`` is sent)
         :param triggers: one pickled fixed trigger per env of the vector env, forked for
             it (see ``MAPPOC.set_fixed_trigger``); None: options sampled from the policy
+        :param niceness: lower this process's scheduling priority to at least this niceness before
+            sampling (where the OS has niceness), e.g. so that a learner that updates meanwhile gets
+            its core first (None: unchanged); it stays lowered
         :return: ``observations`` before every step (dict of (n_steps, N, ...)), ``broadcast``
             (n_steps, N), ``control`` (n_steps, N, m; sampled, before clipping to the bounds),
             ``dones`` (n_steps,), ``infos`` (one dict per step; at an episode end with
@@ -126,6 +132,8 @@ class RolloutWorker(gym.Wrapper):
                 self._act = th.compile(self._act, options={"cpp_wrapper": True})
         if self._policy is None:
             raise RuntimeError("collect_rollout needs the policy on its first call.")
+        if niceness is not None and hasattr(os, "setpriority"):
+            os.setpriority(os.PRIO_PROCESS, 0, max(niceness, os.getpriority(os.PRIO_PROCESS, 0)))
         self._policy.load_state_dict({key: th.as_tensor(value) for key, value in state_dict.items()})
         space = self.action_space["control"]
         low, high = space.low, space.high
