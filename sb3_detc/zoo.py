@@ -27,6 +27,7 @@ import inspect
 import io
 import os
 import sys
+import warnings
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager, redirect_stdout
 from pathlib import Path
@@ -271,8 +272,17 @@ class ExperimentManager(rl_zoo3.exp_manager.ExperimentManager):
     def learn(self, model: BaseAlgorithm) -> None:
         """Train ``model`` as rl-zoo3 does, continuing its step count if it was loaded to continue.
 
+        Training envs of rollout workers and evaluation envs of ``--vec-env`` differ in class by
+        design: SB3's evaluation callback's warning about it is left out.
+
         :param model: the model to train
         """
+        with warnings.catch_warnings():
+            if self.eval_vec_env_class is not None:
+                warnings.filterwarnings("ignore", "Training and eval env are not of the same type", UserWarning)
+            self._learn(model)
+
+    def _learn(self, model: BaseAlgorithm) -> None:
         if not self.continue_training:
             super().learn(model)
             return

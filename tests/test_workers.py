@@ -17,6 +17,7 @@ import sb3_detc  # noqa: F401  (registers the env ids)
 from sb3_detc.callbacks import CommMetricsCallback
 from sb3_detc.mappoc import MAPPOC
 from sb3_detc.mappoc.mappoc import WORKER_NICENESS, has_rollout_workers
+from sb3_detc.mappoc.policies import drawn_broadcast_probability
 from sb3_detc.mappoc.workers import RolloutWorker, check_finite
 from sb3_detc.triggers import PeriodicTrigger, RandomTrigger
 
@@ -176,22 +177,30 @@ class Snapshots(BaseCallback):
         super().__init__()
         self.states: list[dict[str, th.Tensor]] = []
         self.samples: list[Any] = []
+        self.option_values: list[th.Tensor] = []
 
     def _on_rollout_end(self) -> None:
         self.states.append({key: value.clone() for key, value in self.model.policy.state_dict().items()})
-        self.samples.append(self.model.rollout_buffer.tensors())
+        buffer = self.model.rollout_buffer
+        self.samples.append(buffer.tensors())
+        self.option_values.append(th.as_tensor(buffer.option_values.reshape(-1, *buffer.option_values.shape[2:])))
 
     def _on_step(self) -> bool:
         return True
 
 
-def test_overlapping_rollouts_are_sampled_before_the_update_and_weighted_by_the_policy_that_sampled_them() -> None:
+@pytest.mark.parametrize("critic", ["option_heads", "centred"])
+def test_overlapping_rollouts_are_sampled_before_the_update_and_weighted_by_the_policy_that_sampled_them(
+    critic: str,
+) -> None:
     """With overlap_rollouts, rollout k is sampled with the parameters of rollout k - 1's end (before its update).
 
     Its old log-probabilities are those of the policy at the update's start, its behaviour
     log-probabilities those of the parameters that sampled it; the first rollout is sampled in turn.
+    A critic that reads the probabilities with which the options were drawn gets the sampler's.
     """
-    model = make(True, vec_env_cls=SubprocVecEnv, overlap_rollouts=True, learning_rate=3e-3, policy_kwargs={})
+    kwargs = {"overlap_rollouts": True, "learning_rate": 3e-3, "policy_kwargs": {"critic": critic}}
+    model = make(True, vec_env_cls=SubprocVecEnv, **kwargs)
     threads = th.get_num_threads()
     callback = Snapshots()
     model.learn(4 * 96, callback=callback)
@@ -204,13 +213,16 @@ def test_overlapping_rollouts_are_sampled_before_the_update_and_weighted_by_the_
     model.get_env().close()
     spare = copy.deepcopy(model.policy)
 
-    def evaluated(state: dict[str, th.Tensor], data: Any) -> Any:
+    def evaluated(state: dict[str, th.Tensor], data: Any, drawn: th.Tensor | None = None) -> Any:
         spare.load_state_dict(state)
         with th.no_grad():
-            return spare.evaluate_actions(data.observations, data.broadcast, data.control, data.broadcast_price)
+            return spare.evaluate_actions(data.observations, data.broadcast, data.control, data.broadcast_price, drawn)
 
     for k, data in enumerate(callback.samples):
-        current, sampling = evaluated(callback.states[k], data), evaluated(callback.states[max(k - 1, 0)], data)
+        sampling = evaluated(callback.states[max(k - 1, 0)], data)
+        drawn = drawn_broadcast_probability(data.broadcast, sampling.log_prob_broadcast)
+        current = evaluated(callback.states[k], data, drawn)
+        th.testing.assert_close(callback.option_values[k], current.option_values)
         th.testing.assert_close(data.old_log_prob_control, current.log_prob_control)
         th.testing.assert_close(data.old_log_prob_broadcast, current.log_prob_broadcast)
         th.testing.assert_close(data.behaviour_log_prob_control, sampling.log_prob_control)

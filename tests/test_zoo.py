@@ -6,6 +6,7 @@ import csv
 import os
 import subprocess
 import sys
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -90,6 +91,11 @@ def test_rollout_worker_entries_train_in_worker_processes_and_evaluate_as_vec_en
     try:
         assert isinstance(model.get_env(), SubprocVecEnv)
         assert type(evaluation.eval_env) is {"dummy": DummyVecEnv, "subproc": SubprocVecEnv}[vec_env]
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            manager.learn(model)  # one iteration, with evaluations: no warning that the classes differ
+        assert evaluation.n_calls > 0 and model.num_timesteps == 2048
+        assert not [w for w in caught if "not of the same type" in str(w.message)]
     finally:
         model.get_env().close()
         evaluation.eval_env.close()

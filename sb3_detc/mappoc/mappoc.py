@@ -29,7 +29,7 @@ from sb3_detc.envs.wrappers import EventTriggeredNetwork, JointEnv
 from sb3_detc.mappoc.buffers import HybridRolloutBuffer, HybridRolloutSamples
 from sb3_detc.mappoc.critics import CRITICS
 from sb3_detc.mappoc.losses import BROADCAST_ADVANTAGES, STEP_STATS, MAPPOCLoss, UpdateInputs
-from sb3_detc.mappoc.policies import MlpHybridPolicy, check_joint_spaces
+from sb3_detc.mappoc.policies import MlpHybridPolicy, check_joint_spaces, drawn_broadcast_probability
 from sb3_detc.mappoc.rewards import RewardTransform, agent_rewards
 from sb3_detc.mappoc.steps import FusedGradientStep, GradientStep, fusable_adam
 from sb3_detc.mappoc.workers import RolloutWorker, check_finite
@@ -775,8 +775,11 @@ class MAPPOC(OnPolicyAlgorithm):
             th.as_tensor(price.reshape(flat, -1), device=self.device),
         )
         with th.no_grad():
-            evaluation = self.policy.evaluate_actions(*steps)
-            sampled = None if behaviour is None else self._behaviour_policy(behaviour).evaluate_actions(*steps)
+            sampled, drawn = None, None  # drawn: the probabilities of broadcasting with which the options were drawn
+            if behaviour is not None:
+                sampled = self._behaviour_policy(behaviour).evaluate_actions(*steps)
+                drawn = drawn_broadcast_probability(steps[1], sampled.log_prob_broadcast)
+            evaluation = self.policy.evaluate_actions(*steps, drawn)
             if truncated:
                 terminal = _stack_dicts([obs for _, _, obs in truncated], axis=0)
                 at = [(step, idx) for step, idx, _ in truncated]
@@ -878,13 +881,12 @@ class MAPPOC(OnPolicyAlgorithm):
         :return: the inputs of :attr:`gradient_step`
         """
         progress = self._current_progress_remaining
-        # probability of broadcasting with which the options were drawn (the centred critic's p_i)
-        taken = rollout.behaviour_log_prob_broadcast.exp()
         return UpdateInputs(
             # The networks' inputs depend on stored observations and options only: built once.
             self.policy.training_inputs(rollout.observations, rollout.broadcast),
             rollout._replace(observations={}),
-            th.where(rollout.broadcast.bool(), taken, 1 - taken),
+            # probability of broadcasting with which the options were drawn (the centred critic's p_i)
+            drawn_broadcast_probability(rollout.broadcast, rollout.behaviour_log_prob_broadcast),
             FloatSchedule(self.clip_range)(progress),
             FloatSchedule(self.clip_range_broadcast)(progress),
             FloatSchedule(self.broadcast_ent_coef)(progress),

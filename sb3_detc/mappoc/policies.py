@@ -57,6 +57,17 @@ def broadcast_probability(logits: th.Tensor) -> th.Tensor:
     return th.sigmoid(logits[..., 1] - logits[..., 0])
 
 
+def drawn_broadcast_probability(broadcast: th.Tensor, log_prob_broadcast: th.Tensor) -> th.Tensor:
+    """Probability of broadcasting with which options were drawn, from the log-probabilities of the drawn ones.
+
+    :param broadcast: the drawn options (...)
+    :param log_prob_broadcast: their log-probabilities (...)
+    :return: probabilities of broadcasting, (...)
+    """
+    taken = log_prob_broadcast.exp()
+    return th.where(broadcast.bool(), taken, 1 - taken)
+
+
 class HybridAction(NamedTuple):
     """One joint hybrid action of all agents with what training needs about it."""
 
