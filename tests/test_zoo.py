@@ -82,6 +82,7 @@ def test_rollout_worker_entries_train_in_worker_processes_and_evaluate_as_vec_en
         MULTIWALKER,
         str(tmp_path),
         eval_freq=1000,
+        log_interval=-1,  # rl-zoo3's command-line default
         vec_env_type=vec_env,
         n_timesteps=2048,
         config=str(zoo.HYPERPARAMS_DIR / "mappoc.yml"),
@@ -120,6 +121,7 @@ def test_multiwalker_entry_has_the_paper_settings() -> None:
     assert entry["env_kwargs"]["broadcast_cost"] == 0.25
     assert eval(entry["policy_kwargs"])["net_arch"] == [96, 96, 96]
     assert any(isinstance(c, CurriculumCallback) for c in get_callback_list(entry))
+    assert entry["env_wrapper"] == "sb3_detc.mappoc.workers.RolloutWorker" and entry["overlap_rollouts"]  # fast setting
 
 
 def test_linear_entry_trains_control_first_then_the_trigger_within_the_budget() -> None:

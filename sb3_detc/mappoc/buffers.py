@@ -205,17 +205,15 @@ class HybridRolloutBuffer:
         :param last_values: value of the observation after the last step, (n_envs, N)
         :param dones: whether the last step ended an episode, (n_envs,)
         """
+        # Every step's TD error and decay at once; only the recursion goes step by step.
+        next_non_terminal = 1.0 - np.concatenate([self.episode_starts[1:], np.asarray(dones, np.float32)[None]])
+        next_values = np.concatenate([self.values[1:], np.asarray(last_values, np.float32)[None]])
+        alive = next_non_terminal[..., None]
+        delta = self.rewards + self.gamma * next_values * alive - self.values
+        decay = self.gamma * self.gae_lambda * alive
         last_gae = np.zeros((self.n_envs, self.n_agents), dtype=np.float32)
         for t in reversed(range(self.buffer_size)):
-            if t == self.buffer_size - 1:
-                next_non_terminal = 1.0 - np.asarray(dones, dtype=np.float32)
-                next_values = last_values
-            else:
-                next_non_terminal = 1.0 - self.episode_starts[t + 1]
-                next_values = self.values[t + 1]
-            alive = next_non_terminal[:, None]
-            delta = self.rewards[t] + self.gamma * next_values * alive - self.values[t]
-            last_gae = delta + self.gamma * self.gae_lambda * alive * last_gae
+            last_gae = delta[t] + decay[t] * last_gae
             self.advantages[t] = last_gae
         self.returns = self.advantages + self.values
         self.broadcast_advantages = self.returns - self.state_values

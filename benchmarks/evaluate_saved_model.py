@@ -1,0 +1,48 @@
+"""Evaluate a saved MAPPOC model with the study's protocol (``sb3_detc.study``), for a run made outside a study.
+
+The same seeded episodes in four communication modes (learned, random at the learned rate, periodic,
+never), as every study trial is evaluated, so that a run of the command line can be set beside a
+study's trials:
+
+    python benchmarks/evaluate_saved_model.py <model.zip> --env sb3_detc/MultiwalkerETC-v0 \\
+        --env-kwargs broadcast_cost=0.25 --episodes 50 --seed 10000 --out result.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import gymnasium as gym
+import torch as th
+
+import sb3_detc  # noqa: F401  (registers the env ids)
+from sb3_detc import MAPPOC
+from sb3_detc.study.trial import evaluate_policy_modes
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("model", type=Path, help="a saved MAPPOC model (.zip)")
+    parser.add_argument("--env", required=True, help="the joint env id")
+    parser.add_argument("--env-kwargs", nargs="*", default=[], help="key=value (numbers) of the env")
+    parser.add_argument("--episodes", type=int, default=50)
+    parser.add_argument("--seed", type=int, default=10000, help="seed of the first episode")
+    parser.add_argument("--out", type=Path, required=True, help="JSON file of the evaluation")
+    args = parser.parse_args()
+    env_kwargs = {key: float(value) for key, value in (item.split("=", 1) for item in args.env_kwargs)}
+    th.set_num_threads(1)
+    policy = MAPPOC.load(args.model, device="cpu").policy
+    env = gym.make(args.env, **env_kwargs)
+    try:
+        result = evaluate_policy_modes(policy, env, args.episodes, args.seed)
+    finally:
+        env.close()
+    args.out.write_text(json.dumps(result, indent=1))
+    for key, value in result["metrics"].items():
+        print(f"{key}: {value:.4g}")
+
+
+if __name__ == "__main__":
+    main()
