@@ -4,9 +4,12 @@ Every finished trial of a study folder (``policy.pt``) runs the study's seeded e
 episodes (the same for every controller and trigger) with its deterministic control policy
 and, instead of its own options, random skips at several rates and periodic communication
 every ``k`` steps. Its learned trigger comes from the trial's ``evaluation.json`` (the same
-episodes, options sampled from its policy over options). For every algorithm of the study and
-every trigger: control return (without the communication cost), package travel, savings and
-fall rate, mean over seeds with a 95 % bootstrap interval (:func:`sb3_detc.study.report.interval_estimates`).
+episodes, options sampled from its policy over options); a trial that learned its options also
+runs with the most likely option of its policy over options (``mode of mu``: what
+``predict(deterministic=True)`` does with the policy's ``deterministic_options=True``). For
+every algorithm of the study and every trigger: control return (without the communication
+cost), package travel, savings and fall rate, mean over seeds with a 95 % bootstrap interval
+(:func:`sb3_detc.study.report.interval_estimates`).
 
 Results are written after every (trial, trigger) to ``--out`` (JSON); running the command
 again skips what is there, so an interrupted sweep goes on where it stopped. ``--plot`` draws
@@ -33,13 +36,15 @@ from sb3_detc.evaluation import evaluate_episodes
 from sb3_detc.mappoc.policies import MlpHybridPolicy
 from sb3_detc.study.report import interval_estimates
 from sb3_detc.study.spec import load_study
-from sb3_detc.study.trial import read_status, trial_folder
+from sb3_detc.study.trial import entry_fixed_trigger, read_status, trial_folder
 from sb3_detc.triggers import PeriodicTrigger, RandomTrigger
 
 #: Skip probabilities of the random triggers.
 RATES = (0.0, 0.25, 0.5, 0.75, 0.85, 0.9, 0.95, 1.0)
 #: Periods of the periodic triggers (savings 1 - 1/k).
 PERIODS = (2, 4, 8, 16, 32)
+#: Name of the row of the policy over options' most likely options.
+MODE = "mode of mu"
 
 
 def triggers(rates: list[float], periods: list[int], seed: int) -> dict[str, Any]:
@@ -81,7 +86,10 @@ def sweep(folder: Path, out: Path, rates: list[float], periods: list[int]) -> di
         done["learned"] = row(
             learned["control_return"], learned["package_travel"], learned["failed"], learned["savings"]
         )
-        todo = {name: t for name, t in triggers(rates, periods, spec.eval_seed).items() if name not in done}
+        named = triggers(rates, periods, spec.eval_seed)
+        if entry_fixed_trigger(trial.algorithm.entry) is None:
+            named[MODE] = None  # no fixed trigger: deterministic options, the mode of mu
+        todo = {name: t for name, t in named.items() if name not in done}
         if not todo:
             continue
         policy = MlpHybridPolicy.load(str(trial_dir / "policy.pt"), device="cpu")
@@ -163,8 +171,9 @@ def plot(table: dict[str, dict[str, dict[str, list[float]]]], path: Path) -> Non
                 "random": sorted((v for k, v in rows.items() if k.startswith("random")), key=lambda v: v["savings"][0]),
                 "periodic": [v for k, v in rows.items() if k.startswith("periodic")],
                 "learned": [rows["learned"]] if "learned" in rows else [],
+                MODE: [rows[MODE]] if MODE in rows else [],
             }
-            for kind, style in (("random", "-o"), ("periodic", "s"), ("learned", "*")):
+            for kind, style in (("random", "-o"), ("periodic", "s"), ("learned", "*"), (MODE, "X")):
                 values = kinds[kind]
                 if not values:
                     continue
@@ -176,7 +185,7 @@ def plot(table: dict[str, dict[str, dict[str, list[float]]]], path: Path) -> Non
                     yerr=[y[:, 0] - y[:, 1], y[:, 2] - y[:, 0]],
                     fmt=style,
                     color=color,
-                    markersize=10 if kind == "learned" else 5,
+                    markersize=5 if kind in ("random", "periodic") else 10,
                     capsize=2,
                     label=f"{label}: {kind}",
                 )

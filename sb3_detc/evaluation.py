@@ -104,9 +104,11 @@ def evaluate_episodes(
     :param policy: the policy (of a trained model, ``model.policy``, or loaded on its own)
     :param env: a joint env (not vectorised) or its registered id
     :param seeds: the seed of every episode's reset (None: continue the env's generator)
-    :param deterministic: mode of ``mu`` and mean of ``pi`` instead of samples
+    :param deterministic: mean of ``pi`` instead of samples, and the options as
+        ``deterministic_broadcast`` says
     :param deterministic_broadcast: mode (True) or samples (False) of ``mu`` whatever
-        ``deterministic`` says (None: as ``deterministic``)
+        ``deterministic`` says (None: as :meth:`~sb3_detc.mappoc.policies.MlpHybridPolicy.predict`
+        does: the mode if ``deterministic`` and the policy's ``deterministic_options`` are True)
     :param fixed_trigger: options to use instead of ``mu``'s (e.g. a
         :class:`~sb3_detc.triggers.RandomTrigger`), with the policy's control policy
     :return: the episodes' results
@@ -194,9 +196,11 @@ def evaluate_communication(
     :param model: the trained model
     :param env: a joint env (not vectorised) or its registered id
     :param n_eval_episodes: number of episodes
-    :param deterministic: mode of ``mu`` and mean of ``pi`` instead of samples
+    :param deterministic: mean of ``pi`` instead of samples, and the options as
+        ``deterministic_broadcast`` says
     :param deterministic_broadcast: mode (True) or samples (False) of ``mu`` whatever
-        ``deterministic`` says (None: as ``deterministic``)
+        ``deterministic`` says (None: as :meth:`~sb3_detc.mappoc.policies.MlpHybridPolicy.predict`
+        does: the mode if ``deterministic`` and the policy's ``deterministic_options`` are True)
     :param fixed_trigger: options to use instead of ``mu``'s (e.g. a
         :class:`~sb3_detc.triggers.RandomTrigger`), with the model's control policy
     :param seed: seed of the first episode (the following ones continue its generator)

@@ -17,8 +17,14 @@ ENVS = {
 
 
 def fresh_model(module, kwargs: dict, share_parameters: bool) -> MAPPOC:
+    """A model whose deterministic options are the mode of mu, so that the joint and the decentralised options agree."""
     return MAPPOC(
-        "MlpHybridPolicy", module.joint_env(**kwargs), share_parameters=share_parameters, seed=3, device="cpu"
+        "MlpHybridPolicy",
+        module.joint_env(**kwargs),
+        share_parameters=share_parameters,
+        policy_kwargs={"deterministic_options": True},
+        seed=3,
+        device="cpu",
     )
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import gymnasium as gym
 import numpy as np
 import pytest
+import torch as th
 
 import sb3_detc  # noqa: F401  (registers the env ids)
 from sb3_detc import evaluation
@@ -44,3 +45,19 @@ def test_sampled_options_side_by_side_are_recorded_per_episode(policy) -> None:
     episodes = evaluate_episodes(policy, gym.make(ENV_ID, **SETTINGS), [1, 2, 3], deterministic_broadcast=False)
     assert episodes.broadcasts.shape == (3, 2) and (episodes.lengths == SETTINGS["max_cycles"]).all()
     assert 0.0 <= episodes.savings <= 1.0
+
+
+@pytest.mark.parametrize("deterministic_options", [False, True])
+def test_deterministic_episodes_take_options_as_the_policy_says(deterministic_options: bool) -> None:
+    """By default the options are sampled, as ``predict(deterministic=True)`` does; the mode where the policy says."""
+    model = MAPPOC(
+        "MlpHybridPolicy",
+        gym.make(ENV_ID, **SETTINGS),
+        policy_kwargs={"net_arch": [8], "broadcast_prob_init": 0.5, "deterministic_options": deterministic_options},
+        seed=0,
+    )
+    runs = []
+    for torch_seed in (1, 2):
+        th.manual_seed(torch_seed)
+        runs.append(evaluate_episodes(model.policy, gym.make(ENV_ID, **SETTINGS), [1, 2, 3]).broadcasts)
+    assert np.array_equal(runs[0], runs[1]) is deterministic_options

@@ -12,6 +12,7 @@ import pytest
 import torch as th
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.env_util import make_vec_env
+from stable_baselines3.common.utils import obs_as_tensor
 from stable_baselines3.common.vec_env import DummyVecEnv
 
 import sb3_detc  # noqa: F401  (registers the env ids)
@@ -95,6 +96,7 @@ def assert_padding_is_zero(policy: MlpHybridPolicy) -> None:
 
 
 # ------------------------------------------------------------------ 1. shapes, sharing
+@pytest.mark.parametrize("deterministic_options", [False, True])
 @pytest.mark.parametrize("critic", CRITICS)
 @pytest.mark.parametrize(
     "modes",
@@ -105,9 +107,11 @@ def assert_padding_is_zero(policy: MlpHybridPolicy) -> None:
         {"deterministic_broadcast": True},
     ],
 )
-def test_sample_actions_draws_what_forward_draws_in_every_mode(critic: str, modes: dict[str, bool]) -> None:
+def test_sample_actions_draws_what_forward_draws_in_every_mode(
+    critic: str, modes: dict[str, bool], deterministic_options: bool
+) -> None:
     env = linear_etc_v0.joint_env(n_agents=3, max_cycles=50)
-    policy = make_policy(env, critic=critic)
+    policy = make_policy(env, critic=critic, deterministic_options=deterministic_options)
     obs = joint_obs_batch(env, steps=64)
     with th.no_grad():
         th.manual_seed(5)
@@ -118,7 +122,10 @@ def test_sample_actions_draws_what_forward_draws_in_every_mode(critic: str, mode
         again, _ = policy.sample_actions(obs, **modes)
     assert th.equal(broadcast, action.broadcast)
     th.testing.assert_close(control, action.control)
-    deterministic_broadcast = modes.get("deterministic_broadcast", modes.get("deterministic", False))
+    # Not given: the mode only if deterministic and the policy's deterministic_options
+    deterministic_broadcast = modes.get(
+        "deterministic_broadcast", modes.get("deterministic", False) and deterministic_options
+    )
     assert th.equal(again, broadcast) == deterministic_broadcast  # modes repeat, 64 x 3 samples do not
 
 
@@ -175,6 +182,7 @@ def test_predict_and_tiny_learn(n_agents: int, share: bool) -> None:
     assert np.any(np.abs(controls) == np.float32(u_max))  # clipping happened
 
     single = {key: value[1] for key, value in obs.items()}
+    model.policy.deterministic_options = True  # the mode of mu: the same options for a single and a batched call
     action, _ = model.predict(single, deterministic=True)
     assert isinstance(action, dict)
     assert action["broadcast"].shape == (n_agents,) and action["control"].shape == (n_agents, 1)
@@ -627,7 +635,9 @@ def test_save_load_round_trip(tmp_path) -> None:
     assert loaded.n_agents == 2
 
     obs = {key: v.numpy() for key, v in joint_obs_batch(env, steps=6).items()}
+    th.manual_seed(1)
     expected, _ = model.predict(obs, deterministic=True)
+    th.manual_seed(1)
     got, _ = loaded.predict(obs, deterministic=True)
     for a, b in zip(expected, got, strict=True):
         np.testing.assert_array_equal(a["broadcast"], b["broadcast"])
@@ -636,6 +646,29 @@ def test_save_load_round_trip(tmp_path) -> None:
 
     without_env = MAPPOC.load(path)
     assert all(th.equal(saved[k], v) for k, v in parameters(without_env).items())
+
+
+@pytest.mark.parametrize("deterministic_options", [False, True])
+def test_deterministic_predict_takes_options_as_the_policy_says(tmp_path, deterministic_options: bool) -> None:
+    model = make_model(
+        n_agents=3, policy_kwargs={"broadcast_prob_init": 0.5, "deterministic_options": deterministic_options}
+    )
+    path = tmp_path / "policy.pt"
+    model.policy.save(str(path))
+    policy = MlpHybridPolicy.load(str(path), device="cpu")
+    assert policy.deterministic_options is deterministic_options
+    env = linear_etc_v0.joint_env(n_agents=3, max_cycles=20)
+    obs = {key: v.numpy() for key, v in joint_obs_batch(env, steps=6).items()}
+    with th.no_grad():
+        mode = policy(obs_as_tensor(obs, policy.device), deterministic=True).broadcast.numpy()
+    drawn = np.array([[a["broadcast"] for a in policy.predict(obs, deterministic=True)[0]] for _ in range(20)])
+    if deterministic_options:
+        assert (drawn == mode).all()  # the most likely options, every time
+    else:
+        assert 0.2 < drawn.mean() < 0.8 and (drawn != mode).any()  # mu near 50 %: sampled options
+    controller = policy.agent_controller(0)
+    decided = [controller.decide(obs["trigger"][0, 0], obs["trigger_held"][0, 0]) for _ in range(40)]
+    assert len(set(decided)) == (1 if deterministic_options else 2)
 
 
 @pytest.mark.parametrize("critic", CRITICS)
@@ -715,8 +748,9 @@ def test_compiled_sampling_and_loss_match_eager(tmp_path) -> None:
     obs = {key: th.as_tensor(value) for key, value in model.get_env().reset().items()}
     price = th.full((2, 3), 0.1)
     with th.no_grad():
-        compiled = th.compile(model.policy.forward)(obs, deterministic=True, broadcast_price=price)
-        eager = model.policy(obs, deterministic=True, broadcast_price=price)
+        modes = {"deterministic": True, "deterministic_broadcast": True}
+        compiled = th.compile(model.policy.forward)(obs, **modes, broadcast_price=price)
+        eager = model.policy(obs, **modes, broadcast_price=price)
     for got, expected in zip(compiled, eager, strict=True):
         th.testing.assert_close(got, expected)
 

@@ -109,7 +109,8 @@ def run_decentralised_step(
     :param parallel_obs: per-agent PettingZoo observations (only ``local``, ``trigger`` and
         ``trigger_held`` are read: the neighbour information comes from the inboxes)
     :param messages: every agent's current message from its own sensors, shape (N, n_msg)
-    :param deterministic: most likely option and mean control instead of samples
+    :param deterministic: mean controls instead of samples, and the most likely options if the
+        controllers' ``deterministic_options`` is True (see :meth:`AgentController.decide`)
     :return: ``{agent: {"broadcast": 0 or 1, "control": (m,)}}``, what the PettingZoo env's ``step`` takes
     """
     agents = list(parallel_obs)

@@ -128,6 +128,13 @@ class MlpHybridPolicy(BasePolicy):
         options, centred on the probabilities the options were drawn with); see the classes of
         :mod:`sb3_detc.mappoc.critics`. The critic object is :attr:`option_critic`
     :param ortho_init: orthogonal initialisation (otherwise PyTorch's default init)
+    :param deterministic_options: what :meth:`predict` with ``deterministic=True`` and the
+        agents' controllers (:meth:`agent_controller`) do with the policy over options: sample
+        the options (False, default: the trigger as it was trained, as every evaluation of the
+        package runs it) or take the most likely option (True). The controls are the mean
+        either way. A policy over options that an entropy bonus keeps stochastic (the paper's
+        ends near 50 %) has a mode that is another trigger, one it was never trained with:
+        on Multiwalker the paper's policies fall in nearly every episode with it
     :param use_sde: not supported, must be False (present for SB3 compatibility)
     :param optimizer_class: optimizer class
     :param optimizer_kwargs: optimizer keyword arguments, excluding the learning rate
@@ -150,6 +157,7 @@ class MlpHybridPolicy(BasePolicy):
         broadcast_prob_init: float = 0.5,
         critic: str = "option_heads",
         ortho_init: bool = True,
+        deterministic_options: bool = False,
         use_sde: bool = False,
         optimizer_class: type[th.optim.Optimizer] = th.optim.Adam,
         optimizer_kwargs: dict[str, Any] | None = None,
@@ -190,6 +198,7 @@ class MlpHybridPolicy(BasePolicy):
         self.critic = critic
         self.option_critic: OptionCritic = CRITICS[critic]()
         self.ortho_init = ortho_init
+        self.deterministic_options = deterministic_options
 
         n_local = observation_space["local"].shape[1]
         n_msg = observation_space["message"].shape[1]
@@ -273,6 +282,7 @@ class MlpHybridPolicy(BasePolicy):
             broadcast_prob_init=self.broadcast_prob_init,
             critic=self.critic,
             ortho_init=self.ortho_init,
+            deterministic_options=self.deterministic_options,
             optimizer_class=self.optimizer_class,
             optimizer_kwargs=self.optimizer_kwargs,
         )
@@ -414,12 +424,13 @@ class MlpHybridPolicy(BasePolicy):
         """Sample all options, deliver the broadcasts, then sample all controls (same-step delivery).
 
         :param obs: joint observation (B, N, ...)
-        :param deterministic: mode of ``mu`` and mean of ``pi`` instead of samples
+        :param deterministic: mean of ``pi`` instead of samples, and the options as
+            ``deterministic_broadcast`` says
         :param broadcast: broadcast decisions to use instead of sampling them from ``mu`` (e.g. a baseline's)
         :param action_noise_std: standard deviation of extra Gaussian exploration noise added
             to the sampled controls (curriculum); log-probabilities refer to the noisy controls
         :param deterministic_broadcast: mode (True) or sample (False) of ``mu`` regardless of
-            ``deterministic`` (None: as ``deterministic``)
+            ``deterministic`` (None: the mode if ``deterministic`` and :attr:`deterministic_options`)
         :param broadcast_price: cost of a broadcast in the learner's reward units (B, N), see
             :meth:`option_values`
         :return: the hybrid action with its log-probabilities and the option values
@@ -454,9 +465,10 @@ class MlpHybridPolicy(BasePolicy):
         :param obs: joint observation (B, N, ...)
         :param action_noise_std: extra Gaussian noise on the controls (see :meth:`forward`)
         :param broadcast: broadcast decisions to use instead of sampling them (a fixed trigger)
-        :param deterministic: mode of ``mu`` and mean of ``pi`` instead of samples
+        :param deterministic: mean of ``pi`` instead of samples, and the options as
+            ``deterministic_broadcast`` says
         :param deterministic_broadcast: mode (True) or sample (False) of ``mu`` regardless of
-            ``deterministic`` (None: as ``deterministic``)
+            ``deterministic`` (None: the mode if ``deterministic`` and :attr:`deterministic_options`)
         :return: options (B, N) and controls (B, N, m)
         """
         _, broadcast, control = self._sample(
@@ -476,10 +488,11 @@ class MlpHybridPolicy(BasePolicy):
         """Options, then the broadcasts delivered, then controls; with the networks' outputs.
 
         :param obs: joint observation (B, N, ...)
-        :param deterministic: mode of ``mu`` and mean of ``pi`` instead of samples
+        :param deterministic: mean of ``pi`` instead of samples
         :param broadcast: broadcast decisions to use instead of sampling them (None: sample)
         :param action_noise_std: extra Gaussian noise on the controls
-        :param deterministic_broadcast: mode (True) or sample (False) of ``mu`` (None: as ``deterministic``)
+        :param deterministic_broadcast: mode (True) or sample (False) of ``mu`` (None: the mode if
+            ``deterministic`` and :attr:`deterministic_options`)
         :param with_critic: whether to evaluate the critic too (output ``q``)
         :return: the outputs of ``mu``, ``pi`` (and ``q``), the options, the controls
         """
@@ -489,7 +502,7 @@ class MlpHybridPolicy(BasePolicy):
             before["q"] = critic.features(self, obs, None)
         out = self.chains.run(before)
         if deterministic_broadcast is None:
-            deterministic_broadcast = deterministic
+            deterministic_broadcast = deterministic and self.deterministic_options
         if broadcast is None:
             broadcast = self._sample_options(out["mu"], deterministic_broadcast)
         broadcast = broadcast.long()
@@ -583,7 +596,11 @@ class MlpHybridPolicy(BasePolicy):
         return (F.softmax(out["mu"], dim=-1) * q).sum(-1)
 
     def _predict(self, observation: PyTorchObs, deterministic: bool = False) -> th.Tensor:
-        """Options and controls side by side, (B, N, 1 + m); :meth:`predict` returns them as a Dict."""
+        """Options and controls side by side, (B, N, 1 + m); :meth:`predict` returns them as a Dict.
+
+        :param observation: joint observation (B, N, ...)
+        :param deterministic: mean controls; the options as :attr:`deterministic_options` says
+        """
         broadcast, control = self.sample_actions(observation, deterministic=deterministic)  # the critic is not needed
         return th.cat([broadcast[..., None].to(control.dtype), control], dim=-1)
 
@@ -599,7 +616,8 @@ class MlpHybridPolicy(BasePolicy):
         :param observation: one joint observation or a batch of them (from a VecEnv)
         :param state: unused (no recurrent state), returned as is
         :param episode_start: unused
-        :param deterministic: mode of ``mu`` and mean of ``pi``
+        :param deterministic: mean of ``pi``, and the mode of ``mu`` if the policy's
+            ``deterministic_options`` is True (else options sampled from ``mu``)
         :return: ``{"broadcast": (N,), "control": (N, m)}`` for one observation, or a list of
             such dicts, one per environment, for a batch (what a VecEnv's ``step`` takes);
             controls are clipped to the action bounds
@@ -639,6 +657,7 @@ class MlpHybridPolicy(BasePolicy):
             agent_id=self.agent_id[agent].clone() if self.share_parameters else None,
             control_low=self.control_low[agent].clone(),
             control_high=self.control_high[agent].clone(),
+            deterministic_options=self.deterministic_options,
         )
 
 
@@ -659,6 +678,8 @@ class AgentController(nn.Module):
     :param agent_id: one-hot id input for shared-parameter policies, else None
     :param control_low: lower control bounds (m,)
     :param control_high: upper control bounds (m,)
+    :param deterministic_options: whether :meth:`decide` with ``deterministic=True`` takes the
+        most likely option (True) or samples it (False), as the policy's ``deterministic_options``
     """
 
     def __init__(
@@ -672,8 +693,10 @@ class AgentController(nn.Module):
         agent_id: th.Tensor | None,
         control_low: th.Tensor,
         control_high: th.Tensor,
+        deterministic_options: bool = False,
     ) -> None:
         super().__init__()
+        self.deterministic_options = deterministic_options
         self.option_net = option_net
         self.control_net = control_net
         self.agent = agent
@@ -693,11 +716,12 @@ class AgentController(nn.Module):
 
         :param trigger: own trigger features now (n_trig,)
         :param trigger_held: own trigger features at the own last broadcast (n_trig,)
-        :param deterministic: the most likely option instead of a sample
+        :param deterministic: the most likely option instead of a sample if
+            :attr:`deterministic_options` is True (else a sample either way)
         """
         x = th.as_tensor(np.concatenate([trigger, trigger_held]), dtype=th.float32)
         logits = self.option_net(self._with_id(x))
-        if deterministic:
+        if deterministic and self.deterministic_options:
             return bool(logits.argmax() == 1)
         return bool(th.distributions.Categorical(logits=logits).sample() == 1)
 

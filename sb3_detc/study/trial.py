@@ -49,6 +49,7 @@ from sb3_detc.zoo import ExperimentManager
 __all__ = [
     "MODES",
     "TrialCheckpoint",
+    "entry_fixed_trigger",
     "evaluate_policy_modes",
     "machine_record",
     "merged_progress",
@@ -275,8 +276,12 @@ def evaluate_policy_modes(
     }
 
 
-def _fixed_trigger(entry: dict[str, Any]) -> Any:
-    """The trigger of a fixed-trigger callback in the entry (the random-skip baseline), else None."""
+def entry_fixed_trigger(entry: dict[str, Any]) -> Any:
+    """The trigger of a fixed-trigger callback in a hyperparameter entry (the random-skip baseline), else None.
+
+    :param entry: a hyperparameter entry (its ``callback`` is read)
+    :return: the trigger the entry trains with instead of the policy over options, or None
+    """
     if "callback" not in entry:
         return None
     callbacks = get_callback_list({"callback": entry["callback"]})
@@ -398,7 +403,7 @@ def run_trial(
         env = gym.make(spec.env, **env_kwargs)
         try:
             evaluation = evaluate_policy_modes(
-                policy, env, spec.episodes, spec.eval_seed, _fixed_trigger(trial.algorithm.entry)
+                policy, env, spec.episodes, spec.eval_seed, entry_fixed_trigger(trial.algorithm.entry)
             )
         finally:
             env.close()
