@@ -11,30 +11,40 @@ study's trials:
 from __future__ import annotations
 
 import argparse
+import ast
 import json
 from pathlib import Path
 
 import gymnasium as gym
 import torch as th
-import yaml
 
 import sb3_detc  # noqa: F401  (registers the env ids)
 from sb3_detc import MAPPOC
 from sb3_detc.study.trial import evaluate_policy_modes
 
 
+def setting(text: str) -> object:
+    """An env setting from the command line: a Python literal (``2``, ``1e-3``, ``True``), else the text."""
+    try:
+        return ast.literal_eval(text)
+    except (ValueError, SyntaxError):
+        return text
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("model", type=Path, help="a saved MAPPOC model (.zip)")
     parser.add_argument("--env", required=True, help="the joint env id")
-    parser.add_argument("--env-kwargs", nargs="*", default=[], help="key=value of the env (values read as YAML)")
+    parser.add_argument(
+        "--env-kwargs", nargs="*", default=[], help="key=value of the env (Python literals; other values as text)"
+    )
     parser.add_argument("--episodes", type=int, default=50)
     parser.add_argument("--seed", type=int, default=10000, help="seed of the first episode")
     parser.add_argument("--out", type=Path, required=True, help="JSON file of the evaluation")
     args = parser.parse_args()
     if any("=" not in item for item in args.env_kwargs):
         parser.error(f"--env-kwargs takes key=value, got {args.env_kwargs}")
-    env_kwargs = {key: yaml.safe_load(value) for key, value in (item.split("=", 1) for item in args.env_kwargs)}
+    env_kwargs = {key: setting(value) for key, value in (item.split("=", 1) for item in args.env_kwargs)}
     th.set_num_threads(1)
     policy = MAPPOC.load(args.model, device="cpu").policy
     env = gym.make(args.env, **env_kwargs)

@@ -88,7 +88,7 @@ def sweep(folder: Path, out: Path, rates: list[float], periods: list[int]) -> di
         )
         named = triggers(rates, periods, spec.eval_seed)
         if entry_fixed_trigger(trial.algorithm.entry) is None:
-            named[MODE] = None  # no fixed trigger: deterministic options, the mode of mu
+            named[MODE] = None  # no fixed trigger: the policy's own options, their mode (below)
         todo = {name: t for name, t in named.items() if name not in done}
         if not todo:
             continue
@@ -97,7 +97,9 @@ def sweep(folder: Path, out: Path, rates: list[float], periods: list[int]) -> di
         seeds = [spec.eval_seed + k for k in range(spec.episodes)]
         for name, trigger in todo.items():
             began = time.monotonic()
-            episodes = evaluate_episodes(policy, env, seeds, deterministic=True, fixed_trigger=trigger)
+            episodes = evaluate_episodes(
+                policy, env, seeds, deterministic=True, deterministic_broadcast=name == MODE, fixed_trigger=trigger
+            )
             done[name] = row(episodes.control_returns, episodes.package_travel, episodes.failed, episodes.savings)
             out.write_text(json.dumps(results, indent=1) + "\n")
             print(

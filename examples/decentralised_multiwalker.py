@@ -84,11 +84,14 @@ def main(argv: Sequence[str] | None = None) -> None:
     parser.add_argument("--episodes", type=int, default=3, help="episodes of decentralised execution")
     parser.add_argument("--seed", type=int, default=0, help="seed of training and of the first episode")
     parser.add_argument(
-        "--stochastic", action="store_true", help="sample options and controls (default: mode of mu, mean of pi)"
+        "--stochastic",
+        action="store_true",
+        help="sample the controls too (default: mean of pi; options are sampled from mu either way, "
+        "unless the policy has deterministic_options=True)",
     )
     args = parser.parse_args(argv)
     th.set_num_threads(1)  # small networks: one thread is fastest, and the machine may be shared
-    th.manual_seed(args.seed)  # the controllers sample with torch's generator (--stochastic)
+    th.manual_seed(args.seed)  # the controllers sample with torch's generator
 
     if args.model:
         model = MAPPOC.load(args.model, device="cpu")
