@@ -31,7 +31,16 @@ from huggingface_sb3 import EnvironmentName  # noqa: E402
 from sb3_detc.renamed import renamed_column  # noqa: E402
 from sb3_detc.zoo import InputError, run_cli  # noqa: E402
 
-__all__ = ["curriculum_phases", "find_runs", "main", "plot_runs", "read_progress", "smooth", "symlog_threshold"]
+__all__ = [
+    "curriculum_phases",
+    "find_runs",
+    "main",
+    "plot_estimates",
+    "plot_runs",
+    "read_progress",
+    "smooth",
+    "symlog_threshold",
+]
 
 #: Logged values of the two panels: (column, axis label).
 PANELS = (("comm/ep_return", "return"), ("comm/savings", "communication savings"))
@@ -224,6 +233,60 @@ def plot_runs(
         ax.grid(alpha=0.3)
     axes[0].legend(loc="lower right")
     fig.suptitle(f"{title}{': ' if title else ''}moving averages over {window} iterations")
+    fig.tight_layout()
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=120)
+    plt.close(fig)
+    return out
+
+
+def plot_estimates(
+    estimates: dict[str, dict[str, tuple[float, float, float, Sequence[float]]]],
+    out: str | Path,
+    panels: Sequence[tuple[str, str]],
+    title: str = "",
+) -> Path:
+    """Means over seeds with their intervals and every seed's value: one panel per metric, one row per label.
+
+    :param estimates: label -> metric -> (mean, low, high, the seeds' values); a label may lack a metric
+    :param out: the PNG file
+    :param panels: the metrics to draw, one panel each: (metric, axis label); a panel whose
+        metric no label has is left out, one named ``...minus...`` gets a line at zero, one
+        with values beyond 100 times their median magnitude a symmetric log axis, linear up to the median
+    :param title: the figure's title
+    :return: the written file
+    """
+    labels = list(estimates)
+    panels = [(metric, name) for metric, name in panels if any(metric in estimates[label] for label in labels)]
+    fig, axes = plt.subplots(
+        1, len(panels), figsize=(3.6 * len(panels), 0.6 + 0.5 * len(labels)), squeeze=False, sharey=True
+    )
+    colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    for ax, (metric, name) in zip(axes[0], panels, strict=True):
+        drawn = [estimates[label][metric] for label in labels if metric in estimates[label]]
+        magnitudes = np.abs([v for mean, low, high, seeds in drawn for v in (mean, low, high, *seeds)])
+        typical = float(np.median(magnitudes))
+        if typical > 0 and magnitudes.max() > 100 * typical:  # a failed seed far below the others
+            ax.set_xscale("symlog", linthresh=typical)
+            name = f"{name} (symlog)"
+        else:
+            ax.locator_params(axis="x", nbins=5)
+        for row, label in enumerate(labels):
+            if metric not in estimates[label]:
+                continue
+            mean, low, high, seeds = estimates[label][metric]
+            color = colors[row % len(colors)]
+            ax.plot([low, high], [row, row], color=color, linewidth=6, alpha=0.35, solid_capstyle="butt")
+            ax.plot(seeds, [row] * len(seeds), "o", color=color, markersize=3.5, markerfacecolor="none")
+            ax.plot([mean], [row], "|", color=color, markersize=14, markeredgewidth=2.5)
+        if "minus" in metric:
+            ax.axvline(0.0, color="0.4", linestyle="--", linewidth=1)
+        ax.set_xlabel(name)
+        ax.grid(axis="x", alpha=0.3)
+    axes[0][0].set_yticks(range(len(labels)), labels)
+    axes[0][0].set_ylim(len(labels) - 0.5, -0.5)
+    fig.suptitle(f"{title}{': ' if title else ''}mean (bar), 95 % interval (band), seeds (circles)", fontsize="medium")
     fig.tight_layout()
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)

@@ -263,6 +263,7 @@ def test_the_report_equals_a_hand_computation_from_the_evaluation_files(finished
         )
         assert f"## {algorithm.label} ({algorithm.algo}): 2 of 2 seeds finished" in text
     assert (out / "curves.png").stat().st_size > 0
+    assert (out / "estimates.png").stat().st_size > 0 and f"Final policies: {out / 'estimates.png'}" in text
     assert "Not drawn (trained one iteration): random." in text  # a single point is no curve
     pairs = {(row["better"], row["than"]) for row in summary["comparisons"]}
     assert pairs == {("learned", "random"), ("random", "learned")}

@@ -3,7 +3,7 @@
 ``run`` trains and evaluates every (algorithm, seed) trial of a study file as a Ray Tune
 trial (Ray started on this machine, or ``--address`` of a running cluster); running it
 again skips finished trials and resumes interrupted ones. ``report`` prints the tables
-and writes ``curves.png`` and ``summary.json`` to the study folder. Study files shipped
+and writes ``curves.png``, ``estimates.png`` and ``summary.json`` to the study folder. Study files shipped
 with the package can be named without their path (``multiwalker_paper.yml``).
 """
 
@@ -41,9 +41,9 @@ def _main() -> None:
         default=None,
         help="cores Ray hands out on this machine (default: all); more than it has runs more trials at once",
     )
-    report = commands.add_parser("report", help="tables, curves.png and summary.json of a study folder")
+    report = commands.add_parser("report", help="tables, curves.png, estimates.png and summary.json of a study folder")
     report.add_argument("dir", type=Path, help="study folder")
-    report.add_argument("--no-plot", action="store_true", help="do not draw curves.png")
+    report.add_argument("--no-plot", action="store_true", help="do not draw curves.png and estimates.png")
     args = parser.parse_args(sys.argv[1:])
     if args.command == "run":
         from sb3_detc.study.runner import run_study

@@ -23,13 +23,14 @@ import numpy as np
 from rliable import library as rly
 from rliable import metrics as rly_metrics
 
-from sb3_detc.plot import plot_runs
+from sb3_detc.plot import plot_estimates, plot_runs
 from sb3_detc.study.spec import StudyError, load_study
 from sb3_detc.study.trial import read_status, trial_folder
 
 __all__ = [
     "BOOTSTRAP_REPS",
     "CURVE_PANELS",
+    "ESTIMATE_PANELS",
     "METRICS",
     "interval_estimates",
     "read_trials",
@@ -69,6 +70,17 @@ METRICS = (
 CURVE_PANELS = (
     ("comm/ep_control_return", "control return (no communication cost)"),
     ("comm/savings", "communication savings"),
+)
+
+
+#: Panels of ``estimates.png``: the final policies' metrics (those the trials report), means
+#: over seeds with their intervals and every seed.
+ESTIMATE_PANELS = (
+    ("control_return", "control return"),
+    ("savings", "savings"),
+    ("learned_minus_random_control_return", "learned - random, same rate"),
+    ("package_travel", "package travel"),
+    ("fall_rate", "fall rate"),
 )
 
 
@@ -265,11 +277,12 @@ def _logged_iterations(run: Path) -> int:
 
 
 def report_study(directory: str | Path, plot: bool = True) -> str:
-    """Write ``summary.json`` (and ``curves.png``) into a study folder and return the Markdown report.
+    """Write ``summary.json`` (and the figures) into a study folder and return the Markdown report.
 
     :param directory: the study folder
     :param plot: draw the training curves of every algorithm (mean and min-max band over
-        seeds, curriculum phases dashed) to ``curves.png``
+        seeds, curriculum phases dashed) to ``curves.png``, and the final policies' metrics
+        (mean, 95 % interval and every seed) to ``estimates.png``
     :return: the report
     :raises StudyError: if the folder is not a study folder
     """
@@ -292,6 +305,22 @@ def report_study(directory: str | Path, plot: bool = True) -> str:
         if groups:
             figure = plot_runs(groups, directory / "curves.png", title=spec.env, panels=CURVE_PANELS)
             text += f"\nCurves: {figure}\n"
+        estimates = {
+            label: {
+                metric: (
+                    entry["mean"][metric],
+                    *entry["ci95"][metric],
+                    [float(seed_metrics[metric]) for seed_metrics in entry["seeds"].values()],
+                )
+                for metric, _ in ESTIMATE_PANELS
+                if metric in entry["mean"]
+            }
+            for label, entry in summary.items()
+            if label != "comparisons" and entry["seeds"]
+        }
+        if estimates:
+            figure = plot_estimates(estimates, directory / "estimates.png", ESTIMATE_PANELS, title=spec.env)
+            text += f"\nFinal policies: {figure}\n"
         if single:
             text += f"\nNot drawn (trained one iteration): {', '.join(single)}.\n"
     return text
