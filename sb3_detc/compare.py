@@ -14,9 +14,10 @@ gives the team-mean return per agent and episode (communication cost included), 
 return (without it) and the communication savings ``1 - broadcasts / agent-steps``, each as
 the mean over seeds with a 95 % bootstrap interval, and the paired difference between the
 learned options and random skips at the learned rate (same controller, same episodes). The
-figure (``<dir>/curves.png``) shows the training control return and savings of both, the
+figure ``<dir>/curves.png`` shows the training control return and savings of both, the
 control return without the communication cost for both, since the baseline trains without
-paying it. Running the command again with the same settings reuses finished runs.
+paying it; ``<dir>/estimates.png`` the final policies' metrics, every seed with the mean and
+its interval. Running the command again with the same settings reuses finished runs.
 """
 
 from __future__ import annotations
@@ -238,7 +239,8 @@ def _main() -> None:
     if (folder / "curves.png").is_file():
         print(f"Figure: {folder / 'curves.png'}")
     else:
-        print("No figure: every run trained one iteration, and a curve needs two")
+        print("No training curves: every run trained one iteration, and a curve needs two")
+    print(f"Final policies: {folder / 'estimates.png'}")
 
 
 def main(argv: Sequence[str] | None = None) -> None:

@@ -275,6 +275,7 @@ def test_compare_reports_over_seeds_with_intervals_and_a_figure(tmp_path: Path) 
     assert "the baseline has nothing to learn, so it trains one iteration" in out
     assert (folder / "curves.png").is_file() and (folder / "summary.json").is_file()
     assert f"Figure: {folder / 'curves.png'}" in out
+    assert f"Final policies: {folder / 'estimates.png'}" in out and (folder / "estimates.png").is_file()
     # the same settings again: nothing trains; other settings in the same folder: refused
     again = subprocess.run([*command, "--eval-episodes", "2"], capture_output=True, text=True, timeout=600)
     assert again.returncode == 0 and "all 4 trials are done" in again.stdout
@@ -288,8 +289,9 @@ def test_compare_without_curves_says_so(tmp_path: Path) -> None:
     result = subprocess.run([*command, "--dir", str(folder)], capture_output=True, text=True, timeout=600)
     assert result.returncode == 0, result.stdout + result.stderr
     assert "| mappoc | 1 |" in result.stdout  # one iteration of 8 x 128 steps each: nothing to draw
-    assert "No figure: every run trained one iteration" in result.stdout and "Figure:" not in result.stdout
+    assert "No training curves: every run trained one iteration" in result.stdout and "Figure:" not in result.stdout
     assert not (folder / "curves.png").exists()
+    assert f"Final policies: {folder / 'estimates.png'}" in result.stdout and (folder / "estimates.png").is_file()
 
 
 # ----------------------------------------------------------------------------- bad input
