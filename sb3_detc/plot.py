@@ -35,6 +35,7 @@ __all__ = [
     "curriculum_phases",
     "find_runs",
     "main",
+    "outlier_symlog_threshold",
     "plot_estimates",
     "plot_runs",
     "read_progress",
@@ -253,7 +254,7 @@ def plot_estimates(
     :param out: the PNG file
     :param panels: the metrics to draw, one panel each: (metric, axis label); a panel whose
         metric no label has is left out, one named ``...minus...`` gets a line at zero, one
-        with values beyond 100 times their median magnitude a symmetric log axis, linear up to the median
+        with outliers a symmetric log axis (:func:`outlier_symlog_threshold`)
     :param title: the figure's title
     :return: the written file
     """
@@ -265,10 +266,9 @@ def plot_estimates(
     colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
     for ax, (metric, name) in zip(axes[0], panels, strict=True):
         drawn = [estimates[label][metric] for label in labels if metric in estimates[label]]
-        magnitudes = np.abs([v for mean, low, high, seeds in drawn for v in (mean, low, high, *seeds)])
-        typical = float(np.median(magnitudes))
-        if typical > 0 and magnitudes.max() > 100 * typical:  # a failed seed far below the others
-            ax.set_xscale("symlog", linthresh=typical)
+        scale = outlier_symlog_threshold(np.array([v for m, lo, hi, seeds in drawn for v in (m, lo, hi, *seeds)]))
+        if scale is not None:  # a failed seed far from the others
+            ax.set_xscale("symlog", linthresh=scale)
             name = f"{name} (symlog)"
         else:
             ax.locator_params(axis="x", nbins=5)
@@ -293,6 +293,23 @@ def plot_estimates(
     fig.savefig(out, dpi=120)
     plt.close(fig)
     return out
+
+
+def outlier_symlog_threshold(values: np.ndarray, span: float = 100.0) -> float | None:
+    """Linear range of a symmetric log axis for values with outliers, else None.
+
+    Unlike :func:`symlog_threshold` (for curves that grow by orders of magnitude), the axis stays
+    linear up to the values' median magnitude, so that values near zero keep a linear scale.
+
+    :param values: the plotted values (NaN allowed)
+    :param span: ratio of the largest to the median magnitude above which the axis turns logarithmic
+    :return: the median magnitude, or None for a linear axis
+    """
+    magnitudes = np.abs(values[np.isfinite(values)])
+    if len(magnitudes) == 0:
+        return None
+    typical = float(np.median(magnitudes))
+    return typical if typical > 0 and magnitudes.max() > span * typical else None
 
 
 def symlog_threshold(values: np.ndarray, span: float = 100.0) -> float | None:

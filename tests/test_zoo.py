@@ -434,6 +434,15 @@ def test_return_axis_turns_logarithmic_only_over_orders_of_magnitude() -> None:
     assert plot.symlog_threshold(np.array([np.nan, 0.0])) is None
 
 
+def test_estimate_axis_turns_logarithmic_only_for_outliers() -> None:
+    # One failed seed far below the others: symmetric log, linear up to the median magnitude.
+    assert plot.outlier_symlog_threshold(np.array([-323213.0, -10.3, -8.6, -12.5, -10.2, np.nan])) == 10.3
+    # Differences near zero (learned minus random) stay linear, however small some of them are.
+    assert plot.outlier_symlog_threshold(np.array([1.21, 0.94, 1.6, -0.001, 0.02])) is None
+    assert plot.outlier_symlog_threshold(np.array([0.0, 0.0, np.nan])) is None
+    assert plot.outlier_symlog_threshold(np.array([np.nan])) is None
+
+
 def test_the_comparison_trains_a_baseline_with_nothing_to_learn_one_iteration() -> None:
     fixed = compare.comparison_study(LINEAR_LQR, [0, 1], None, 5)["algorithms"]
     assert compare.controls_fixed(LINEAR_LQR) and not compare.controls_fixed(LINEAR)
