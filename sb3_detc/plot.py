@@ -164,6 +164,16 @@ def find_runs(folder: str | Path, algo: str, env_id: str) -> list[Path]:
     return [path for _, path in sorted(runs)]
 
 
+def _save(fig: plt.Figure, out: str | Path) -> Path:
+    """Lay the figure out, write it as a PNG file (its folder made if needed) and close it."""
+    fig.tight_layout()
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=120)
+    plt.close(fig)
+    return out
+
+
 def plot_runs(
     groups: dict[str, Sequence[str | Path]],
     out: str | Path,
@@ -234,12 +244,7 @@ def plot_runs(
         ax.grid(alpha=0.3)
     axes[0].legend(loc="lower right")
     fig.suptitle(f"{title}{': ' if title else ''}moving averages over {window} iterations")
-    fig.tight_layout()
-    out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=120)
-    plt.close(fig)
-    return out
+    return _save(fig, out)
 
 
 def plot_estimates(
@@ -287,12 +292,7 @@ def plot_estimates(
     axes[0][0].set_yticks(range(len(labels)), labels)
     axes[0][0].set_ylim(len(labels) - 0.5, -0.5)
     fig.suptitle(f"{title}{': ' if title else ''}mean (bar), 95 % interval (band), seeds (circles)", fontsize="medium")
-    fig.tight_layout()
-    out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=120)
-    plt.close(fig)
-    return out
+    return _save(fig, out)
 
 
 def outlier_symlog_threshold(values: np.ndarray, span: float = 100.0) -> float | None:
