@@ -33,6 +33,7 @@ from sb3_detc.zoo import InputError, run_cli  # noqa: E402
 
 __all__ = [
     "curriculum_phases",
+    "estimates_figure",
     "find_runs",
     "main",
     "outlier_symlog_threshold",
@@ -253,15 +254,30 @@ def plot_estimates(
     panels: Sequence[tuple[str, str]],
     title: str = "",
 ) -> Path:
-    """Means over seeds with their intervals and every seed's value: one panel per metric, one row per label.
+    """Draw :func:`estimates_figure` into a PNG file.
 
     :param estimates: label -> metric -> (mean, low, high, the seeds' values); a label may lack a metric
     :param out: the PNG file
+    :param panels: the metrics to draw, one panel each: (metric, axis label)
+    :param title: the figure's title
+    :return: the written file
+    """
+    return _save(estimates_figure(estimates, panels, title), out)
+
+
+def estimates_figure(
+    estimates: dict[str, dict[str, tuple[float, float, float, Sequence[float]]]],
+    panels: Sequence[tuple[str, str]],
+    title: str = "",
+) -> plt.Figure:
+    """Means over seeds with their intervals and every seed's value: one panel per metric, one row per label.
+
+    :param estimates: label -> metric -> (mean, low, high, the seeds' values); a label may lack a metric
     :param panels: the metrics to draw, one panel each: (metric, axis label); a panel whose
         metric no label has is left out, one named ``...minus...`` gets a line at zero, one
         with outliers a symmetric log axis (:func:`outlier_symlog_threshold`)
     :param title: the figure's title
-    :return: the written file
+    :return: the figure (rows top to bottom in the order of ``estimates``)
     """
     labels = list(estimates)
     panels = [(metric, name) for metric, name in panels if any(metric in estimates[label] for label in labels)]
@@ -292,7 +308,7 @@ def plot_estimates(
     axes[0][0].set_yticks(range(len(labels)), labels)
     axes[0][0].set_ylim(len(labels) - 0.5, -0.5)
     fig.suptitle(f"{title}{': ' if title else ''}mean (bar), 95 % interval (band), seeds (circles)", fontsize="medium")
-    return _save(fig, out)
+    return fig
 
 
 def outlier_symlog_threshold(values: np.ndarray, span: float = 100.0) -> float | None:

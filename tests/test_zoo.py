@@ -9,6 +9,7 @@ import sys
 import warnings
 from pathlib import Path
 
+import matplotlib.pyplot as plt
 import numpy as np
 import pytest
 from rl_zoo3.utils import get_callback_list
@@ -441,6 +442,35 @@ def test_estimate_axis_turns_logarithmic_only_for_outliers() -> None:
     assert plot.outlier_symlog_threshold(np.array([1.21, 0.94, 1.6, -0.001, 0.02])) is None
     assert plot.outlier_symlog_threshold(np.array([0.0, 0.0, np.nan])) is None
     assert plot.outlier_symlog_threshold(np.array([np.nan])) is None
+
+
+def test_estimates_figure_draws_a_row_per_label_and_a_panel_per_metric_someone_has() -> None:
+    estimates = {
+        "learned": {
+            "control_return": (-10.0, -11.0, -9.0, [-9.0, -10.0, -11.0]),
+            "learned_minus_random_control_return": (1.0, -0.5, 2.5, [2.5, 0.5, 0.0]),
+        },
+        "failing": {"control_return": (-5000.0, -15000.0, -10.0, [-10.0, -15000.0])},
+    }
+    panels = [
+        ("control_return", "control return"),
+        ("savings", "savings"),  # no label has it: left out
+        ("learned_minus_random_control_return", "learned - random"),
+    ]
+    fig = plot.estimates_figure(estimates, panels, title="T")
+    returns, difference = fig.axes
+    assert [ax.get_xlabel() for ax in fig.axes] == ["control return (symlog)", "learned - random"]
+    assert returns.get_xscale() == "symlog" and difference.get_xscale() == "linear"
+    assert [t.get_text() for t in returns.get_yticklabels()] == ["learned", "failing"]
+    assert returns.get_ylim() == (1.5, -0.5)  # first label on top
+    # Per drawn row: the interval, the seeds, the mean; the difference panel adds its zero line.
+    assert len(returns.lines) == 6 and len(difference.lines) == 4
+    seeds = [line for line in difference.lines if line.get_marker() == "o"]
+    assert [list(line.get_xdata()) for line in seeds] == [[2.5, 0.5, 0.0]]
+    assert any(list(line.get_xdata()) == [0.0, 0.0] for line in difference.lines if line.get_linestyle() == "--")
+    interval = returns.lines[3]  # the failing label's band
+    assert list(interval.get_xdata()) == [-15000.0, -10.0] and list(interval.get_ydata()) == [1, 1]
+    plt.close(fig)
 
 
 def test_the_comparison_trains_a_baseline_with_nothing_to_learn_one_iteration() -> None:
