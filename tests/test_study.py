@@ -10,10 +10,13 @@ import sys
 import time
 from pathlib import Path
 
+import gymnasium as gym
 import numpy as np
 import pytest
 import yaml
 
+from sb3_detc.evaluation import evaluate_episodes
+from sb3_detc.mappoc.policies import MlpHybridPolicy
 from sb3_detc.study.__main__ import main as study_main
 from sb3_detc.study.report import report_study, summarise
 from sb3_detc.study.spec import StudyError, load_study
@@ -269,6 +272,36 @@ def test_the_report_equals_a_hand_computation_from_the_evaluation_files(finished
     assert pairs == {("learned", "random"), ("random", "learned")}
     result = run_command("report", str(out), "--no-plot")
     assert result.returncode == 0 and "Probability of improvement" in result.stdout
+
+
+def test_the_value_of_information_sweep_runs_fixed_triggers_and_the_mode_of_learned_options(finished_study, tmp_path):
+    _, out, _ = finished_study
+    script = ROOT / "benchmarks" / "multiwalker_value_of_information.py"
+    results_file = tmp_path / "voi.json"
+    command = [sys.executable, str(script), str(out), "--out", str(results_file), "--rates", "0.5", "--periods", "2"]
+    printed = subprocess.run(command, check=True, capture_output=True, text=True, cwd=ROOT).stdout
+    results = json.loads(results_file.read_text())
+    spec = load_study(out / "study.yml")
+    assert set(results) == {trial.name for trial in spec.trials()}
+    seeds = [spec.eval_seed + k for k in range(spec.episodes)]
+    for trial in spec.trials():
+        rows = results[trial.name]
+        learned = json.loads((trial_folder(out, trial) / "evaluation.json").read_text())["modes"]["learned"]
+        assert rows["learned"]["control_return"] == pytest.approx(np.mean(learned["control_return"]))
+        assert rows["periodic 2"]["savings"] == pytest.approx(0.5, abs=0.1)
+        # Only a trial that learned its options has their mode: the policy's most likely options.
+        assert ("mode of mu" in rows) == (trial.algorithm.label == "learned")
+        if "mode of mu" in rows:
+            policy = MlpHybridPolicy.load(str(trial_folder(out, trial) / "policy.pt"), device="cpu")
+            episodes = evaluate_episodes(
+                policy, gym.make(spec.env), seeds, deterministic=True, deterministic_broadcast=True
+            )
+            assert rows["mode of mu"]["savings"] == pytest.approx(episodes.savings)
+            assert rows["mode of mu"]["control_return"] == pytest.approx(np.mean(episodes.control_returns))
+    assert "### learned" in printed and "| mode of mu | 2 |" in printed
+    # Run again: nothing left to evaluate, the same results.
+    again = subprocess.run(command, check=True, capture_output=True, text=True, cwd=ROOT).stdout
+    assert "control return" not in again.split("### ")[0] and json.loads(results_file.read_text()) == results
 
 
 def test_a_failing_trial_is_kept_with_its_traceback_and_the_others_go_on(tmp_path):
