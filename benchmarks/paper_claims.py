@@ -1,0 +1,221 @@
+"""The paper's Multiwalker claims against a study's finished seeds: a Markdown table.
+
+    python benchmarks/paper_claims.py benchmarks/studies/multiwalker_paper \\
+        --out benchmarks/results/paper_claims.md
+
+One row per claim of Kesper, Trimpe and Baumann (L4DC 2023), with our result (mean over the
+finished seeds, 95 % stratified-bootstrap interval, every seed) and a verdict by fixed rules,
+listed under the table:
+
+* a seed *carries the package* when its package travel is at least half of periodic
+  communication's with the same controllers (the travel part of the study's success criterion,
+  :data:`sb3_detc.study.trial.SUCCESS_TRAVEL`); a claim about learning to carry holds when more
+  than half of the seeds carry;
+* savings are *learned* when the policy over options ends (last logged ``train/entropy_mu``)
+  at least :data:`LEARNED_ENTROPY_GAP` nats below the entropy of options drawn independently of
+  the state at the same rate;
+* timing beats random timing when the interval of learned minus random options at the learned
+  rate (control return, paired episodes) lies above zero, loses when below, else no evidence;
+* savings are "about 55 %" when their interval reaches 50 to 60 % (:data:`ABOUT_55`);
+* "about half of the runs succeed" holds for 30 to 70 % of the seeds succeeding by the study's
+  criterion (``success``);
+* a recipe saves more when its savings interval lies above the paper's MAPPOC's.
+
+The numbers come from the study folder alone (``evaluation.json`` and ``progress.csv`` of every
+finished trial), as ``python -m sb3_detc.study report`` computes them.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import math
+from pathlib import Path
+from typing import Any
+
+from sb3_detc.study.report import summarise
+from sb3_detc.study.spec import load_study
+from sb3_detc.study.trial import SUCCESS_TRAVEL, trial_folder
+
+#: How far (nats) below a state-independent trigger's entropy the policy over options must end to count as learned.
+LEARNED_ENTROPY_GAP = 0.05
+#: Savings that count as "about 55 %": the interval must reach this range.
+ABOUT_55 = (0.5, 0.6)
+#: Fraction of succeeding seeds that counts as "about half".
+ABOUT_HALF = (0.3, 0.7)
+
+
+def binary_entropy(p: float) -> float:
+    """Entropy (nats) of a two-option distribution with probability ``p`` of one option."""
+    return -sum(q * math.log(q) for q in (p, 1.0 - p) if q > 0.0)
+
+
+def final_entropies(folder: Path, label: str) -> dict[int, float]:
+    """Seed -> last logged ``train/entropy_mu`` of every finished trial of an algorithm (none logged: left out)."""
+    spec = load_study(folder / "study.yml")
+    entropies = {}
+    for trial in spec.trials():
+        path = trial_folder(folder, trial) / "progress.csv"
+        if trial.algorithm.label != label or not (trial_folder(folder, trial) / "evaluation.json").is_file():
+            continue
+        with path.open(newline="") as file:
+            logged = [row["train/entropy_mu"] for row in csv.DictReader(file) if row.get("train/entropy_mu")]
+        if logged:
+            entropies[trial.seed] = float(logged[-1])
+    return entropies
+
+
+def estimate(entry: dict[str, Any], metric: str, scale: float = 1.0, digits: int = 1, unit: str = "") -> str:
+    """``mean [low, high]`` of a metric over the seeds, then every seed's value."""
+    mean, (low, high) = entry["mean"][metric], entry["ci95"][metric]
+    seeds = ", ".join(f"{scale * entry['seeds'][s][metric]:.{digits}f}" for s in sorted(entry["seeds"], key=int))
+    return f"{scale * mean:.{digits}f}{unit} [{scale * low:.{digits}f}, {scale * high:.{digits}f}] (seeds: {seeds})"
+
+
+def carriers(entry: dict[str, Any]) -> int:
+    """Seeds whose package travel is at least ``SUCCESS_TRAVEL`` of periodic communication's."""
+    return sum(m["package_travel"] >= SUCCESS_TRAVEL * m["periodic_package_travel"] for m in entry["seeds"].values())
+
+
+def improvement(summary: dict[str, Any], better: str, than: str) -> str:
+    """The probability that a seed of ``better`` has the higher control return than one of ``than``."""
+    row = next(c for c in summary["comparisons"] if c["better"] == better and c["than"] == than)
+    low, high = row["ci95"]
+    return f"P({better} > {than}) = {row['probability']:.2f} [{low:.2f}, {high:.2f}]"
+
+
+def claims(folder: Path, mappoc: str, baseline: str, recipe: str | None) -> str:
+    """The claims table (Markdown) of a study folder.
+
+    :param folder: the study folder
+    :param mappoc: label of the paper's MAPPOC in the study
+    :param baseline: label of the paper's random-skip baseline
+    :param recipe: label of a recipe that claims more savings, or None
+    :return: the table and the rules of its verdicts
+    :raises SystemExit: if a named algorithm has no finished seed, or the trials report no package travel
+    """
+    summary = summarise(folder)
+    for label in (mappoc, baseline, recipe):
+        if label is not None and not summary.get(label, {}).get("seeds"):
+            raise SystemExit(f"{folder}: no finished seed of {label!r}")
+    paper, skips = summary[mappoc], summary[baseline]
+    if "package_travel" not in paper["mean"]:
+        raise SystemExit(f"{folder}: the trials report no package travel (not a Multiwalker study)")
+    n, n_skips = len(paper["seeds"]), len(skips["seeds"])
+    rows = []
+
+    carried = carriers(paper)
+    rows.append(
+        (
+            "MAPPOC learns to carry the package",
+            f"package travel {estimate(paper, 'package_travel')}; periodic communication with the same "
+            f"controllers {estimate(paper, 'periodic_package_travel')}; fails (a fall or a dropped package) "
+            f"in {estimate(paper, 'fall_rate', 100, 0, ' %')} of the episodes",
+            f"{'yes' if carried > n / 2 else 'no'}: {carried} of {n} seeds carry",
+        )
+    )
+
+    entropies = final_entropies(folder, mappoc)
+    savings = paper["mean"]["savings"]
+    low, high = paper["ci95"]["savings"]
+    learned = [e < binary_entropy(paper["seeds"][s]["savings"]) - LEARNED_ENTROPY_GAP for s, e in entropies.items()]
+    listed = ", ".join(f"{entropies[s]:.3f}" for s in sorted(entropies))
+    rows.append(
+        (
+            "... with about 55 % savings, learned",
+            f"savings {estimate(paper, 'savings', 100, 0, ' %')}; entropy of the policy over options at the "
+            f"end {listed} (options independent of the state at {100 * savings:.0f} %: "
+            f"{binary_entropy(savings):.3f})",
+            f"savings {'yes' if low <= ABOUT_55[1] and high >= ABOUT_55[0] else 'no'}, learned in "
+            f"{sum(learned)} of {len(learned)} seeds",
+        )
+    )
+
+    low, high = paper["ci95"]["learned_minus_random_control_return"]
+    verdict = "yes" if low > 0 else "no" if high < 0 else "no evidence"
+    rows.append(
+        (
+            "learned timing beats random timing at the same rate",
+            "control return, learned minus random options at the learned rate (50 paired episodes per "
+            f"seed): {estimate(paper, 'learned_minus_random_control_return')}",
+            f"{verdict}: the interval {'lies above' if low > 0 else 'lies below' if high < 0 else 'contains'} zero",
+        )
+    )
+
+    succeeded = paper["success_count"]
+    share = succeeded / n
+    rows.append(
+        (
+            "about half of the runs succeed",
+            f"{succeeded} of {n} seeds succeed (at least 90 % of the episodes without a fall, package travel "
+            "at least half of periodic communication's)",
+            f"{'yes' if ABOUT_HALF[0] <= share <= ABOUT_HALF[1] else 'no'}: {100 * share:.0f} %",
+        )
+    )
+
+    carried_skips = carriers(skips)
+    rows.append(
+        (
+            "PPO with random skips (about 50 %) cannot learn a good policy",
+            f"the baseline at {estimate(skips, 'savings', 100, 0, ' %')} skips: package travel "
+            f"{estimate(skips, 'package_travel')}, control return {estimate(skips, 'control_return')}, "
+            f"fails in {estimate(skips, 'fall_rate', 100, 0, ' %')} of the episodes, {skips['success_count']} "
+            f"of {n_skips} seeds succeed; the paper's MAPPOC: control return "
+            f"{estimate(paper, 'control_return')}, {improvement(summary, mappoc, baseline)}",
+            f"{'no' if carried_skips > n_skips / 2 else 'yes'}: {carried_skips} of {n_skips} baseline seeds carry",
+        )
+    )
+
+    if recipe is not None:
+        first = summary[recipe]
+        more = first["ci95"]["savings"][0] > paper["ci95"]["savings"][1]
+        rows.append(
+            (
+                f"(beyond the paper) {recipe} saves more",
+                f"savings {estimate(first, 'savings', 100, 0, ' %')}, control return "
+                f"{estimate(first, 'control_return')}, package travel {estimate(first, 'package_travel')}, fails "
+                f"in {estimate(first, 'fall_rate', 100, 0, ' %')}; learned minus random at the learned rate "
+                f"{estimate(first, 'learned_minus_random_control_return')}, never broadcasting "
+                f"{estimate(first, 'never_control_return')}; {improvement(summary, recipe, mappoc)}",
+                f"savings {'yes' if more else 'no'}; {carriers(first)} of {len(first['seeds'])} seeds carry, "
+                f"{first['success_count']} succeed",
+            )
+        )
+
+    lines = [
+        f"Study `{folder.name}`: {n} seeds of {mappoc}, {n_skips} of {baseline}"
+        + (f", {len(summary[recipe]['seeds'])} of {recipe}" if recipe else "")
+        + "; mean [95 % interval] (seeds: each seed's value).",
+        "",
+        "| paper claim | our result | holds? |",
+        "|---|---|---|",
+        *(f"| {claim} | {result} | {verdict} |" for claim, result, verdict in rows),
+        "",
+        "Verdicts: a seed carries the package when its package travel is at least "
+        f"{SUCCESS_TRAVEL:g} of periodic communication's; savings are learned when the policy over options ends "
+        f"at least {LEARNED_ENTROPY_GAP} nats below the entropy of state-independent options at the same rate; "
+        f"savings of about 55 % when the interval reaches {100 * ABOUT_55[0]:.0f} % to "
+        f"{100 * ABOUT_55[1]:.0f} %; about half is {100 * ABOUT_HALF[0]:.0f} % to {100 * ABOUT_HALF[1]:.0f} % "
+        "of the seeds; P(a > b) is the probability of improvement in control return (rliable).",
+    ]
+    return "\n".join(lines) + "\n"
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("folder", type=Path, help="the study folder")
+    parser.add_argument("--mappoc", default="mappoc_paper", help="label of the paper's MAPPOC")
+    parser.add_argument("--baseline", default="random_skip_paper", help="label of the paper's random-skip baseline")
+    parser.add_argument(
+        "--recipe", default="control_first", help="label of a recipe claiming more savings ('' for none)"
+    )
+    parser.add_argument("--out", type=Path, help="also write the table to this file")
+    args = parser.parse_args()
+    table = claims(args.folder, args.mappoc, args.baseline, args.recipe or None)
+    print(table, end="")
+    if args.out:
+        args.out.write_text(table)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,102 @@
+"""``benchmarks/paper_claims.py``: the paper's claims against a study's finished seeds, with fixed verdict rules."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+STUDY = ROOT / "benchmarks" / "studies" / "multiwalker_paper"
+LABELS = ("mappoc_paper", "random_skip_paper", "control_first")
+
+_spec = importlib.util.spec_from_file_location("paper_claims", ROOT / "benchmarks" / "paper_claims.py")
+paper_claims = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(paper_claims)
+
+
+def study_copy(tmp_path: Path, entropies: dict[int, float], labels: tuple[str, ...] = LABELS) -> Path:
+    """Seeds 0 and 1 of the study's MAPPOC, baseline and recipe (their evaluations), with given final entropies."""
+    folder = tmp_path / "multiwalker_paper"
+    folder.mkdir()
+    shutil.copy(STUDY / "study.yml", folder / "study.yml")
+    for label in labels:
+        for seed in (0, 1):
+            source, target = STUDY / "trials" / label / f"seed{seed}", folder / "trials" / label / f"seed{seed}"
+            target.mkdir(parents=True)
+            for name in ("status.json", "evaluation.json"):
+                shutil.copy(source / name, target / name)
+            entropy = entropies[seed] if label == "mappoc_paper" else 0.5
+            (target / "progress.csv").write_text(f"time/iterations,train/entropy_mu\n1,0.693\n2,{entropy}\n3,\n")
+    return folder
+
+
+def metrics(folder: Path, label: str, seed: int) -> dict:
+    return json.loads((folder / "trials" / label / f"seed{seed}" / "evaluation.json").read_text())["metrics"]
+
+
+def set_metrics(folder: Path, label: str, seed: int, **values: float) -> None:
+    path = folder / "trials" / label / f"seed{seed}" / "evaluation.json"
+    evaluation = json.loads(path.read_text())
+    evaluation["metrics"].update(values)
+    path.write_text(json.dumps(evaluation))
+
+
+def rows(table: str) -> dict[str, tuple[str, str]]:
+    """Claim -> (our result, verdict) of the Markdown table."""
+    cells = [line.strip("|").split(" | ") for line in table.splitlines() if line.startswith("| ") and "---" not in line]
+    return {claim.strip(): (result, verdict.strip()) for claim, result, verdict in cells[1:]}
+
+
+def test_the_claims_of_two_seeds_follow_their_evaluations(tmp_path: Path) -> None:
+    folder = study_copy(tmp_path, {0: 0.692, 1: 0.3})
+    table = rows(paper_claims.claims(folder, "mappoc_paper", "random_skip_paper", "control_first"))
+    paper = [metrics(folder, "mappoc_paper", seed) for seed in (0, 1)]
+    differences = [m["learned_minus_random_control_return"] for m in paper]
+    result, verdict = table["learned timing beats random timing at the same rate"]
+    # With two seeds the bootstrap interval runs from the smaller to the larger value.
+    assert f"{np.mean(differences):.1f} [{min(differences):.1f}, {max(differences):.1f}]" in result
+    assert min(differences) < 0 < max(differences) and verdict == "no evidence: the interval contains zero"
+    result, verdict = table["... with about 55 % savings, learned"]
+    assert "at the end 0.692, 0.300" in result and verdict.endswith("learned in 1 of 2 seeds")
+    travel = [m["package_travel"] >= 0.5 * m["periodic_package_travel"] for m in paper]
+    assert table["MAPPOC learns to carry the package"][1].endswith(f"{sum(travel)} of 2 seeds carry")
+    assert table["about half of the runs succeed"][1] == f"no: {50 * sum(m['success'] for m in paper):.0f} %"
+    assert "(beyond the paper) control_first saves more" in table
+
+
+@pytest.mark.parametrize(
+    ("changes", "claim", "verdict"),
+    [
+        ({"learned_minus_random_control_return": [5.0, 8.0]}, "learned timing beats", "yes: the interval lies above"),
+        ({"learned_minus_random_control_return": [-5.0, -8.0]}, "learned timing beats", "no: the interval lies below"),
+        ({"success": [1.0, 0.0]}, "about half of the runs succeed", "yes: 50 %"),
+        ({"package_travel": [1.0, 1.0]}, "MAPPOC learns to carry the package", "no: 0 of 2 seeds carry"),
+        ({"savings": [0.9, 0.95]}, "... with about 55 % savings, learned", "savings no, learned in 0 of 2 seeds"),
+    ],
+)
+def test_verdicts_follow_their_rules(tmp_path: Path, changes: dict, claim: str, verdict: str) -> None:
+    folder = study_copy(tmp_path, {0: 0.692, 1: 0.692}, LABELS[:2])
+    for metric, values in changes.items():
+        for seed, value in enumerate(values):
+            set_metrics(folder, "mappoc_paper", seed, **{metric: value})
+    table = rows(paper_claims.claims(folder, "mappoc_paper", "random_skip_paper", None))
+    (found,) = [v for c, (_, v) in table.items() if c.startswith(claim)]
+    assert found.startswith(verdict)
+
+
+def test_a_study_without_the_named_algorithms_or_package_travel_is_refused(tmp_path: Path) -> None:
+    folder = study_copy(tmp_path, {0: 0.692, 1: 0.692}, LABELS[:2])
+    with pytest.raises(SystemExit, match="no finished seed of 'mappoc_paper_overlap'"):
+        paper_claims.claims(folder, "mappoc_paper_overlap", "random_skip_paper", None)
+    for seed in (0, 1):
+        path = folder / "trials" / "mappoc_paper" / f"seed{seed}" / "evaluation.json"
+        evaluation = json.loads(path.read_text())
+        del evaluation["metrics"]["package_travel"]
+        path.write_text(json.dumps(evaluation))
+    with pytest.raises(SystemExit, match="no package travel"):
+        paper_claims.claims(folder, "mappoc_paper", "random_skip_paper", None)
