@@ -8,8 +8,8 @@ finished seeds, 95 % stratified-bootstrap interval, every seed) and a verdict by
 listed under the table:
 
 * a seed *carries the package* when its package travel is at least half of periodic
-  communication's with the same controllers (the travel part of the study's success criterion,
-  :data:`sb3_detc.study.trial.SUCCESS_TRAVEL`); a claim about learning to carry holds when more
+  communication's with the same controllers (:func:`sb3_detc.study.trial.carries_package`, the
+  travel part of the study's success criterion); a claim about learning to carry holds when more
   than half of the seeds carry;
 * savings are *learned* when the policy over options ends (last logged ``train/entropy_mu``)
   at least :data:`LEARNED_ENTROPY_GAP` nats below the entropy of options drawn independently of
@@ -34,8 +34,8 @@ from pathlib import Path
 from typing import Any
 
 from sb3_detc.study.report import summarise
-from sb3_detc.study.spec import load_study
-from sb3_detc.study.trial import SUCCESS_TRAVEL, trial_folder
+from sb3_detc.study.spec import StudyError, load_study
+from sb3_detc.study.trial import SUCCESS_NO_FALL, SUCCESS_TRAVEL, carries_package, trial_folder
 
 #: How far (nats) below a state-independent trigger's entropy the policy over options must end to count as learned.
 LEARNED_ENTROPY_GAP = 0.05
@@ -46,18 +46,31 @@ ABOUT_HALF = (0.3, 0.7)
 
 
 def binary_entropy(p: float) -> float:
-    """Entropy (nats) of a two-option distribution with probability ``p`` of one option."""
+    """Entropy (nats) of a two-option distribution.
+
+    :param p: probability of one option
+    :return: the entropy in nats
+    """
     return -sum(q * math.log(q) for q in (p, 1.0 - p) if q > 0.0)
 
 
 def final_entropies(folder: Path, label: str) -> dict[int, float]:
-    """Seed -> last logged ``train/entropy_mu`` of every finished trial of an algorithm (none logged: left out)."""
+    """The last logged ``train/entropy_mu`` of every finished trial of an algorithm.
+
+    :param folder: the study folder
+    :param label: the algorithm's label
+    :return: seed -> final entropy of the policy over options (seeds that logged none are left out)
+    :raises StudyError: if a finished trial has no ``progress.csv``
+    """
     spec = load_study(folder / "study.yml")
     entropies = {}
     for trial in spec.trials():
-        path = trial_folder(folder, trial) / "progress.csv"
-        if trial.algorithm.label != label or not (trial_folder(folder, trial) / "evaluation.json").is_file():
+        trial_dir = trial_folder(folder, trial)
+        if trial.algorithm.label != label or not (trial_dir / "evaluation.json").is_file():
             continue
+        path = trial_dir / "progress.csv"
+        if not path.is_file():
+            raise StudyError(f"{trial_dir}: finished, but its progress.csv is missing")
         with path.open(newline="") as file:
             logged = [row["train/entropy_mu"] for row in csv.DictReader(file) if row.get("train/entropy_mu")]
         if logged:
@@ -66,19 +79,37 @@ def final_entropies(folder: Path, label: str) -> dict[int, float]:
 
 
 def estimate(entry: dict[str, Any], metric: str, scale: float = 1.0, digits: int = 1, unit: str = "") -> str:
-    """``mean [low, high]`` of a metric over the seeds, then every seed's value."""
+    """A metric over the seeds as ``mean [low, high] (seeds: ...)``.
+
+    :param entry: an algorithm's entry of :func:`~sb3_detc.study.report.summarise`
+    :param metric: the metric's name
+    :param scale: factor applied to every value (100 for percentages)
+    :param digits: decimals shown
+    :param unit: text after the mean
+    :return: the mean, its 95 % interval and every seed's value
+    """
     mean, (low, high) = entry["mean"][metric], entry["ci95"][metric]
     seeds = ", ".join(f"{scale * entry['seeds'][s][metric]:.{digits}f}" for s in sorted(entry["seeds"], key=int))
     return f"{scale * mean:.{digits}f}{unit} [{scale * low:.{digits}f}, {scale * high:.{digits}f}] (seeds: {seeds})"
 
 
 def carriers(entry: dict[str, Any]) -> int:
-    """Seeds whose package travel is at least ``SUCCESS_TRAVEL`` of periodic communication's."""
-    return sum(m["package_travel"] >= SUCCESS_TRAVEL * m["periodic_package_travel"] for m in entry["seeds"].values())
+    """The number of seeds that carry the package (:func:`~sb3_detc.study.trial.carries_package`).
+
+    :param entry: an algorithm's entry of :func:`~sb3_detc.study.report.summarise`
+    :return: how many of its seeds carry
+    """
+    return sum(carries_package(m) for m in entry["seeds"].values())
 
 
 def improvement(summary: dict[str, Any], better: str, than: str) -> str:
-    """The probability that a seed of ``better`` has the higher control return than one of ``than``."""
+    """The probability of improvement in control return of one algorithm over another, with its interval.
+
+    :param summary: the study's :func:`~sb3_detc.study.report.summarise`
+    :param better: label of the algorithm claimed better
+    :param than: label of the other algorithm
+    :return: ``P(better > than) = p [low, high]``
+    """
     row = next(c for c in summary["comparisons"] if c["better"] == better and c["than"] == than)
     low, high = row["ci95"]
     return f"P({better} > {than}) = {row['probability']:.2f} [{low:.2f}, {high:.2f}]"
@@ -92,15 +123,16 @@ def claims(folder: Path, mappoc: str, baseline: str, recipe: str | None) -> str:
     :param baseline: label of the paper's random-skip baseline
     :param recipe: label of a recipe that claims more savings, or None
     :return: the table and the rules of its verdicts
-    :raises SystemExit: if a named algorithm has no finished seed, or the trials report no package travel
+    :raises StudyError: if a named algorithm has no finished seed, or the trials report no package travel
     """
     summary = summarise(folder)
+    episodes = load_study(folder / "study.yml").episodes
     for label in (mappoc, baseline, recipe):
         if label is not None and not summary.get(label, {}).get("seeds"):
-            raise SystemExit(f"{folder}: no finished seed of {label!r}")
+            raise StudyError(f"{folder}: no finished seed of {label!r}")
     paper, skips = summary[mappoc], summary[baseline]
     if "package_travel" not in paper["mean"]:
-        raise SystemExit(f"{folder}: the trials report no package travel (not a Multiwalker study)")
+        raise StudyError(f"{folder}: the trials report no package travel (not a Multiwalker study)")
     n, n_skips = len(paper["seeds"]), len(skips["seeds"])
     rows = []
 
@@ -136,8 +168,8 @@ def claims(folder: Path, mappoc: str, baseline: str, recipe: str | None) -> str:
     rows.append(
         (
             "learned timing beats random timing at the same rate",
-            "control return, learned minus random options at the learned rate (50 paired episodes per "
-            f"seed): {estimate(paper, 'learned_minus_random_control_return')}",
+            f"control return, learned minus random options at the learned rate ({episodes} paired episodes "
+            f"per seed): {estimate(paper, 'learned_minus_random_control_return')}",
             f"{verdict}: the interval {'lies above' if low > 0 else 'lies below' if high < 0 else 'contains'} zero",
         )
     )
@@ -147,8 +179,8 @@ def claims(folder: Path, mappoc: str, baseline: str, recipe: str | None) -> str:
     rows.append(
         (
             "about half of the runs succeed",
-            f"{succeeded} of {n} seeds succeed (at least 90 % of the episodes without a fall, package travel "
-            "at least half of periodic communication's)",
+            f"{succeeded} of {n} seeds succeed (at least {100 * SUCCESS_NO_FALL:.0f} % of the episodes without a "
+            f"fall, package travel at least {SUCCESS_TRAVEL:g} of periodic communication's)",
             f"{'yes' if ABOUT_HALF[0] <= share <= ABOUT_HALF[1] else 'no'}: {100 * share:.0f} %",
         )
     )
@@ -192,11 +224,14 @@ def claims(folder: Path, mappoc: str, baseline: str, recipe: str | None) -> str:
         *(f"| {claim} | {result} | {verdict} |" for claim, result, verdict in rows),
         "",
         "Verdicts: a seed carries the package when its package travel is at least "
-        f"{SUCCESS_TRAVEL:g} of periodic communication's; savings are learned when the policy over options ends "
+        f"{SUCCESS_TRAVEL:g} of periodic communication's, and an algorithm learns to carry when more than half "
+        "of its seeds do; savings are learned when the policy over options ends "
         f"at least {LEARNED_ENTROPY_GAP} nats below the entropy of state-independent options at the same rate; "
         f"savings of about 55 % when the interval reaches {100 * ABOUT_55[0]:.0f} % to "
-        f"{100 * ABOUT_55[1]:.0f} %; about half is {100 * ABOUT_HALF[0]:.0f} % to {100 * ABOUT_HALF[1]:.0f} % "
-        "of the seeds; P(a > b) is the probability of improvement in control return (rliable).",
+        f"{100 * ABOUT_55[1]:.0f} %; learned timing beats random timing when the interval of the difference lies "
+        f"above zero; about half is {100 * ABOUT_HALF[0]:.0f} % to {100 * ABOUT_HALF[1]:.0f} % "
+        "of the seeds; a recipe saves more when its savings interval lies above the paper's MAPPOC's; "
+        "P(a > b) is the probability of improvement in control return (rliable).",
     ]
     return "\n".join(lines) + "\n"
 
@@ -211,7 +246,10 @@ def main() -> None:
     )
     parser.add_argument("--out", type=Path, help="also write the table to this file")
     args = parser.parse_args()
-    table = claims(args.folder, args.mappoc, args.baseline, args.recipe or None)
+    try:
+        table = claims(args.folder, args.mappoc, args.baseline, args.recipe or None)
+    except StudyError as error:
+        parser.exit(2, f"error: {error}\n")
     print(table, end="")
     if args.out:
         args.out.write_text(table)

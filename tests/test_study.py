@@ -15,12 +15,13 @@ import numpy as np
 import pytest
 import yaml
 
+import sb3_detc
 from sb3_detc.evaluation import evaluate_episodes
 from sb3_detc.mappoc.policies import MlpHybridPolicy
 from sb3_detc.study.__main__ import main as study_main
 from sb3_detc.study.report import report_study, summarise
 from sb3_detc.study.spec import StudyError, load_study
-from sb3_detc.study.trial import MODES, drop_stale_segments, read_status, trial_folder
+from sb3_detc.study.trial import MODES, code_commit, drop_stale_segments, read_status, trial_folder
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -201,6 +202,7 @@ def test_a_study_runs_every_trial_through_ray_and_evaluates_it(finished_study):
         machine = json.loads((folder / "segments" / "0" / "machine.json").read_text())
         assert machine["omp_wait_policy"] == os.environ.get("OMP_WAIT_POLICY", "PASSIVE")
         assert machine["torch_threads"] == 1 and machine["cores"] == os.cpu_count()
+        assert machine["commit"] == code_commit() and machine["sb3_detc"] == sb3_detc.__version__
         evaluation = json.loads((folder / "evaluation.json").read_text())
         assert set(evaluation["modes"]) == set(MODES)
         for mode in MODES:
@@ -531,3 +533,15 @@ def test_an_interrupted_trial_saves_where_it_stopped(tmp_path):
     assert read_status(folder)["status"] == "interrupted"
     assert json.loads((folder / "checkpoint.json").read_text())["timesteps"] == 2048
     assert run_trial(spec, trial, tmp_path / "out")["timesteps"] == 8192
+
+
+def test_the_code_commit_names_the_checkout_and_marks_changed_package_files(tmp_path: Path) -> None:
+    root = Path(sb3_detc.__file__).resolve().parents[1]
+    if not (root / ".git").exists():
+        assert code_commit() is None
+        return
+    head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=root, capture_output=True, text=True, check=True)
+    changed = subprocess.run(
+        ["git", "status", "--porcelain", "--", "sb3_detc"], cwd=root, capture_output=True, text=True, check=True
+    )
+    assert code_commit() == head.stdout.strip() + ("+modified" if changed.stdout.strip() else "")

@@ -24,6 +24,7 @@ import math
 import os
 import platform
 import shutil
+import subprocess
 import time
 import traceback
 from collections.abc import Callable
@@ -38,6 +39,7 @@ from rl_zoo3.utils import get_callback_list
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.save_util import load_from_zip_file
 
+import sb3_detc
 from sb3_detc.callbacks import FixedTriggerCallback
 from sb3_detc.evaluation import Episodes, evaluate_episodes
 from sb3_detc.mappoc.policies import MlpHybridPolicy
@@ -48,7 +50,11 @@ from sb3_detc.zoo import ExperimentManager
 
 __all__ = [
     "MODES",
+    "SUCCESS_NO_FALL",
+    "SUCCESS_TRAVEL",
     "TrialCheckpoint",
+    "carries_package",
+    "code_commit",
     "entry_fixed_trigger",
     "evaluate_policy_modes",
     "machine_record",
@@ -65,6 +71,16 @@ MODES = ("learned", "random_same_rate", "periodic", "never")
 SUCCESS_NO_FALL = 0.9
 #: Package travel of a successful seed relative to periodic communication with the same controller.
 SUCCESS_TRAVEL = 0.5
+
+
+def carries_package(metrics: dict[str, float]) -> bool:
+    """Whether a Multiwalker seed carries the package: the travel part of the success criterion.
+
+    :param metrics: a trial's evaluation metrics (``package_travel``, ``periodic_package_travel``)
+    :return: True when its package travel is at least :data:`SUCCESS_TRAVEL` of periodic communication's
+        with the same controllers
+    """
+    return metrics["package_travel"] >= SUCCESS_TRAVEL * metrics["periodic_package_travel"]
 
 
 def trial_folder(directory: str | os.PathLike, trial: Trial) -> Path:
@@ -177,11 +193,31 @@ def _write_progress(folder: Path) -> None:
         os.replace(scratch, folder / "progress.csv")
 
 
+def code_commit() -> str | None:
+    """The git commit of the package's source, so that a trial's segments name the code they ran.
+
+    :return: the commit's hash, with ``+modified`` when the package's files differ from it; None
+        when the package is not in a git checkout (an installed wheel) or git is missing
+    """
+    source = Path(sb3_detc.__file__).parent
+    try:
+        commit = subprocess.run(
+            ["git", "rev-parse", "HEAD"], cwd=source, capture_output=True, text=True, check=True
+        ).stdout.strip()
+        changes = subprocess.run(
+            ["git", "status", "--porcelain", "--", "."], cwd=source, capture_output=True, text=True, check=True
+        ).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return None
+    return commit + ("+modified" if changes else "")
+
+
 def machine_record() -> dict[str, Any]:
     """Where and how this process trains: what a segment's steps per second depend on.
 
     :return: host name, processor model, cores, torch's threads, ``OMP_WAIT_POLICY`` (None
-        if unset), versions of Python and torch, and the time (UTC, ISO 8601)
+        if unset), versions of Python, torch and sb3_detc, the code (:func:`code_commit`), and the
+        time (UTC, ISO 8601)
     """
     processor = platform.processor()
     cpuinfo = Path("/proc/cpuinfo")
@@ -198,6 +234,8 @@ def machine_record() -> dict[str, Any]:
         "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"),
         "python": platform.python_version(),
         "torch": th.__version__,
+        "sb3_detc": sb3_detc.__version__,
+        "commit": code_commit(),
         "started": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
     }
 
@@ -265,9 +303,8 @@ def evaluate_policy_modes(
         metrics["fall_rate"] = float(np.mean(learned.failed))
         metrics["periodic_package_travel"] = float(np.mean(results["periodic"].package_travel))
         metrics["random_same_rate_package_travel"] = float(np.mean(results["random_same_rate"].package_travel))
-        carried = 1.0 - metrics["fall_rate"] >= SUCCESS_NO_FALL
-        far = metrics["package_travel"] >= SUCCESS_TRAVEL * metrics["periodic_package_travel"]
-        metrics["success"] = float(carried and far)
+        upright = 1.0 - metrics["fall_rate"] >= SUCCESS_NO_FALL
+        metrics["success"] = float(upright and carries_package(metrics))
     return {
         "episodes": episodes,
         "seed": seed,
