@@ -178,12 +178,15 @@ class Snapshots(BaseCallback):
         self.states: list[dict[str, th.Tensor]] = []
         self.samples: list[Any] = []
         self.option_values: list[th.Tensor] = []
+        self.sampler_kl: list[tuple[float | None, float | None]] = []
 
     def _on_rollout_end(self) -> None:
         self.states.append({key: value.clone() for key, value in self.model.policy.state_dict().items()})
         buffer = self.model.rollout_buffer
         self.samples.append(buffer.tensors())
         self.option_values.append(th.as_tensor(buffer.option_values.reshape(-1, *buffer.option_values.shape[2:])))
+        logged = self.model.logger.name_to_value
+        self.sampler_kl.append((logged.get("rollout/sampler_kl_pi"), logged.get("rollout/sampler_kl_mu")))
 
     def _on_step(self) -> bool:
         return True
@@ -229,6 +232,18 @@ def test_overlapping_rollouts_are_sampled_before_the_update_and_weighted_by_the_
         th.testing.assert_close(data.behaviour_log_prob_broadcast, sampling.log_prob_broadcast)
         moved = not th.allclose(data.behaviour_log_prob_control, data.old_log_prob_control)
         assert moved == (k > 0), k  # the first rollout is the update's own; the others lag one update behind
+        # the logged lag: KL from the sampler to the update's start, estimated on the samples
+        expected = [None, None]
+        if k > 0:
+            for i, (now, then) in enumerate(
+                [
+                    (current.log_prob_control, sampling.log_prob_control),
+                    (current.log_prob_broadcast, sampling.log_prob_broadcast),
+                ]
+            ):
+                expected[i] = pytest.approx(float((th.exp(now - then) - 1 - (now - then)).mean()), rel=1e-4)
+            assert callback.sampler_kl[k][0] > 0
+        assert list(callback.sampler_kl[k]) == expected, k
 
 
 def test_an_error_in_an_overlapping_update_keeps_the_sampled_rollout_for_the_next_learn(tmp_path) -> None:

@@ -205,7 +205,9 @@ class MAPPOC(OnPolicyAlgorithm):
         under the policy that sampled it (the decoupled objective of Hilton, Cobbe and Schulman,
         2022, "Batch size-invariance for policy optimization"; the critic's error and the
         entropy are not weighted). Settings that callbacks change in ``on_rollout_start`` (noise,
-        fixed trigger) reach the sampling one rollout later. Without worker processes (or with a
+        fixed trigger) reach the sampling one rollout later. The logger's ``rollout/sampler_kl_pi``
+        and ``rollout/sampler_kl_mu`` estimate the KL divergence from the sampling policy to the
+        update's start (per agent and step). Without worker processes (or with a
         fixed trigger that cannot run in them) rollouts are sampled in turn, as without it
     :param n_envs: number of envs built from an env id (None: :func:`default_n_envs`, one
         per CPU core rounded down to a power of two, at most 8); only for an env id
@@ -780,6 +782,13 @@ class MAPPOC(OnPolicyAlgorithm):
                 sampled = self._behaviour_policy(behaviour).evaluate_actions(*steps)
                 drawn = drawn_broadcast_probability(steps[1], sampled.log_prob_broadcast)
             evaluation = self.policy.evaluate_actions(*steps, drawn)
+            if sampled is not None:  # how far the update's start has moved from the sampler (k3 estimate of the KL)
+                for name, now, then in (
+                    ("pi", evaluation.log_prob_control, sampled.log_prob_control),
+                    ("mu", evaluation.log_prob_broadcast, sampled.log_prob_broadcast),
+                ):
+                    log_weight = now - then
+                    self.logger.record(f"rollout/sampler_kl_{name}", float((th.expm1(log_weight) - log_weight).mean()))
             if truncated:
                 terminal = _stack_dicts([obs for _, _, obs in truncated], axis=0)
                 at = [(step, idx) for step, idx, _ in truncated]
