@@ -407,6 +407,8 @@ def test_a_killed_study_resumes_from_its_checkpoints(tmp_path):
     checkpoint = json.loads((long / "checkpoint.json").read_text())["timesteps"]
     assert 0 < checkpoint < 12288
     assert read_status(long)["status"] in ("running", "interrupted")  # killed, or told to stop by Ray
+    trained = read_status(long)["seconds"]  # its time up to the checkpoint at least, even when killed
+    assert trained > 0
     stamp = (short / "evaluation.json").stat().st_mtime_ns
 
     result = run_command("run", str(path), "--dir", str(out))
@@ -414,6 +416,7 @@ def test_a_killed_study_resumes_from_its_checkpoints(tmp_path):
     assert (short / "evaluation.json").stat().st_mtime_ns == stamp  # not run again
     status = read_status(long)
     assert status["status"] == "done" and status["timesteps"] == 12288  # the budget, not budget + steps before
+    assert status["seconds"] > trained  # both attempts' time
     assert (long / "segments" / str(checkpoint)).is_dir()  # the second attempt started at the checkpoint
     progress = np.genfromtxt(long / "progress.csv", delimiter=",", names=True)
     steps = progress["timetotal_timesteps"]

@@ -3,7 +3,8 @@
 A trial's folder (``<study dir>/trials/<label>/seed<seed>/``) holds plain files:
 
 * ``status.json``: ``status`` (``running``, ``done``, ``interrupted`` or ``failed``), ``timesteps``, ``budget``,
-  ``seconds`` (training time over all attempts);
+  ``seconds`` (training time over all attempts; of an attempt that ended without notice, up to
+  its latest checkpoint);
 * ``checkpoint.zip`` and ``checkpoint.json`` while it trains: the latest checkpoint (the whole
   model, optimizer included) and its step count, written atomically every
   ``checkpoint_interval`` steps at the start of a rollout;
@@ -363,22 +364,25 @@ def _train(spec: StudySpec, trial: Trial, folder: Path, on_progress: Callable[[i
     segment.mkdir(parents=True, exist_ok=True)
     _write_json(segment / "machine.json", machine_record())
 
-    def saved(steps: int) -> None:
+    earlier = read_status(folder).get("seconds", 0.0)  # training time of the attempts before
+    began = time.monotonic()
+
+    def saved(steps: int) -> None:  # a killed attempt keeps its time up to its latest checkpoint
         _write_progress(folder)
         status = read_status(folder)
-        _write_json(folder / "status.json", {**status, "timesteps": steps})
+        _write_json(
+            folder / "status.json", {**status, "timesteps": steps, "seconds": earlier + time.monotonic() - began}
+        )
 
     checkpoints = TrialCheckpoint(folder, spec.checkpoint_interval, on_progress, saved)
     manager.callbacks.append(checkpoints)
-    began = time.monotonic()
     interrupted = False
     try:
         manager.learn(model)
     except (KeyboardInterrupt, SystemExit):  # what rl-zoo3's learn() does not catch itself
         interrupted = True
-    status = read_status(folder)
-    seconds = status.get("seconds", 0.0) + time.monotonic() - began
-    _write_json(folder / "status.json", {**status, "timesteps": model.num_timesteps, "seconds": seconds})
+    seconds = earlier + time.monotonic() - began
+    _write_json(folder / "status.json", {**read_status(folder), "timesteps": model.num_timesteps, "seconds": seconds})
     if interrupted or model.num_timesteps < budget:  # rl-zoo3's learn() ends quietly on a KeyboardInterrupt
         # said first: Ray may end the process before the checkpoint is written
         _write_json(folder / "status.json", {**read_status(folder), "status": "interrupted"})
