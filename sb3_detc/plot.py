@@ -227,7 +227,7 @@ def plot_runs(
         scale = symlog_threshold(np.concatenate(curves))
         if scale is not None:  # early returns can be orders of magnitude below the final ones
             ax.set_yscale("symlog", linthresh=scale)
-            name = f"{name}, symmetric log scale"
+            name = f"{name} (symlog)"
         for iteration, phase in phases:
             ax.axvline(iteration, color="0.4", linestyle="--", linewidth=1)
             ax.annotate(
@@ -328,18 +328,23 @@ def outlier_symlog_threshold(values: np.ndarray, span: float = 100.0) -> float |
     return typical if typical > 0 and magnitudes.max() > span * typical else None
 
 
-def symlog_threshold(values: np.ndarray, span: float = 100.0) -> float | None:
-    """Linear range of a symmetric log axis for values spanning more than ``span`` in magnitude, else None.
+def symlog_threshold(values: np.ndarray, span: float = 100.0, near_zero: float = 0.01) -> float | None:
+    """Linear range of a symmetric log axis for curves spanning more than ``span`` in magnitude, else None.
+
+    The smallest magnitude is taken after leaving out the fraction ``near_zero`` of values nearest
+    zero, so that a curve crossing zero (returns rising from negative to positive) does not by
+    itself turn the axis logarithmic.
 
     :param values: the plotted values (NaN allowed)
     :param span: ratio of the largest to the smallest magnitude above which the axis turns logarithmic
-    :return: the smallest nonzero magnitude, or None for a linear axis
+    :param near_zero: fraction of the values, those nearest zero, left out of the smallest magnitude
+    :return: the smallest magnitude (so counted), or None for a linear axis
     """
     magnitudes = np.abs(values[np.isfinite(values)])
-    magnitudes = magnitudes[magnitudes > 0]
-    if len(magnitudes) == 0 or magnitudes.max() < span * magnitudes.min():
+    if len(magnitudes) == 0:
         return None
-    return float(magnitudes.min())
+    smallest = float(np.quantile(magnitudes, near_zero, method="lower"))
+    return smallest if smallest > 0 and magnitudes.max() > span * smallest else None
 
 
 def _main() -> None:

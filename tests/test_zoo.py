@@ -433,6 +433,9 @@ def test_return_axis_turns_logarithmic_only_over_orders_of_magnitude() -> None:
     assert plot.symlog_threshold(np.array([-30.0, -20.0, -5.0])) is None
     assert plot.symlog_threshold(np.array([0.55, 0.6, np.nan])) is None
     assert plot.symlog_threshold(np.array([np.nan, 0.0])) is None
+    # Returns that rise through zero to a few hundred stay linear: the few values near zero do not count.
+    rising = np.concatenate([np.linspace(-100.0, 100.0, 20), np.linspace(100.0, 600.0, 2980)])
+    assert plot.symlog_threshold(rising) is None
 
 
 def test_estimate_axis_turns_logarithmic_only_for_outliers() -> None:
