@@ -70,7 +70,7 @@ MODES = ("learned", "random_same_rate", "periodic", "never")
 
 #: Fraction of evaluation episodes without a fall for a Multiwalker seed to succeed.
 SUCCESS_NO_FALL = 0.9
-#: Package travel of a successful seed relative to periodic communication with the same controller.
+#: Package travel of a successful seed relative to communication at every step with the same controller.
 SUCCESS_TRAVEL = 0.5
 
 
@@ -78,8 +78,8 @@ def carries_package(metrics: dict[str, float]) -> bool:
     """Whether a Multiwalker seed carries the package: the travel part of the success criterion.
 
     :param metrics: a trial's evaluation metrics (``package_travel``, ``periodic_package_travel``)
-    :return: True when its package travel is at least :data:`SUCCESS_TRAVEL` of periodic communication's
-        with the same controllers
+    :return: True when its package travel is at least :data:`SUCCESS_TRAVEL` of the travel with
+        communication at every step (the same controllers)
     """
     return metrics["package_travel"] >= SUCCESS_TRAVEL * metrics["periodic_package_travel"]
 
