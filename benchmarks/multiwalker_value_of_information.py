@@ -193,10 +193,10 @@ def plot(table: dict[str, dict[str, dict[str, list[float]]]], path: Path) -> Non
                 )
             ax.set_xlabel("communication savings")
             ax.set_ylabel(name)
-    axes[0].legend(fontsize=7)
+    axes[1].legend(fontsize=7, loc="center left", bbox_to_anchor=(1.02, 0.5))  # beside the data, not over it
     fig.suptitle("Multiwalker: final controllers under fixed triggers (mean over seeds, 95 % CI)")
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    fig.savefig(path, dpi=120, bbox_inches="tight")
     plt.close(fig)
 
 
