@@ -1,7 +1,7 @@
 """The paper's Multiwalker claims against a study's finished seeds: a Markdown table.
 
     python benchmarks/paper_claims.py benchmarks/studies/multiwalker_paper \\
-        --out benchmarks/results/paper_claims.md
+        --out benchmarks/results/paper_claims.md --splice benchmarks/README.md
 
 One row per claim of Kesper, Trimpe and Baumann (L4DC 2023), with our result (mean over the
 finished seeds, 95 % stratified-bootstrap interval, every seed) and a verdict by fixed rules,
@@ -20,6 +20,9 @@ listed under the table:
 * "about half of the runs succeed" holds for 30 to 70 % of the seeds succeeding by the study's
   criterion (``success``);
 * a recipe saves more when its savings interval lies above the paper's MAPPOC's.
+
+``--splice`` replaces the text between the lines :data:`START` and :data:`END` of a Markdown file
+(the results page) with the table.
 
 The numbers come from the study folder alone (``evaluation.json`` and ``progress.csv`` of every
 finished trial), as ``python -m sb3_detc.study report`` computes them.
@@ -43,6 +46,8 @@ LEARNED_ENTROPY_GAP = 0.05
 ABOUT_55 = (0.5, 0.6)
 #: Fraction of succeeding seeds that counts as "about half".
 ABOUT_HALF = (0.3, 0.7)
+#: The lines between which ``--splice`` puts the table.
+START, END = "<!-- paper_claims.py: start -->", "<!-- paper_claims.py: end -->"
 
 
 def binary_entropy(p: float) -> float:
@@ -240,6 +245,21 @@ def claims(folder: Path, mappoc: str, baseline: str, recipe: str | None) -> str:
     return "\n".join(lines) + "\n"
 
 
+def splice(path: Path, table: str) -> None:
+    """Replace the text between the lines :data:`START` and :data:`END` of a file with the table.
+
+    :param path: the Markdown file
+    :param table: the table (:func:`claims`)
+    :raises StudyError: if the file lacks the two lines, in this order, once each
+    """
+    lines = path.read_text().splitlines(keepends=True)
+    marks = [i for i, line in enumerate(lines) if line.strip() in (START, END)]
+    if [lines[i].strip() for i in marks] != [START, END]:
+        raise StudyError(f"{path}: needs the lines {START!r} and {END!r}, in this order, once each")
+    first, last = marks
+    path.write_text("".join([*lines[: first + 1], "\n", table, "\n", *lines[last:]]))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("folder", type=Path, help="the study folder")
@@ -249,9 +269,12 @@ def main() -> None:
         "--recipe", default="control_first", help="label of a recipe claiming more savings ('' for none)"
     )
     parser.add_argument("--out", type=Path, help="also write the table to this file")
+    parser.add_argument("--splice", type=Path, help=f"put the table between {START} and {END} of this file")
     args = parser.parse_args()
     try:
         table = claims(args.folder, args.mappoc, args.baseline, args.recipe or None)
+        if args.splice:
+            splice(args.splice, table)
     except StudyError as error:
         parser.exit(2, f"error: {error}\n")
     print(table, end="")
