@@ -538,13 +538,25 @@ def test_an_interrupted_trial_saves_where_it_stopped(tmp_path):
     assert run_trial(spec, trial, tmp_path / "out")["timesteps"] == 8192
 
 
-def test_the_code_commit_names_the_checkout_and_marks_changed_package_files(tmp_path: Path) -> None:
-    root = Path(sb3_detc.__file__).resolve().parents[1]
-    if not (root / ".git").exists():
-        assert code_commit() is None
-        return
-    head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=root, capture_output=True, text=True, check=True)
-    changed = subprocess.run(
-        ["git", "status", "--porcelain", "--", "sb3_detc"], cwd=root, capture_output=True, text=True, check=True
-    )
-    assert code_commit() == head.stdout.strip() + ("+modified" if changed.stdout.strip() else "")
+def test_the_code_commit_names_the_checkout_and_marks_changed_files_under_the_source(tmp_path: Path) -> None:
+    package = tmp_path / "repo" / "package"
+    package.mkdir(parents=True)
+    assert code_commit(package) is None
+
+    def git(*args: str) -> str:
+        return subprocess.run(["git", *args], cwd=tmp_path / "repo", capture_output=True, text=True, check=True).stdout
+
+    git("init", "-q")
+    (package / "module.py").write_text("x = 1\n")
+    (tmp_path / "repo" / "notes.txt").write_text("outside the package\n")
+    git("add", "-A")
+    git("-c", "user.name=t", "-c", "user.email=t@t", "commit", "-q", "-m", "first")
+    head = git("rev-parse", "HEAD").strip()
+    assert code_commit(package) == head
+    (tmp_path / "repo" / "notes.txt").write_text("changed outside the package\n")
+    assert code_commit(package) == head
+    (package / "module.py").write_text("x = 2\n")
+    assert code_commit(package) == head + "+modified"
+    git("checkout", "-q", "--", ".")
+    (package / "new.py").write_text("y = 1\n")
+    assert code_commit(package) == head + "+modified"

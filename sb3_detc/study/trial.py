@@ -194,13 +194,15 @@ def _write_progress(folder: Path) -> None:
         os.replace(scratch, folder / "progress.csv")
 
 
-def code_commit() -> str | None:
+def code_commit(source: Path | None = None) -> str | None:
     """The git commit of the package's source, so that a trial's segments name the code they ran.
 
-    :return: the commit's hash, with ``+modified`` when the package's files differ from it; None
-        when the package is not in a git checkout (an installed wheel) or git is missing
+    :param source: the folder whose code to name; None for the sb3_detc package itself
+    :return: the commit's hash, with ``+modified`` when files under ``source`` differ from it (or
+        are untracked); None when ``source`` is not in a git checkout (an installed wheel) or git
+        is missing
     """
-    source = Path(sb3_detc.__file__).parent
+    source = Path(sb3_detc.__file__).parent if source is None else source
     try:
         commit = subprocess.run(
             ["git", "rev-parse", "HEAD"], cwd=source, capture_output=True, text=True, check=True
