@@ -37,7 +37,7 @@ def _cell(values: np.ndarray) -> str:
 
 
 def staleness_table(folder: Path) -> str:
-    """The Markdown table of every trial of a study that logged anything.
+    """The Markdown table of every trial of a study that has logged ``train/kl_pi``.
 
     :param folder: the study folder (with its ``study.yml``)
     :return: the table, one row per trial, with a caption line
@@ -49,11 +49,12 @@ def staleness_table(folder: Path) -> str:
     lines = []
     order = [algorithm.label for algorithm in spec.algorithms]
     for trial in sorted(spec.trials(), key=lambda t: (order.index(t.algorithm.label), t.seed)):
-        progress = merged_progress(trial_folder(folder, trial))
+        trial_dir = trial_folder(folder, trial)
+        progress = merged_progress(trial_dir)
         if "train/kl_pi" not in progress:
             continue
         cells = [_cell(progress[c].dropna().to_numpy() if c in progress else np.array([])) for c in COLUMNS]
-        finished = (trial_folder(folder, trial) / "evaluation.json").is_file()
+        finished = (trial_dir / "evaluation.json").is_file()
         iterations = f"{progress['train/kl_pi'].notna().sum()}{'' if finished else ' (running)'}"
         lines.append(f"| {trial.algorithm.label} | {trial.seed} | {iterations} | " + " | ".join(cells) + " |")
     if not lines:
