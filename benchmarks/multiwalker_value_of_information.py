@@ -13,10 +13,13 @@ cost), package travel, savings and fall rate, mean over seeds with a 95 % bootst
 
 Results are written after every (trial, trigger) to ``--out`` (JSON); running the command
 again skips what is there, so an interrupted sweep goes on where it stopped. ``--plot`` draws
-control return and package travel against savings.
+control return and package travel against savings; ``--splice PAGE`` puts the algorithms
+(``--columns``, default all) side by side into a results page, between the lines
+``<!-- multiwalker_value_of_information.py: start -->`` and ``... end -->``.
 
     python benchmarks/multiwalker_value_of_information.py benchmarks/studies/multiwalker_paper \\
-        --out benchmarks/results/multiwalker_value_of_information.json --plot
+        --out benchmarks/results/multiwalker_value_of_information.json --plot \\
+        --splice benchmarks/README.md --columns mappoc_paper random_skip_paper control_first
 """
 
 from __future__ import annotations
@@ -34,8 +37,8 @@ import torch as th
 
 from sb3_detc.evaluation import evaluate_episodes
 from sb3_detc.mappoc.policies import MlpHybridPolicy
-from sb3_detc.study.report import interval_estimates
-from sb3_detc.study.spec import load_study
+from sb3_detc.study.report import interval_estimates, splice
+from sb3_detc.study.spec import StudyError, load_study
 from sb3_detc.study.trial import entry_fixed_trigger, read_status, trial_folder
 from sb3_detc.triggers import PeriodicTrigger, RandomTrigger
 
@@ -45,6 +48,8 @@ RATES = (0.0, 0.25, 0.5, 0.75, 0.85, 0.9, 0.95, 1.0)
 PERIODS = (2, 4, 8, 16, 32)
 #: Name of the row of the policy over options' most likely options.
 MODE = "mode of mu"
+#: The name in the marks between which ``--splice`` puts the side-by-side table.
+MARK = "multiwalker_value_of_information.py"
 
 
 def triggers(rates: list[float], periods: list[int], seed: int) -> dict[str, Any]:
@@ -157,6 +162,71 @@ def markdown(table: dict[str, dict[str, dict[str, list[float]]]]) -> str:
     return "\n".join(lines)
 
 
+#: Names on the results page of the fixed triggers that never and always skip.
+PAGE_NAMES = {"random 0": "every step", "random 1": "never"}
+
+
+def page_table(table: dict[str, dict[str, dict[str, list[float]]]], labels: list[str], episodes: int) -> str:
+    """The algorithms side by side: one row per trigger, sorted by savings, for the results page.
+
+    A cell holds the control return, mean [95 % interval] over the algorithm's seeds, and in
+    parentheses package travel and fall rate (and the number of seeds where fewer than the
+    algorithm's own have the trigger). The fixed triggers' savings are the mean over the
+    columns; each algorithm's own options ("learned", "mode of mu") have a row of their own.
+
+    :param table: the summary (:func:`summary`)
+    :param labels: the algorithms to show, in this order
+    :param episodes: the number of evaluation episodes (for the text above the table)
+    :return: Markdown
+    :raises StudyError: if an algorithm has no results
+    """
+    missing = [label for label in labels if label not in table]
+    if missing:
+        raise StudyError(f"no results of {', '.join(missing)}")
+    seeds = {label: max(int(v["seeds"][0]) for v in table[label].values()) for label in labels}
+
+    def cell(label: str, trigger: str) -> str:
+        values = table[label].get(trigger)
+        if values is None:
+            return ""
+        mean, low, high = values["control_return"]
+        extra = f", {int(values['seeds'][0])} seeds" if values["seeds"][0] < seeds[label] else ""
+        return (
+            f"{mean:.1f} [{low:.1f}, {high:.1f}] "
+            f"({values['package_travel'][0]:.2f}, {values['fall_rate'][0]:.2f}{extra})"
+        )
+
+    own = ("learned", MODE)
+    shared = dict.fromkeys(t for label in labels for t in table[label] if t not in own)
+    rows = [
+        (
+            float(np.mean([table[label][t]["savings"][0] for label in labels if t in table[label]])),
+            PAGE_NAMES.get(t, t),
+            [cell(label, t) for label in labels],
+        )
+        for t in shared
+    ]
+    rows += [
+        (
+            table[label][t]["savings"][0],
+            f"{t} ({label})",
+            [cell(label, t) if other == label else "" for other in labels],
+        )
+        for label in labels
+        for t in own
+        if t in table[label]
+    ]
+    lines = [
+        f"Control return, mean [95 % interval] over seeds (package travel, fall rate), on the same {episodes} "
+        "episodes; savings of a fixed trigger: mean over the columns.",
+        "",
+        "| trigger | savings | " + " | ".join(f"`{label}` ({seeds[label]} seeds)" for label in labels) + " |",
+        "|---|---:|" + "---|" * len(labels),
+    ]
+    lines += [f"| {name} | {savings:.3f} | " + " | ".join(cells) + " |" for savings, name, cells in sorted(rows)]
+    return "\n".join(lines) + "\n"
+
+
 def plot(table: dict[str, dict[str, dict[str, list[float]]]], path: Path) -> None:
     """Control return and package travel against savings: random skips as lines, periodic and learned as markers."""
     import matplotlib
@@ -207,11 +277,24 @@ def main() -> None:
     parser.add_argument("--rates", type=float, nargs="+", default=list(RATES), help="skip probabilities")
     parser.add_argument("--periods", type=int, nargs="+", default=list(PERIODS), help="periods in steps")
     parser.add_argument("--plot", action="store_true", help="draw <out>.png")
+    parser.add_argument(
+        "--splice",
+        type=Path,
+        help=f"put the algorithms side by side between '<!-- {MARK}: start -->' and '... end -->' of this file",
+    )
+    parser.add_argument("--columns", nargs="+", help="the algorithms side by side (default: all with results)")
     args = parser.parse_args()
     th.set_num_threads(1)
     results = sweep(args.folder, args.out, args.rates, args.periods)
     table = summary(args.folder, results)
     print(markdown(table))
+    if args.splice:
+        try:
+            episodes = load_study(args.folder / "study.yml").episodes
+            splice(args.splice, MARK, page_table(table, args.columns or list(table), episodes))
+        except StudyError as error:
+            parser.exit(2, f"error: {error}\n")
+        print(f"Spliced into {args.splice}")
     if args.plot and table:
         plot(table, args.out.with_suffix(".png"))
         print(f"Figure: {args.out.with_suffix('.png')}")

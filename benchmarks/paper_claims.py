@@ -21,8 +21,8 @@ listed under the table:
   criterion (``success``);
 * a recipe saves more when its savings interval lies above the paper's MAPPOC's.
 
-``--splice`` replaces the text between the lines :data:`START` and :data:`END` of a Markdown file
-(the results page) with the table.
+``--splice`` replaces the text between the lines ``<!-- paper_claims.py: start -->`` and
+``<!-- paper_claims.py: end -->`` of a Markdown file (the results page) with the table.
 
 The numbers come from the study folder alone (``evaluation.json`` and ``progress.csv`` of every
 finished trial), as ``python -m sb3_detc.study report`` computes them.
@@ -36,7 +36,7 @@ import math
 from pathlib import Path
 from typing import Any
 
-from sb3_detc.study.report import summarise
+from sb3_detc.study.report import splice, summarise
 from sb3_detc.study.spec import StudyError, load_study
 from sb3_detc.study.trial import SUCCESS_NO_FALL, SUCCESS_TRAVEL, carries_package, trial_folder
 
@@ -46,8 +46,8 @@ LEARNED_ENTROPY_GAP = 0.05
 ABOUT_55 = (0.5, 0.6)
 #: Fraction of succeeding seeds that counts as "about half".
 ABOUT_HALF = (0.3, 0.7)
-#: The lines between which ``--splice`` puts the table.
-START, END = "<!-- paper_claims.py: start -->", "<!-- paper_claims.py: end -->"
+#: The name in the marks between which ``--splice`` puts the table (:func:`~sb3_detc.study.report.splice`).
+MARK = "paper_claims.py"
 
 
 def binary_entropy(p: float) -> float:
@@ -245,21 +245,6 @@ def claims(folder: Path, mappoc: str, baseline: str, recipe: str | None) -> str:
     return "\n".join(lines) + "\n"
 
 
-def splice(path: Path, table: str) -> None:
-    """Replace the text between the lines :data:`START` and :data:`END` of a file with the table.
-
-    :param path: the Markdown file
-    :param table: the table (:func:`claims`)
-    :raises StudyError: if the file lacks the two lines, in this order, once each
-    """
-    lines = path.read_text().splitlines(keepends=True)
-    marks = [i for i, line in enumerate(lines) if line.strip() in (START, END)]
-    if [lines[i].strip() for i in marks] != [START, END]:
-        raise StudyError(f"{path}: needs the lines {START!r} and {END!r}, in this order, once each")
-    first, last = marks
-    path.write_text("".join([*lines[: first + 1], "\n", table, "\n", *lines[last:]]))
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("folder", type=Path, help="the study folder")
@@ -269,12 +254,16 @@ def main() -> None:
         "--recipe", default="control_first", help="label of a recipe claiming more savings ('' for none)"
     )
     parser.add_argument("--out", type=Path, help="also write the table to this file")
-    parser.add_argument("--splice", type=Path, help=f"put the table between {START} and {END} of this file")
+    parser.add_argument(
+        "--splice",
+        type=Path,
+        help=f"put the table between the lines '<!-- {MARK}: start -->' and '... end -->' of this file",
+    )
     args = parser.parse_args()
     try:
         table = claims(args.folder, args.mappoc, args.baseline, args.recipe or None)
         if args.splice:
-            splice(args.splice, table)
+            splice(args.splice, MARK, table)
     except StudyError as error:
         parser.exit(2, f"error: {error}\n")
     print(table, end="")

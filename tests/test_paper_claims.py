@@ -132,21 +132,3 @@ def test_a_finished_trial_without_its_progress_is_refused(tmp_path: Path) -> Non
     (folder / "trials" / "mappoc_paper" / "seed1" / "progress.csv").unlink()
     with pytest.raises(StudyError, match="seed1: finished, but its progress.csv is missing"):
         paper_claims.claims(folder, "mappoc_paper", "random_skip_paper", None)
-
-
-def test_the_table_is_spliced_between_its_marks_and_again_in_the_same_place(tmp_path: Path) -> None:
-    page = tmp_path / "README.md"
-    marks = f"{paper_claims.START}\n{paper_claims.END}\n"
-    page.write_text(f"# Results\n\nabove\n\n{marks}\nbelow\n")
-    paper_claims.splice(page, "| a | b |\n")
-    once = page.read_text()
-    assert once == f"# Results\n\nabove\n\n{paper_claims.START}\n\n| a | b |\n\n{paper_claims.END}\n\nbelow\n"
-    paper_claims.splice(page, "| a | b |\n")
-    assert page.read_text() == once
-    paper_claims.splice(page, "| c |\n")
-    assert "| a | b |" not in page.read_text() and "| c |" in page.read_text()
-    for broken in (f"{paper_claims.START}\n", f"{paper_claims.END}\n{paper_claims.START}\n", marks + marks):
-        page.write_text(broken)
-        with pytest.raises(StudyError, match="needs the lines"):
-            paper_claims.splice(page, "| a | b |\n")
-        assert page.read_text() == broken

@@ -19,7 +19,7 @@ import sb3_detc
 from sb3_detc.evaluation import evaluate_episodes
 from sb3_detc.mappoc.policies import MlpHybridPolicy
 from sb3_detc.study.__main__ import main as study_main
-from sb3_detc.study.report import report_study, summarise
+from sb3_detc.study.report import report_study, splice, summarise
 from sb3_detc.study.spec import StudyError, load_study
 from sb3_detc.study.trial import MODES, code_commit, drop_stale_segments, read_status, trial_folder
 
@@ -301,9 +301,29 @@ def test_the_value_of_information_sweep_runs_fixed_triggers_and_the_mode_of_lear
             assert rows["mode of mu"]["savings"] == pytest.approx(episodes.savings)
             assert rows["mode of mu"]["control_return"] == pytest.approx(np.mean(episodes.control_returns))
     assert "### learned" in printed and "| mode of mu | 2 |" in printed
-    # Run again: nothing left to evaluate, the same results.
-    again = subprocess.run(command, check=True, capture_output=True, text=True, cwd=ROOT).stdout
+    # Run again: nothing left to evaluate, the same results; the algorithms side by side on a page.
+    page = tmp_path / "README.md"
+    page.write_text(
+        "above\n<!-- multiwalker_value_of_information.py: start -->\n"
+        "<!-- multiwalker_value_of_information.py: end -->\nbelow\n"
+    )
+    side_by_side = [*command, "--splice", str(page), "--columns", "random", "learned"]
+    again = subprocess.run(side_by_side, check=True, capture_output=True, text=True, cwd=ROOT).stdout
     assert "control return" not in again.split("### ")[0] and json.loads(results_file.read_text()) == results
+    text = page.read_text()
+    assert text.startswith("above\n") and text.endswith("below\n") and f"on the same {spec.episodes} episodes" in text
+    table = [line.split(" | ") for line in text.splitlines() if line.startswith("| ") and "---" not in line]
+    assert table[0] == ["| trigger", "savings", "`random` (2 seeds)", "`learned` (2 seeds) |"]
+    rows = {cells[0][2:]: cells[1:] for cells in table[1:]}
+    assert set(rows) == {"random 0.5", "periodic 2", "learned (random)", "learned (learned)", "mode of mu (learned)"}
+    assert [float(cells[1]) for cells in table[1:]] == sorted(float(cells[1]) for cells in table[1:])
+    for label, column in (("random", 1), ("learned", 2)):
+        section = printed.split(f"### {label}")[1].split("###")[0]
+        periodic = next(line for line in section.splitlines() if line.startswith("| periodic 2 |"))
+        assert rows["periodic 2"][column].startswith(periodic.split(" | ")[3] + " (")  # its control return
+        assert rows[f"learned ({label})"][3 - column].strip(" |") == ""  # own options: its own column only
+    refused = subprocess.run([*side_by_side[:-2], "nobody"], capture_output=True, text=True, cwd=ROOT)
+    assert refused.returncode == 2 and "no results of nobody" in refused.stderr and page.read_text() == text
 
 
 def test_a_failing_trial_is_kept_with_its_traceback_and_the_others_go_on(tmp_path):
@@ -560,3 +580,22 @@ def test_the_code_commit_names_the_checkout_and_marks_changed_files_under_the_so
     git("checkout", "-q", "--", ".")
     (package / "new.py").write_text("y = 1\n")
     assert code_commit(package) == head + "+modified"
+
+
+def test_generated_text_is_spliced_between_its_own_marks_and_again_in_the_same_place(tmp_path):
+    page = tmp_path / "README.md"
+    start, end = "<!-- table.py: start -->", "<!-- table.py: end -->"
+    other = "<!-- other.py: start -->\n\nkept\n\n<!-- other.py: end -->\n"
+    page.write_text(f"# Results\n\nabove\n\n{start}\n{end}\n\nbelow\n\n{other}")
+    splice(page, "table.py", "| a | b |\n")
+    once = page.read_text()
+    assert once == f"# Results\n\nabove\n\n{start}\n\n| a | b |\n\n{end}\n\nbelow\n\n{other}"
+    splice(page, "table.py", "| a | b |\n")
+    assert page.read_text() == once
+    splice(page, "table.py", "| c |\n")
+    assert "| a | b |" not in page.read_text() and "| c |" in page.read_text() and "kept" in page.read_text()
+    for broken in (f"{start}\n", f"{end}\n{start}\n", f"{start}\n{end}\n" * 2, other):
+        page.write_text(broken)
+        with pytest.raises(StudyError, match="needs the lines"):
+            splice(page, "table.py", "| a | b |\n")
+        assert page.read_text() == broken

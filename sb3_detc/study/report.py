@@ -324,3 +324,24 @@ def report_study(directory: str | Path, plot: bool = True) -> str:
         if single:
             text += f"\nNot drawn (trained one iteration): {', '.join(single)}.\n"
     return text
+
+
+def splice(path: str | Path, name: str, text: str) -> None:
+    """Put generated text into a Markdown page between the lines ``<!-- name: start -->`` and ``<!-- name: end -->``.
+
+    Splicing the same text again leaves the page as it is, so a results page can be regenerated
+    from its study folders whenever seeds finish.
+
+    :param path: the Markdown file
+    :param name: the name in the two marks (the generating command, say)
+    :param text: what goes between them
+    :raises StudyError: if the file lacks the two lines, in this order, once each (it is left as it is)
+    """
+    path = Path(path)
+    start, end = f"<!-- {name}: start -->", f"<!-- {name}: end -->"
+    lines = path.read_text().splitlines(keepends=True)
+    marks = [i for i, line in enumerate(lines) if line.strip() in (start, end)]
+    if [lines[i].strip() for i in marks] != [start, end]:
+        raise StudyError(f"{path}: needs the lines {start!r} and {end!r}, in this order, once each")
+    first, last = marks
+    path.write_text("".join([*lines[: first + 1], "\n", text, "\n", *lines[last:]]))
