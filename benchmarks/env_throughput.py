@@ -67,6 +67,7 @@ class Measurement:
 
     @property
     def rate(self) -> float:
+        """Steps per second of timed env work."""
         return self.steps / self.seconds
 
 
@@ -82,17 +83,36 @@ class Bench:
     runs: list[Measurement] = field(default_factory=list)
 
     def reset(self, seed: int | None) -> None:
+        """Reset the env.
+
+        :param seed: seed of the reset (None: continue the env's own generator)
+        """
         self.env.reset(seed=seed)
 
     def step(self, action: Any) -> bool:
-        """Step once; return True if the episode ended."""
+        """Step once; return True if the episode ended.
+
+        :param action: one action of this env, as built by :meth:`pack`
+        :return: whether the episode ended with this step
+        """
         raise NotImplementedError
 
     def pack(self, broadcast: np.ndarray, control: np.ndarray) -> list[Any]:
-        """Turn arrays of shape (T, N) and (T, N, m) into T actions of this env."""
+        """Turn arrays of shape (T, N) and (T, N, m) into T actions of this env.
+
+        :param broadcast: broadcast decisions, 0 or 1, (T, N) (T steps, N agents)
+        :param control: controls (T, N, m), float32 (m: one agent's control size)
+        :return: the T actions, in order
+        """
         raise NotImplementedError
 
     def sample(self, rng: np.random.Generator, n_steps: int) -> list[Any]:
+        """Draw uniformly random actions: broadcast in {0, 1}, control uniform in the control box.
+
+        :param rng: the generator of the actions
+        :param n_steps: number of steps to draw actions for
+        :return: the ``n_steps`` actions of this env (:meth:`pack`)
+        """
         broadcast = rng.integers(0, 2, size=(n_steps, self.n_agents))
         shape = (n_steps, self.n_agents, *self.control_low.shape)
         control = rng.uniform(self.control_low, self.control_high, size=shape).astype(np.float32)
@@ -100,16 +120,36 @@ class Bench:
 
 
 class JointBench(Bench):
+    """The joint Gymnasium env; the episode has ended when it is terminated or truncated."""
+
     def step(self, action: dict[str, np.ndarray]) -> bool:
+        """Step once; see :meth:`Bench.step`.
+
+        :param action: ``{"broadcast": (N,), "control": (N, m)}``
+        :return: whether the episode terminated or was truncated
+        """
         _, _, terminated, truncated, _ = self.env.step(action)
         return terminated or truncated
 
     def pack(self, broadcast: np.ndarray, control: np.ndarray) -> list[Any]:
+        """One joint dict action per step; see :meth:`Bench.pack`.
+
+        :param broadcast: broadcast decisions, 0 or 1, (T, N)
+        :param control: controls (T, N, m)
+        :return: T actions ``{"broadcast": (N,), "control": (N, m)}``
+        """
         return [{"broadcast": c, "control": u} for c, u in zip(broadcast, control, strict=True)]
 
 
 class ParallelBench(Bench):
-    """A PettingZoo parallel env; the episode has ended when no agent is left."""
+    """A PettingZoo parallel env; the episode has ended when no agent is left.
+
+    :param args: the :class:`Bench` fields, in order (``name``, ``env``, ``n_agents``, ``control_low``,
+        ``control_high``)
+    :param with_broadcast: the env takes per-agent ``{"broadcast": 0 or 1, "control": (m,)}`` actions
+        (ours); False: per-agent control arrays (m,) (the stock env)
+    :param kwargs: further :class:`Bench` fields, by name
+    """
 
     def __init__(self, *args: Any, with_broadcast: bool, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
@@ -117,10 +157,22 @@ class ParallelBench(Bench):
         self.agents = list(self.env.possible_agents)
 
     def step(self, action: dict[str, Any]) -> bool:
+        """Step once; see :meth:`Bench.step`.
+
+        :param action: agent -> that agent's action
+        :return: whether no agent is left
+        """
         self.env.step(action)
         return not self.env.agents
 
     def pack(self, broadcast: np.ndarray, control: np.ndarray) -> list[Any]:
+        """One per-agent dict action per step; see :meth:`Bench.pack`.
+
+        :param broadcast: broadcast decisions, 0 or 1, (T, N) (ignored without ``with_broadcast``)
+        :param control: controls (T, N, m)
+        :return: T actions agent -> ``{"broadcast": 0 or 1, "control": (m,)}``, or agent -> control (m,)
+            without ``with_broadcast``
+        """
         if self.with_broadcast:
             return [
                 {a: {"broadcast": int(c[i]), "control": u[i]} for i, a in enumerate(self.agents)}
@@ -167,7 +219,14 @@ def make_benches() -> list[Bench]:
 
 
 def measure(bench: Bench, seconds: float, seed: int, rng: np.random.Generator) -> Measurement:
-    """Run random actions for at least ``seconds`` of timed env work (steps and resets)."""
+    """Run random actions for at least ``seconds`` of timed env work (steps and resets).
+
+    :param bench: the env under test
+    :param seconds: timed seconds to reach; the run stops at the first :data:`BLOCK` boundary after them
+    :param seed: seed of the first reset (the resets after episode ends are not seeded)
+    :param rng: the generator of the actions
+    :return: the measurement
+    """
     timed = 0.0
     steps = episodes = episode_steps = length = 0
     start = time.perf_counter()
@@ -189,6 +248,7 @@ def measure(bench: Bench, seconds: float, seed: int, rng: np.random.Generator) -
 
 
 def cpu_model() -> str:
+    """The CPU's model name from ``/proc/cpuinfo`` (else :func:`platform.processor`, else ``unknown CPU``)."""
     try:
         with open("/proc/cpuinfo", encoding="utf-8") as f:
             for line in f:
@@ -200,6 +260,7 @@ def cpu_model() -> str:
 
 
 def machine_line() -> str:
+    """The machine in one line: CPU, logical CPUs, OS, Python and the versions of the env libraries."""
     versions = (
         f"numpy {np.__version__}, gymnasium {gymnasium.__version__}, pettingzoo {pettingzoo.__version__}, "
         f"Box2D {getattr(Box2D, '__version__', '?')}"
@@ -211,6 +272,11 @@ def machine_line() -> str:
 
 
 def table(benches: Sequence[Bench]) -> str:
+    """The Markdown table of the results: median and per-repeat steps/s, ratio to the stock env, episodes.
+
+    :param benches: the measured envs, each with its runs; the last is the stock env (the ``vs stock`` reference)
+    :return: the table
+    """
     stock_rate = statistics.median(m.rate for m in benches[-1].runs)
     lines = [
         "| env | steps/s (median) | steps/s per repeat | vs stock | episodes | mean episode length |",
@@ -228,6 +294,11 @@ def table(benches: Sequence[Bench]) -> str:
 
 
 def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
+    """Parse and check the command line (exits with a usage error on invalid values).
+
+    :param argv: the arguments (None: ``sys.argv[1:]``)
+    :return: ``seconds``, ``repeats`` and ``seed``
+    """
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--seconds", type=float, default=10.0, help="timed seconds per measurement (default 10)")
     parser.add_argument("--repeats", type=int, default=3, help="measurements per env (default 3)")
@@ -239,6 +310,10 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
 
 
 def main(argv: Sequence[str] | None = None) -> None:
+    """Measure every env ``--repeats`` times, interleaved, and print the table and the machine.
+
+    :param argv: the arguments (None: ``sys.argv[1:]``)
+    """
     args = parse_args(argv)
     benches = make_benches()
     rngs = [np.random.default_rng([args.seed, i]) for i in range(len(benches))]

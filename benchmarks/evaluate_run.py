@@ -59,6 +59,7 @@ def checkpoints(run: Path) -> list[tuple[int, Path]]:
 
 
 def main() -> None:
+    """Evaluate the run (or every checkpoint of it, with ``--checkpoints``) and print the table."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("run", type=Path, help="rl-zoo3 run folder, e.g. logs/mappoc/sb3_detc-MultiwalkerETC-v0_1")
     parser.add_argument("--env", required=True, help="environment id")

@@ -24,7 +24,11 @@ from sb3_detc.study.trial import evaluate_policy_modes
 
 
 def setting(text: str) -> object:
-    """An env setting from the command line: a Python literal (``2``, ``1e-3``, ``True``), else the text."""
+    """An env setting from the command line: a Python literal (``2``, ``1e-3``, ``True``), else the text.
+
+    :param text: the value of one ``key=value`` of ``--env-kwargs``
+    :return: the literal's value, or ``text`` itself if it is no Python literal
+    """
     try:
         return ast.literal_eval(text)
     except (ValueError, SyntaxError):
@@ -32,6 +36,7 @@ def setting(text: str) -> object:
 
 
 def main() -> None:
+    """Evaluate the model in the four communication modes, write the JSON and print its metrics."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("model", type=Path, help="a saved MAPPOC model (.zip)")
     parser.add_argument("--env", required=True, help="the joint env id")

@@ -143,6 +143,7 @@ def run(job: dict[str, Any]) -> dict[str, Any]:
 
 
 def main() -> None:
+    """Train and evaluate every broadcast cost, variant and seed in parallel, write the rows and print the table."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--broadcast-costs", type=float, nargs="+", default=[0.03])
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3])

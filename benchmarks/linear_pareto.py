@@ -47,7 +47,14 @@ DEFAULT_OUT = Path(__file__).parent / "results" / "linear_pareto.png"
 
 
 def model_point(path: str, env: gymnasium.Env, n_episodes: int, seed: int) -> TriggerPoint:
-    """A trained MAPPOC model as one point: learned options sampled, mean control."""
+    """A trained MAPPOC model as one point: learned options sampled, mean control.
+
+    :param path: the saved model (.zip); its file name labels the point
+    :param env: the joint env to evaluate on (optionally wrapped in :class:`~sb3_detc.triggers.FixedControl`)
+    :param n_episodes: evaluation episodes
+    :param seed: seed of the first episode (the following ones continue its generator)
+    :return: the model's savings and mean team control cost per episode, with its standard error
+    """
     from sb3_detc import MAPPOC
     from sb3_detc.evaluation import evaluate_communication
 
@@ -68,7 +75,13 @@ def model_point(path: str, env: gymnasium.Env, n_episodes: int, seed: int) -> Tr
 
 
 def plot(curves: dict[str, list[TriggerPoint]], models: list[TriggerPoint], bound: float, out: Path) -> None:
-    """Cost relative to the bound against savings, one line per baseline, one marker per model."""
+    """Cost relative to the bound against savings, one line per baseline, one marker per model.
+
+    :param curves: baseline name -> its points, in sweep order
+    :param models: one point per trained model (:func:`model_point`)
+    :param bound: the optimal centralised LQR cost per episode (team) that the costs are divided by
+    :param out: the PNG to write (its folder is made if needed)
+    """
     fig, ax = plt.subplots(figsize=(7, 4.5))
     styles = {"send-on-delta, LQR on held states": "o-", "random skip, LQR on held states": "s--"}
     for name, points in curves.items():
@@ -97,6 +110,7 @@ def plot(curves: dict[str, list[TriggerPoint]], models: list[TriggerPoint], boun
 
 
 def main() -> None:
+    """Sweep the baselines, evaluate the models, write the plot and print the table."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--episodes", type=int, default=500, help="episodes per point")
     parser.add_argument("--seed", type=int, default=0, help="seed of the first episode")

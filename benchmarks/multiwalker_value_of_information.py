@@ -53,14 +53,27 @@ MARK = "multiwalker_value_of_information.py"
 
 
 def triggers(rates: list[float], periods: list[int], seed: int) -> dict[str, Any]:
-    """The fixed triggers of the sweep by name (random ones seeded with ``seed``)."""
+    """The fixed triggers of the sweep by name (random ones seeded with ``seed``).
+
+    :param rates: skip probabilities of the random triggers (``random <rate>``)
+    :param periods: periods in steps of the periodic triggers (``periodic <k>``)
+    :param seed: seed of every random trigger (the study's ``eval_seed``)
+    :return: trigger name -> trigger
+    """
     named: dict[str, Any] = {f"random {rate:g}": RandomTrigger(rate, seed=seed) for rate in rates}
     named.update({f"periodic {k}": PeriodicTrigger(k) for k in periods})
     return named
 
 
 def row(control_returns: Any, package_travel: Any, failed: Any, savings: float) -> dict[str, float]:
-    """Means of one controller's episodes under one trigger (package travel None or NaN where not reported)."""
+    """Means of one controller's episodes under one trigger (package travel None or NaN where not reported).
+
+    :param control_returns: every episode's team-mean return without the communication cost (episodes,)
+    :param package_travel: every episode's package travel (episodes,), None or NaN where not reported
+    :param failed: whether each episode ended by a fall or a dropped package (episodes,)
+    :param savings: communication savings over all the episodes
+    :return: ``control_return``, ``package_travel``, ``fall_rate`` and ``savings``
+    """
     travel = [math.nan if x is None else x for x in package_travel]
     return {
         "control_return": float(np.mean(control_returns)),
@@ -119,7 +132,13 @@ def sweep(folder: Path, out: Path, rates: list[float], periods: list[int]) -> di
 
 
 def summary(folder: Path, results: dict[str, Any]) -> dict[str, dict[str, dict[str, list[float]]]]:
-    """Algorithm -> trigger -> metric -> [mean, low, high] over the seeds that have it."""
+    """Algorithm -> trigger -> metric -> [mean, low, high] over the seeds that have it.
+
+    :param folder: the study folder
+    :param results: trial name -> trigger name -> metrics (:func:`sweep`)
+    :return: label -> trigger -> metric -> [mean, low, high] (95 % bootstrap interval), and under
+        ``seeds`` the number of seeds as ``[n]``; algorithms without results are left out
+    """
     spec = load_study(folder / "study.yml")
     table: dict[str, dict[str, dict[str, list[float]]]] = {}
     metrics = ("control_return", "package_travel", "savings", "fall_rate")
@@ -139,7 +158,11 @@ def summary(folder: Path, results: dict[str, Any]) -> dict[str, dict[str, dict[s
 
 
 def markdown(table: dict[str, dict[str, dict[str, list[float]]]]) -> str:
-    """One Markdown table per algorithm: trigger, seeds, savings, control return, package travel, fall rate."""
+    """One Markdown table per algorithm: trigger, seeds, savings, control return, package travel, fall rate.
+
+    :param table: the summary (:func:`summary`)
+    :return: the tables, rows sorted by savings
+    """
     lines = []
     for label, rows in table.items():
         lines += [
@@ -228,7 +251,11 @@ def page_table(table: dict[str, dict[str, dict[str, list[float]]]], labels: list
 
 
 def plot(table: dict[str, dict[str, dict[str, list[float]]]], path: Path) -> None:
-    """Control return and package travel against savings: random skips as lines, periodic and learned as markers."""
+    """Control return and package travel against savings: random skips as lines, periodic and learned as markers.
+
+    :param table: the summary (:func:`summary`)
+    :param path: the PNG to write
+    """
     import matplotlib
 
     matplotlib.use("Agg")
@@ -271,6 +298,7 @@ def plot(table: dict[str, dict[str, dict[str, list[float]]]], path: Path) -> Non
 
 
 def main() -> None:
+    """Sweep the triggers, print the tables, and splice the page and draw the figure if asked."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("folder", type=Path, help="a study folder with finished trials")
     parser.add_argument("--out", type=Path, required=True, help="JSON file of the results (resumed if present)")

@@ -86,7 +86,13 @@ class OptionValueProbe(BaseCallback):
 
 
 def run(job: tuple[int, int, float, int, dict[str, Any]]) -> list[dict[str, float | int | str]]:
-    """Train the critic with one seed; returns one row per state class."""
+    """Train the critic with one seed; returns one row per state class.
+
+    :param job: seed, training timesteps, quantile and horizon (see :class:`OptionValueProbe`), and
+        MAPPOC settings that override :data:`HYPERPARAMS`
+    :return: per state class (``large change``, ``rest``): samples, the observed difference of returns
+        with its standard error, the critic's mean estimate and the standard deviation of the returns
+    """
     seed, timesteps, quantile, horizon, overrides = job
     th.set_num_threads(1)
     env_kwargs = {"broadcast_cost": 0.03}
@@ -114,6 +120,7 @@ def run(job: tuple[int, int, float, int, dict[str, Any]]) -> list[dict[str, floa
 
 
 def main() -> None:
+    """Train one critic per seed in parallel and print the observed and estimated option values."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", type=int, nargs="+", default=[1, 2])
     parser.add_argument("--timesteps", type=int, default=60_000)

@@ -114,6 +114,7 @@ def critic_estimates(job: tuple[str, float, float, int, int, list[tuple[dict, np
 
 
 def main() -> None:
+    """Measure the value of a broadcast along a long run, train the critics if asked, write the JSON and print."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument(
         "--broadcast-prob", type=float, default=0.5, help="probability of broadcasting of the random options"

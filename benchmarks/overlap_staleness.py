@@ -30,6 +30,11 @@ COLUMNS = ("rollout/sampler_kl_pi", "train/kl_pi", "rollout/sampler_kl_mu", "tra
 
 
 def _cell(values: np.ndarray) -> str:
+    """One cell of the table: ``median [90th percentile]`` of a logged column.
+
+    :param values: the column's logged values (iterations,), without missing ones
+    :return: the cell, ``-`` if nothing was logged (values below 1e-6 in size shown as 0)
+    """
     if values.size == 0:
         return "-"
     median, high = (0.0 if abs(x) < 1e-6 else x for x in np.percentile(values, [50, 90]))  # float noise of a zero KL

@@ -246,6 +246,7 @@ def claims(folder: Path, mappoc: str, baseline: str, recipe: str | None) -> str:
 
 
 def main() -> None:
+    """Print the claims table of a study folder, and write it to ``--out`` and splice it into ``--splice`` if given."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("folder", type=Path, help="the study folder")
     parser.add_argument("--mappoc", default="mappoc_paper", help="label of the paper's MAPPOC")

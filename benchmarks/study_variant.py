@@ -22,13 +22,24 @@ from sb3_detc.study.spec import StudyError
 
 
 def finished_evaluations(folder: Path) -> tuple[dict, dict[str, dict[int, dict]]]:
-    """The study's environment and evaluation settings, and label -> seed -> evaluation of its finished trials."""
+    """The study's environment and evaluation settings, and label -> seed -> evaluation of its finished trials.
+
+    :param folder: the study folder
+    :return: ``env``, ``episodes`` and ``seed`` (of the first evaluation episode), and label -> seed ->
+        ``evaluation.json`` of every finished trial
+    """
     spec, evaluations, _ = read_trials(folder)
     return {"env": spec.env, "episodes": spec.episodes, "seed": spec.eval_seed}, evaluations
 
 
 def compare(base: Path, variant: Path) -> str:
-    """Markdown tables of the variant against the base, one per algorithm label of both."""
+    """Markdown tables of the variant against the base, one per algorithm label of both.
+
+    :param base: the base study folder
+    :param variant: the variant study folder
+    :return: the Markdown, with a title and one section per label with seeds finished in both
+    :raises StudyError: if the studies differ in environment or evaluation episodes
+    """
     base_settings, base_runs = finished_evaluations(base)
     variant_settings, variant_runs = finished_evaluations(variant)
     if base_settings != variant_settings:
@@ -73,6 +84,7 @@ def compare(base: Path, variant: Path) -> str:
 
 
 def main() -> None:
+    """Print the comparison, and write it to ``--out`` if given."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("base", type=Path, help="the base study folder")
     parser.add_argument("variant", type=Path, help="the variant study folder")

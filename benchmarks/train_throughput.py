@@ -99,7 +99,15 @@ class PhaseTimer(BaseCallback):
 
 
 def make_mappoc(seed: int, torch_compile: bool, envs: str) -> BaseAlgorithm:
-    """MAPPOC with the paper's settings; ``envs``: "workers", "rollout workers" or "in-process"."""
+    """MAPPOC with the paper's settings; ``envs``: "workers", "rollout workers" or "in-process".
+
+    :param seed: seed of the envs and the model
+    :param torch_compile: compile the gradient step (MAPPOC's ``torch_compile``)
+    :param envs: "workers": 2 envs in SB3's worker processes (``SubprocVecEnv``); "rollout workers": the
+        same, each wrapped in :class:`~sb3_detc.mappoc.workers.RolloutWorker`; "in-process": both envs in
+        the learner's process (``DummyVecEnv``)
+    :return: the model, 2 envs x 1024 steps per iteration
+    """
     vec_env_cls = DummyVecEnv if envs == "in-process" else SubprocVecEnv
     wrapper_class = RolloutWorker if envs == "rollout workers" else None
     env = make_vec_env(
@@ -134,6 +142,14 @@ def measure_one_liner(name: str, seed: int, iterations: int, overlap_rollouts: b
     """The documented one-liner with the paper's budget, timed over ``iterations`` iterations after the first.
 
     With ``overlap_rollouts`` the workers sample every rollout after the first during the update before it.
+
+    :param name: the row's name (:data:`ONE_LINER` or :data:`ONE_LINER_OVERLAP`)
+    :param seed: the model's seed
+    :param iterations: timed iterations, after the first (the warm-up)
+    :param overlap_rollouts: MAPPOC's ``overlap_rollouts``
+    :return: the warm-up and its parts in seconds, timed env steps, seconds, env steps/s, rollout and
+        update seconds, gradient steps (epochs) and ms per gradient step, the number of envs and the class
+        of the gradient step (compiled or not)
     """
     start = time.perf_counter()
     model = MAPPOC("MlpHybridPolicy", "sb3_detc/MultiwalkerETC-v0", seed=seed, overlap_rollouts=overlap_rollouts)
@@ -165,7 +181,13 @@ def measure_one_liner(name: str, seed: int, iterations: int, overlap_rollouts: b
 
 
 def make_ppo_supersuit(seed: int, equal_gradient_steps: bool) -> BaseAlgorithm:
-    """PPO + SuperSuit: the usual recipe, or with MAPPOC's samples and gradient steps per update."""
+    """PPO + SuperSuit: the usual recipe, or with MAPPOC's samples and gradient steps per update.
+
+    :param seed: seed of PyTorch (the learner only: the SuperSuit vector env cannot be seeded through SB3)
+    :param equal_gradient_steps: 1024 steps per vector env, minibatch 96 and 3 x 96 networks (MAPPOC's
+        samples and gradient steps per update); False: the recipe's ``learning_rate=1e-3, batch_size=256``
+    :return: the model, on 2 stock Multiwalker envs of 3 walkers as 6 vector envs of agents
+    """
     import supersuit as ss
 
     env = ss.pettingzoo_env_to_vec_env_v1(multiwalker_v9.parallel_env())
@@ -179,7 +201,16 @@ def make_ppo_supersuit(seed: int, equal_gradient_steps: bool) -> BaseAlgorithm:
 
 
 def measure(name: str, model: BaseAlgorithm, iterations: int, agent_steps_per_env_step: int) -> dict[str, Any]:
-    """Train one warm-up iteration, then ``iterations`` timed ones; return throughput and time split."""
+    """Train one warm-up iteration, then ``iterations`` timed ones; return throughput and time split.
+
+    :param name: the row's name
+    :param model: the model to train (its env is closed afterwards)
+    :param iterations: timed iterations
+    :param agent_steps_per_env_step: the model's timesteps per environment step (the number of walkers
+        under SuperSuit, which counts agent steps; 1 for MAPPOC)
+    :return: the warm-up seconds, timed env steps, seconds, env steps/s, rollout and update seconds,
+        epochs (the model's update count) and ms per minibatch gradient step
+    """
     per_iteration = model.n_steps * model.n_envs
     start = time.perf_counter()
     model.learn(per_iteration)
@@ -206,7 +237,14 @@ def measure(name: str, model: BaseAlgorithm, iterations: int, agent_steps_per_en
 
 
 def env_only(name: str, workers: bool, vec_steps: int, seed: int) -> dict[str, Any]:
-    """Environment steps per second of the joint env stepped with pre-sampled random actions (no learner)."""
+    """Environment steps per second of the joint env stepped with pre-sampled random actions (no learner).
+
+    :param name: the row's name
+    :param workers: 2 envs in worker processes (``SubprocVecEnv``); False: both in this process (``DummyVecEnv``)
+    :param vec_steps: steps of the vector env (2 environment steps each)
+    :param seed: seed of the envs and of the action sampling
+    :return: env steps, seconds and env steps/s
+    """
     vec_env_cls = SubprocVecEnv if workers else DummyVecEnv
     env = make_vec_env("sb3_detc/MultiwalkerETC-v0", n_envs=2, seed=seed, vec_env_cls=vec_env_cls)
     env.action_space.seed(seed)
@@ -225,6 +263,11 @@ def matmul_floor(name: str, seed: int, repeats: int = 500) -> dict[str, Any]:
 
     Per layer with weights ``(groups, in, out)``: ``x @ W`` forward, ``g @ W^T`` and ``x^T @ g``
     backward, on ``(groups, 32, in)`` inputs; the best of ``repeats`` timings of all layers.
+
+    :param name: the row's name
+    :param seed: seed of PyTorch and of the MAPPOC model whose layer shapes are used
+    :param repeats: timings of all layers; the fastest counts
+    :return: ms per gradient step, GFLOP/s, and gradient steps per environment step (epochs / minibatch size)
     """
     th.manual_seed(seed)
     model = make_mappoc(seed, torch_compile=False, envs="in-process")
@@ -273,7 +316,15 @@ ALGORITHMS = (ONE_LINER, ONE_LINER_OVERLAP, *MAPPOC_VARIANTS, *PPO_VARIANTS, *EN
 
 
 def measure_one(name: str, seed: int, iterations: int, ppo_iterations: int) -> dict[str, Any]:
-    """One measurement of ``name`` (one of :data:`ALGORITHMS`) in this process."""
+    """One measurement of ``name`` (one of :data:`ALGORITHMS`) in this process.
+
+    :param name: the algorithm to measure
+    :param seed: seed of the measurement
+    :param iterations: timed iterations of MAPPOC and of equal-gradient-steps PPO (2048 env steps each);
+        the env-only rows step 1024 x ``iterations`` times
+    :param ppo_iterations: timed iterations of the PPO recipe (4096 env steps each)
+    :return: the measurement (:func:`measure_one_liner`, :func:`measure`, :func:`env_only` or :func:`matmul_floor`)
+    """
     if name in (ONE_LINER, ONE_LINER_OVERLAP):  # as a user runs it: PyTorch's default threads
         return measure_one_liner(name, seed, iterations, overlap_rollouts=name == ONE_LINER_OVERLAP)
     th.set_num_threads(2 if name in TWO_THREADS else 1)  # PPO: its faster setting on 2 cores
@@ -289,6 +340,7 @@ def measure_one(name: str, seed: int, iterations: int, ppo_iterations: int) -> d
 
 
 def main() -> None:
+    """Measure one algorithm in this process (``--one``, as JSON), or each in fresh processes and print the table."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument(
         "--iterations", type=int, default=3, help="MAPPOC and equal-gradient-steps PPO iterations (2048 env steps each)"

@@ -99,7 +99,13 @@ EVAL_SEED = 10_000
 
 
 def run(job: tuple[str, int, float, int, int, Path | None]) -> dict[str, Any]:
-    """Train one trigger and evaluate it against random skipping and send-on-delta; one table row."""
+    """Train one trigger and evaluate it against random skipping and send-on-delta; one table row.
+
+    :param job: variant (a key of :data:`VARIANTS`), seed, broadcast cost, training timesteps, evaluation
+        episodes, and the folder to save the model to (None: not kept)
+    :return: the settings, training seconds, savings and the costs (relative to the LQR bound) of the
+        learned trigger, random skipping at the same rate and send-on-delta at the same savings
+    """
     variant, seed, broadcast_cost, timesteps, episodes, save_dir = job
     th.set_num_threads(1)
     settings, schedule = VARIANTS[variant]
@@ -138,6 +144,7 @@ def run(job: tuple[str, int, float, int, int, Path | None]) -> dict[str, Any]:
 
 
 def main() -> None:
+    """Train and evaluate every variant, broadcast cost and seed in parallel, write the rows and print the table."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1])

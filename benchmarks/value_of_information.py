@@ -29,7 +29,16 @@ CONFIGS = {
 
 
 def steady_cost(system: LinearSystem, trigger, steps: int, burn_in: int, seed: int) -> tuple[float, float]:
-    """Mean team cost per step after ``burn_in`` and the broadcast rate, one long episode."""
+    """Mean team cost per step after ``burn_in`` and the broadcast rate, one long episode.
+
+    :param system: the linear system (its ``max_cycles`` at least ``steps``)
+    :param trigger: ``(message, held, rng) -> broadcast``: the current messages and the held ones (N, 2) and
+        the generator, to every agent's option (N,) (1: broadcast)
+    :param steps: steps of the episode
+    :param burn_in: first steps left out of the cost and the rate
+    :param seed: seed of the episode and of the generator passed to ``trigger``
+    :return: the mean team cost per step and the broadcast rate (broadcasts / agent-steps) after the burn-in
+    """
     controller = LQRController(system)
     n = system.n_agents
     rng = np.random.default_rng(seed)
@@ -47,6 +56,7 @@ def steady_cost(system: LinearSystem, trigger, steps: int, burn_in: int, seed: i
 
 
 def main() -> None:
+    """Print, for every system configuration, the broadcast rate and relative cost of every trigger."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--steps", type=int, default=20_000)
     parser.add_argument("--seed", type=int, default=0)

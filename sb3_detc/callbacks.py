@@ -85,12 +85,25 @@ def tent(t: float, start: float, peak: float, end: float, height: float) -> floa
 
 
 def _check_unit(unit: str) -> str:
+    """Check the unit of a schedule's positions.
+
+    :param unit: ``"iterations"`` or ``"timesteps"``
+    :return: ``unit``
+    :raises ValueError: on any other unit
+    """
     if unit not in UNITS:
         raise ValueError(f"unit must be one of {UNITS}, got {unit!r}.")
     return unit
 
 
 def _check_value(name: str, value: float) -> float:
+    """Check a number of a schedule (a boundary, a noise level or a coefficient).
+
+    :param name: the argument's name, for the message
+    :param value: the value (an int or a float, not a bool)
+    :return: ``value`` as a float
+    :raises ValueError: if ``value`` is not a number, not finite or negative
+    """
     if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
         raise ValueError(f"{name} must be a number, got {value!r}.")
     if not math.isfinite(value) or value < 0:
@@ -137,14 +150,21 @@ class _Schedule(BaseCallback):
         return int(self.model.num_timesteps // (self.model.n_steps * self.model.n_envs))
 
     def value(self, t: float) -> float:
-        """The scheduled value at position ``t`` (pure: depends on the constructor's arguments only)."""
+        """The scheduled value at position ``t`` (pure: depends on the constructor's arguments only).
+
+        :param t: iteration or timestep (as :attr:`unit`)
+        :return: the value at ``t``
+        """
         raise NotImplementedError
 
     def _on_rollout_start(self) -> None:
         self.apply(self.position())
 
     def apply(self, t: float) -> None:
-        """Set and log the value of position ``t`` on the model."""
+        """Set and log the value of position ``t`` on the model.
+
+        :param t: iteration or timestep (as :attr:`unit`)
+        """
         raise NotImplementedError
 
     def _on_step(self) -> bool:
@@ -161,7 +181,10 @@ class _NoiseSchedule(_Schedule):
         self.model.set_action_noise_std(0.0, source=self)
 
     def apply(self, t: float) -> None:
-        """Set this schedule's term of position ``t`` (the model uses the largest term), and log both."""
+        """Set this schedule's term of position ``t`` (the model uses the largest term), and log both.
+
+        :param t: iteration or timestep (as :attr:`unit`)
+        """
         value = self.value(t)
         self.model.set_action_noise_std(value, source=self)
         self.logger.record(f"curriculum/{self.term_name}", value)
@@ -663,12 +686,22 @@ class CommMetricsCallback(BaseCallback):
         self._reset_rollout()
 
     def _reset_package_x(self, env_idx: int) -> float:
+        """Package x at the VecEnv's last reset of one env: the start of the package travel.
+
+        :param env_idx: index of the env in the training VecEnv
+        :return: ``package_x`` of the env's ``reset_infos`` entry (m); NaN if the VecEnv has no reset infos
+            for it or the env reports no ``package_x``
+        """
         reset_infos = getattr(self.training_env, "reset_infos", None)
         if reset_infos is None or env_idx >= len(reset_infos):
             return math.nan
         return float(reset_infos[env_idx].get("package_x", math.nan))
 
     def _init_agents(self, n_agents: int) -> None:
+        """Create the per-env, per-agent episode state (n_envs, N) at the first step and clear the rollout's counts.
+
+        :param n_agents: number of agents N (the length of ``info["broadcast"]``)
+        """
         n_envs = len(self._tracked)
         self._n_agents = n_agents
         self._ep_return = np.zeros((n_envs, n_agents))
@@ -677,6 +710,7 @@ class CommMetricsCallback(BaseCallback):
         self._reset_rollout()
 
     def _reset_rollout(self) -> None:
+        """Clear the rollout's counts: broadcasts, steps, inter-event times and finished episodes."""
         n = self._n_agents or 0
         self._broadcasts = np.zeros(n, np.int64)
         self._steps = 0
@@ -713,6 +747,12 @@ class CommMetricsCallback(BaseCallback):
         return True
 
     def _end_episode(self, e: int, info: dict[str, Any]) -> None:
+        """Record the episode that env ``e`` finished (if seen from its start) and start the env's next one.
+
+        :param e: index of the env in the training VecEnv
+        :param info: the info of the step that ended the episode; reads ``TimeLimit.truncated``,
+            ``package_x`` and ``reset_info`` where present
+        """
         if self._tracked[e]:
             self._returns.append(self._ep_return[e].copy())
             self._control_returns.append(self._ep_control_return[e].copy())

@@ -197,6 +197,12 @@ def comparison_table(summary: dict[str, Any]) -> str:
 
 
 def _main() -> None:
+    """The comparison command: write ``<dir>/study.yml`` from ``sys.argv``, run the study, print the table.
+
+    :raises InputError: for an unknown environment, ``--eval-episodes`` < 1 or a ``--dir`` that
+        holds a comparison with other settings
+    :raises SystemExit: with code 1 if a run of the study did not finish
+    """
     parser = argparse.ArgumentParser(prog="python -m sb3_detc.compare", description=__doc__.splitlines()[0])
     parser.add_argument("--env", default="sb3_detc/LinearETC-LQR-v0", help="environment id")
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2], help="seeds (default: 0 1 2)")

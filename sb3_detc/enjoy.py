@@ -19,6 +19,10 @@ from sb3_detc.zoo import check_model_arguments, render_modes, run_cli
 
 
 def _enjoy() -> None:
+    """The enjoy command: check ``sys.argv``, add ``--no-render`` for an env without a window, run ``rl_zoo3.enjoy``.
+
+    :raises InputError: on bad input (see :func:`~sb3_detc.zoo.check_model_arguments`)
+    """
     argv, known = check_model_arguments(sys.argv[1:])
     if "--no-render" not in argv and "human" not in render_modes(known.env):
         print(f"{known.env} does not render in a window: running without rendering (videos: sb3_detc.record_video)")

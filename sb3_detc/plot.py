@@ -166,7 +166,12 @@ def find_runs(folder: str | Path, algo: str, env_id: str) -> list[Path]:
 
 
 def _save(fig: plt.Figure, out: str | Path) -> Path:
-    """Lay the figure out, write it as a PNG file (its folder made if needed) and close it."""
+    """Lay the figure out, write it as a PNG file (its folder made if needed) and close it.
+
+    :param fig: the figure
+    :param out: the PNG file
+    :return: the written file
+    """
     fig.tight_layout()
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -348,6 +353,10 @@ def symlog_threshold(values: np.ndarray, span: float = 100.0, near_zero: float =
 
 
 def _main() -> None:
+    """The plot command: read ``sys.argv``, find the runs of every algorithm and draw their figure.
+
+    :raises InputError: on ``--window < 1`` or if no algorithm has runs with a ``progress.csv``
+    """
     parser = argparse.ArgumentParser(prog="python -m sb3_detc.plot", description=__doc__.splitlines()[0])
     parser.add_argument("-f", "--folder", default="logs", help="rl-zoo3 log folder (default: logs)")
     parser.add_argument("--env", default="sb3_detc/LinearETC-v0", help="environment id")

@@ -18,6 +18,11 @@ from sb3_detc.zoo import InputError, check_model_arguments, render_modes, run_cl
 
 
 def _record() -> None:
+    """The video command: check ``sys.argv``, then run ``rl_zoo3.record_video`` as a script.
+
+    :raises InputError: on bad input (see :func:`~sb3_detc.zoo.check_model_arguments`) or an
+        environment without ``rgb_array`` rendering
+    """
     argv, known = check_model_arguments(sys.argv[1:])
     if "rgb_array" not in render_modes(known.env):
         raise InputError(f"{known.env} does not render: videos need an environment with render_mode='rgb_array'")

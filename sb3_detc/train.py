@@ -21,6 +21,12 @@ from sb3_detc.zoo import ExperimentManager, check_train_arguments, run_cli
 
 
 def _train() -> None:
+    """The training command: check ``sys.argv``, complete it with the defaults and run ``rl_zoo3.train``.
+
+    rl-zoo3 builds its runs with :class:`~sb3_detc.zoo.ExperimentManager` meanwhile.
+
+    :raises InputError: on bad input (see :func:`~sb3_detc.zoo.check_train_arguments`)
+    """
     sys.argv[1:] = check_train_arguments(sys.argv[1:])
     stock = rl_zoo3.train.ExperimentManager
     rl_zoo3.train.ExperimentManager = ExperimentManager  # rl-zoo3's train() builds it from its module

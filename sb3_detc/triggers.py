@@ -165,6 +165,12 @@ class TriggerPoint:
 
 
 def _check_episodes(n_episodes: int) -> int:
+    """Check a number of episodes.
+
+    :param n_episodes: the number of episodes (an integer >= 1, not a bool)
+    :return: ``n_episodes`` as an int
+    :raises ValueError: if ``n_episodes`` is not an integer >= 1
+    """
     if isinstance(n_episodes, bool) or not isinstance(n_episodes, (int, np.integer)) or n_episodes < 1:
         raise ValueError(f"n_episodes must be an integer >= 1, got {n_episodes!r}.")
     return int(n_episodes)

@@ -283,6 +283,10 @@ class ExperimentManager(rl_zoo3.exp_manager.ExperimentManager):
             self._learn(model)
 
     def _learn(self, model: BaseAlgorithm) -> None:
+        """rl-zoo3's ``learn``; a model loaded to continue (``-i``) learns with ``reset_num_timesteps=False``.
+
+        :param model: the model to train
+        """
         if not self.continue_training:
             super().learn(model)
             return
@@ -301,6 +305,12 @@ class ExperimentManager(rl_zoo3.exp_manager.ExperimentManager):
 
 # ----------------------------------------------------------------------------- input checks
 def _closest(word: str, choices: Sequence[str]) -> str:
+    """A hint at the closest of ``choices`` to a misspelt ``word``, for messages.
+
+    :param word: the unknown name
+    :param choices: the known names
+    :return: ``" (did you mean '<choice>'?)"`` to append to the message, or ``""`` if no choice is close
+    """
     match = difflib.get_close_matches(word, list(choices), n=1)
     return f" (did you mean {match[0]!r}?)" if match else ""
 
@@ -360,6 +370,10 @@ def _evaluated(option: str, items: Sequence[str]) -> dict[str, Any]:
 
 
 def _what(error: BaseException) -> str:
+    """An exception as one line, for messages: ``<type>: <message>``.
+
+    :param error: the exception
+    """
     return f"{type(error).__name__}: {' '.join(str(error).split())}"
 
 
@@ -429,7 +443,14 @@ def _read_hyperparams(conf: str | os.PathLike) -> dict[Any, Any]:
 
 
 def _policy_class(policy: Any, algo: str, where: str) -> type:
-    """The policy class an entry names: an alias of the algorithm, an import path or a class (Python files)."""
+    """The policy class an entry names: an alias of the algorithm, an import path or a class (Python files).
+
+    :param policy: the entry's ``policy``
+    :param algo: the rl-zoo3 algorithm name, whose ``policy_aliases`` give the aliases
+    :param where: file and entry, for messages
+    :return: the policy class
+    :raises InputError: if ``policy`` is not a name, or names no known alias or importable class
+    """
     if isinstance(policy, type):
         return policy
     if not isinstance(policy, str):
@@ -447,7 +468,14 @@ def _policy_class(policy: Any, algo: str, where: str) -> type:
 
 
 def _python_value(value: Any, key: str, where: str) -> Any:
-    """A value rl-zoo3 evaluates as Python if it is a string (``policy_kwargs``, ``normalize``)."""
+    """A value rl-zoo3 evaluates as Python if it is a string (``policy_kwargs``, ``normalize``).
+
+    :param value: the entry's value
+    :param key: its key, for messages
+    :param where: file and entry, for messages
+    :return: the evaluated value, or ``value`` itself if it is not a string
+    :raises InputError: if the string is not a Python expression
+    """
     if not isinstance(value, str):
         return value
     try:
@@ -507,7 +535,10 @@ def _check_values(entry: dict[str, Any], algo: str, where: str) -> None:
 
 
 def _is_schedule(value: Any) -> bool:
-    """Whether rl-zoo3 turns ``value`` into a schedule: a number or ``"<name>_<initial value>"``."""
+    """Whether rl-zoo3 turns ``value`` into a schedule: a number or ``"<name>_<initial value>"``.
+
+    :param value: an entry's ``learning_rate``, ``clip_range``, ``clip_range_vf`` or ``delta_std``
+    """
     if isinstance(value, int | float):
         return True
     if not isinstance(value, str) or value.count("_") != 1:
@@ -583,6 +614,11 @@ def _known_arguments(argv: Sequence[str], *arguments: tuple[tuple[str, ...], Any
 
 
 def _integer(text: str | None) -> int | None:
+    """A command-line value as an integer, for ``--exp-id`` and ``--load-checkpoint``.
+
+    :param text: the value as given (None: the option is absent)
+    :return: the integer, or None if ``text`` is None or no integer
+    """
     try:
         return None if text is None else int(text)
     except ValueError:
@@ -708,6 +744,10 @@ def render_modes(env_id: str) -> list[str]:
 # ----------------------------------------------------------------------------- command lines
 @contextmanager
 def _argv(argv: Sequence[str]) -> Iterator[None]:
+    """Make ``argv`` the arguments of ``sys.argv`` (after the program name) within the block, then restore it.
+
+    :param argv: the arguments, without the program name
+    """
     saved = sys.argv
     sys.argv = [saved[0] if saved else "sb3_detc", *argv]
     try:

@@ -36,6 +36,13 @@ __all__ = [
 
 
 def _check_non_negative(name: str, value: float) -> float:
+    """Check a parameter that must be a finite number >= 0.
+
+    :param name: the parameter's name, for the message
+    :param value: the value
+    :return: ``value`` as a float
+    :raises ValueError: if ``value`` is negative, NaN or infinite
+    """
     value = float(value)
     if not np.isfinite(value) or value < 0:
         raise ValueError(f"{name} must be a finite number >= 0, got {value}.")
@@ -43,6 +50,13 @@ def _check_non_negative(name: str, value: float) -> float:
 
 
 def _check_positive(name: str, value: float) -> float:
+    """Check a parameter that must be a finite number > 0.
+
+    :param name: the parameter's name, for the message
+    :param value: the value
+    :return: ``value`` as a float
+    :raises ValueError: if ``value`` is not positive, NaN or infinite
+    """
     value = float(value)
     if not np.isfinite(value) or value <= 0:
         raise ValueError(f"{name} must be a finite number > 0, got {value}.")
@@ -188,10 +202,19 @@ class LinearSystem(CommunicatingSystem):
 
     # ----------------------------------------------------------------- array core
     def _observe(self) -> SystemObs:
+        """The current states as an observation.
+
+        :return: ``local``, ``message`` and ``trigger``, each a copy of the states ``(e_i, v_i)``, shape (N, 2)
+        """
         x = self._x
         return SystemObs(local=x.copy(), message=x.copy(), trigger=x.copy())
 
     def _reset_arrays(self, seed: int | None = None) -> tuple[SystemObs, dict[str, Any]]:
+        """Draw the initial states ``N(0, init_std^2)``, see :meth:`CommunicatingSystem._reset_arrays`.
+
+        :param seed: seed that re-seeds ``np_random``, or None to continue it
+        :return: the first observation and an empty info dict
+        """
         if seed is not None:
             self.np_random, self._np_random_seed = seeding.np_random(seed)
         self._x = self.init_std * self.np_random.standard_normal((self.n_agents, 2))
@@ -199,6 +222,12 @@ class LinearSystem(CommunicatingSystem):
         return self._observe(), {}
 
     def _step_arrays(self, control: np.ndarray) -> tuple[SystemObs, np.ndarray, bool, bool, dict[str, Any]]:
+        """One transition with the clipped controls, see :meth:`CommunicatingSystem._step_arrays`.
+
+        :param control: accelerations u_i, shape (N, 1), clipped to [-u_max, u_max] here
+        :return: observation after the transition, rewards ``r_i`` (N,) of the state before it and the
+            clipped control, terminated (always False), truncated (after ``max_cycles`` steps), an empty info dict
+        """
         u = np.clip(control[:, 0], -self.u_max, self.u_max)
         x = self._x
         e, v = x[:, 0], x[:, 1]

@@ -104,13 +104,20 @@ class EtcBipedalWalker(BipedalWalker):
             joint.maxMotorTorque = MOTORS_TORQUE
 
     def set_motors(self, speeds: list[float], torques: list[float]) -> None:
-        """Set motor speed and maximum torque of the joints (hip 1, knee 1, hip 2, knee 2)."""
+        """Set motor speed and maximum torque of the joints (hip 1, knee 1, hip 2, knee 2).
+
+        :param speeds: motor speeds (rad/s), one per joint
+        :param torques: maximum motor torques (N m), one per joint
+        """
         for joint, speed, torque in zip(self.joints, speeds, torques, strict=True):
             joint.motorSpeed = speed
             joint.maxMotorTorque = torque
 
     def apply_action(self, action: np.ndarray) -> None:
-        """Set the motors from one action of 4 values, see :func:`motor_commands`."""
+        """Set the motors from one action of 4 values, see :func:`motor_commands`.
+
+        :param action: hip 1, knee 1, hip 2, knee 2 commands, shape (4,)
+        """
         self.set_motors(*motor_commands(action))
 
     def raw_state(self) -> tuple:
@@ -150,6 +157,11 @@ class EtcContactDetector(ContactDetector):
         self.package = hash(env.package)
 
     def _touch(self, body: int, other: int) -> None:
+        """Apply the stock contact rules to one side of a contact: ``body`` touches ``other``.
+
+        :param body: hash of the Box2D body whose rule applies (a hull, the package or a lower leg)
+        :param other: hash of the Box2D body it touches
+        """
         index = self.hulls.get(body)
         if index is not None and other != self.package:
             self.env.fallen_walkers[index] = True
@@ -160,13 +172,19 @@ class EtcContactDetector(ContactDetector):
             foot.ground_contact = True
 
     def BeginContact(self, contact: Box2D.b2Contact) -> None:  # noqa: N802 (Box2D name)
-        """Update fallen walkers, game over and foot contacts when two bodies start touching."""
+        """Update fallen walkers, game over and foot contacts when two bodies start touching.
+
+        :param contact: the new contact (the bodies of its two fixtures are read)
+        """
         a, b = hash(contact.fixtureA.body), hash(contact.fixtureB.body)
         self._touch(a, b)
         self._touch(b, a)
 
     def EndContact(self, contact: Box2D.b2Contact) -> None:  # noqa: N802 (Box2D name)
-        """Clear the foot contact flag when a lower leg stops touching something."""
+        """Clear the foot contact flag when a lower leg stops touching something.
+
+        :param contact: the ended contact (the bodies of its two fixtures are read)
+        """
         for body in (contact.fixtureA.body, contact.fixtureB.body):
             foot = self.feet.get(hash(body))
             if foot is not None:
@@ -219,7 +237,11 @@ class EtcMultiWalkerEnv(MultiWalkerEnv):
         self.world.contactListener = self.contact_detector
 
     def render(self, close: bool = False) -> np.ndarray | None:
-        """Stock drawing into an off-screen surface (no window, no display needed)."""
+        """Stock drawing into an off-screen surface (no window, no display needed).
+
+        :param close: drop the surface (:meth:`close`) instead of drawing, and return None
+        :return: the frame, RGB (400, 600, 3) uint8, with ``render_mode="rgb_array"``; else None
+        """
         if self.screen is None:
             self.screen = pygame.Surface((stock.VIEWPORT_W, stock.VIEWPORT_H))
         mean_x = sum(walker.hull.position.x for walker in self.walkers) / self.n_walkers
@@ -385,9 +407,19 @@ class MultiwalkerSystem(CommunicatingSystem):
         return SystemObs(local=local, message=message, trigger=local[:, :3].copy()), raw[:, 2], package_x
 
     def _speed_potential(self, vx: np.ndarray) -> np.ndarray:
+        """Potential of the speed shaping, ``phi_i = -speed_penalty * |0.12 * vx_i|``.
+
+        :param vx: hull x velocities (m/s), shape (N,)
+        :return: potentials, shape (N,)
+        """
         return -self.speed_penalty * np.abs(SPEED_SHAPING_SCALE * vx)
 
     def _reset_arrays(self, seed: int | None = None) -> tuple[SystemObs, dict[str, Any]]:
+        """Build a new episode in :attr:`physics`, see :meth:`CommunicatingSystem._reset_arrays`.
+
+        :param seed: seed that re-seeds the generator of terrain, clouds and initial pushes, or None to continue it
+        :return: the first observation and ``{"package_x": package x position (m)}``
+        """
         if seed is not None:
             self.physics._seed(int(seed))
         self.physics.reset()
@@ -397,6 +429,12 @@ class MultiwalkerSystem(CommunicatingSystem):
         return obs, {"package_x": package_x}
 
     def _step_arrays(self, control: np.ndarray) -> tuple[SystemObs, np.ndarray, bool, bool, dict[str, Any]]:
+        """Set the motors and advance the world by one frame, see :meth:`CommunicatingSystem._step_arrays`.
+
+        :param control: hip 1, knee 1, hip 2, knee 2 commands of every walker, shape (N, 4) (see :func:`motor_commands`)
+        :return: observation, rewards (N,), terminated (a failure or the package past the end of the terrain),
+            truncated (after ``max_cycles`` frames), info with ``package_x`` (m) and ``failed``
+        """
         physics = self.physics
         speeds, torques = motor_commands(control)
         for walker, speed, torque in zip(physics.walkers, speeds, torques, strict=True):
@@ -436,8 +474,18 @@ class MultiwalkerSystem(CommunicatingSystem):
 
 
 def _is_int(value: Any) -> bool:
+    """Whether ``value`` is an integer, a Python or NumPy one but not a bool.
+
+    :param value: the value to check
+    :return: True for an int or a NumPy integer other than a bool
+    """
     return isinstance(value, (int, np.integer)) and not isinstance(value, bool)
 
 
 def _unbounded(size: int) -> spaces.Box:
+    """Unbounded float32 ``Box`` of one agent's vector.
+
+    :param size: length of the vector
+    :return: ``Box(-inf, inf, (size,), float32)``
+    """
     return spaces.Box(low=-np.inf, high=np.inf, shape=(size,), dtype=np.float32)

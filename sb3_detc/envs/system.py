@@ -179,4 +179,9 @@ class CommunicatingSystem(ParallelEnv):
         return np.concatenate([obs.local.ravel(), obs.message.ravel()]).astype(np.float32)
 
     def _per_agent(self, array: np.ndarray) -> dict[str, np.ndarray]:
+        """Split an array with the agent axis first into one entry per agent.
+
+        :param array: per-agent values, shape (N, ...)
+        :return: agent name -> its row as float32, for every agent of ``possible_agents``
+        """
         return {a: array[i].astype(np.float32) for i, a in enumerate(self.possible_agents)}

@@ -31,6 +31,12 @@ JOINT_KEYS = ("local", "message", "held", "age", "trigger", "trigger_held")
 
 
 def _box(shape: tuple[int, ...], low: float = -np.inf) -> spaces.Box:
+    """Float32 ``Box`` bounded below by ``low`` and unbounded above.
+
+    :param shape: shape of the space
+    :param low: lower bound of every entry (default: none; 0 for ages)
+    :return: ``Box(low, inf, shape, float32)``
+    """
     return spaces.Box(low=np.float32(low), high=np.float32(np.inf), shape=shape, dtype=np.float32)
 
 
@@ -114,18 +120,36 @@ class EventTriggeredNetwork(BaseParallelWrapper):
         self.last_broadcast = np.zeros(n, dtype=np.int64)
 
     def observation_space(self, agent: str) -> spaces.Dict:
-        """Networked observation space of one agent."""
+        """Networked observation space of one agent.
+
+        :param agent: name of the agent (all agents share one space)
+        :return: ``Dict(local, neighbours, neighbour_age, trigger, trigger_held)``
+        """
         return self._agent_observation_space
 
     def action_space(self, agent: str) -> spaces.Dict:
-        """Hybrid action space of one agent: option and control."""
+        """Hybrid action space of one agent: option and control.
+
+        :param agent: name of the agent (all agents share one space)
+        :return: ``Dict(broadcast=Discrete(2), control=Box)``
+        """
         return self._agent_action_space
 
     # ----------------------------------------------------------------- array core
     def _trigger_of(self, obs: SystemObs) -> np.ndarray:
+        """Features of the policy over options in a system observation, as chosen by ``trigger``.
+
+        :param obs: the system's observation
+        :return: ``obs.trigger`` (``"default"``), ``obs.local`` or ``obs.message``, shape (N, n_trig)
+        """
         return obs.trigger if self.trigger == "default" else getattr(obs, self.trigger)
 
     def _joint_obs(self, obs: SystemObs) -> dict[str, np.ndarray]:
+        """Joint observation: the system's observation and the network's held broadcasts, ages and held features.
+
+        :param obs: the system's observation
+        :return: float32 arrays (agent axis first) by the keys of ``joint_observation_space``
+        """
         return {
             "local": obs.local.astype(np.float32),
             "message": obs.message.astype(np.float32),
@@ -213,12 +237,27 @@ class EventTriggeredNetwork(BaseParallelWrapper):
         }
 
     def reset(self, seed: int | None = None, options: dict | None = None) -> tuple[dict, dict]:
-        """PettingZoo reset: per-agent networked observations."""
+        """PettingZoo reset: per-agent networked observations.
+
+        :param seed: seed of the system's random generator, or None to continue it
+        :param options: unused (PettingZoo API)
+        :return: agent name -> observation of :meth:`observation_space`, and agent name -> a copy of the
+            reset's info dict
+        """
         obs, info = self.reset_joint(seed)
         return self.agent_views(obs), {a: dict(info) for a in self.possible_agents}
 
     def step(self, actions: dict) -> tuple[dict, dict, dict, dict, dict]:
-        """PettingZoo step: ``{agent: {"broadcast": 0 or 1, "control": array}}`` for every live agent."""
+        """PettingZoo step: an option and a control for every live agent.
+
+        :param actions: agent name -> ``{"broadcast": 0 or 1, "control": control of shape (m,)}``, for
+            every agent (all agents live together)
+        :return: five dicts keyed by agent name: networked observations, rewards with the communication
+            cost, terminated, truncated and infos (the system's info with the agent's ``broadcast``, its
+            ``broadcasts`` of the episode so far and its ``control_reward``)
+        :raises RuntimeError: if no episode is running
+        :raises ValueError: on a missing or malformed action (see :meth:`step_joint`)
+        """
         if not self.agents:
             raise RuntimeError("step called without a running episode: the last episode ended; call reset() first.")
         missing = set(self.agents) - set(actions)
@@ -305,12 +344,22 @@ class JointEnv(gym.Env):
 
     @broadcast_cost.setter
     def broadcast_cost(self, value: float) -> None:
+        """Set the network's communication cost.
+
+        :param value: the new cost per broadcast (>= 0)
+        :raises ValueError: if ``value`` is negative or not finite
+        """
         if not np.isfinite(value) or value < 0:
             raise ValueError(f"broadcast_cost must be a finite number >= 0, got {value!r}.")
         self.network.broadcast_cost = float(value)
 
     def reset(self, *, seed: int | None = None, options: dict | None = None) -> tuple[dict, dict]:
-        """Start an episode (Gymnasium seeding)."""
+        """Start an episode (Gymnasium seeding).
+
+        :param seed: seed of the system's random generator (and of ``np_random``), or None to continue it
+        :param options: unused (Gymnasium API)
+        :return: joint observation (agent axis first) and info
+        """
         super().reset(seed=seed)
         return self.network.reset_joint(seed)
 

@@ -141,7 +141,11 @@ class ChainInput(NamedTuple):
 
 
 def _variants(features: th.Tensor) -> int:
-    """Inputs per sample of a network's features: (B, N, f) -> 1, (B, variants, N, f) -> variants."""
+    """Inputs per sample of a network's features: (B, N, f) -> 1, (B, variants, N, f) -> variants.
+
+    :param features: the network's features, (B, N, f) or (B, variants, N, f)
+    :return: the number of variants
+    """
     return features.shape[1] if features.dim() == 4 else 1
 
 
@@ -287,6 +291,9 @@ class AgentBatchedNetworks(nn.ModuleList):
         """(B, [variants,] N, f) -> (groups, B, variants x agents per group, f).
 
         One group per agent, or one shared group with a one-hot agent id appended.
+
+        :param x: one network's features, (B, N, f) or (B, variants, N, f)
+        :return: (N, B, variants, f), or (1, B, variants x N, f + N) with shared parameters
         """
         batch = x.shape[0]
         x = x.flatten(0, -3)
@@ -296,7 +303,13 @@ class AgentBatchedNetworks(nn.ModuleList):
         return x.transpose(0, 1).reshape(self.n_agents, batch, -1, x.shape[-1])
 
     def _from_groups(self, y: th.Tensor, batch: int) -> th.Tensor:
-        """(groups, B * agents per group, outputs) -> (B, N, outputs)."""
+        """(groups, B * agents per group, outputs) -> (B, N, outputs).
+
+        :param y: one network's outputs of all groups, (groups, B * agents per group, outputs)
+        :param batch: samples B (times the variants, which then form part of the first axis);
+            read only with shared parameters
+        :return: the outputs by agent, (B, N, outputs)
+        """
         if self.share_parameters:
             return y.reshape(batch, self.n_agents, -1)
         return y.transpose(0, 1)

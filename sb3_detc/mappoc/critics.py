@@ -91,7 +91,13 @@ class OptionHeadsCritic(OptionCritic):
     needs_price = False
 
     def _option_values(self, q: th.Tensor, price: th.Tensor | float, p_broadcast: th.Tensor | None) -> th.Tensor:
-        """The option heads as they are (see :meth:`OptionCritic._option_values`)."""
+        """The option heads as they are (see :meth:`OptionCritic._option_values`).
+
+        :param q: outputs of the critic network, the option values (B, N, 2)
+        :param price: what a broadcast costs agent ``i`` (unused: learned from the rewards)
+        :param p_broadcast: probability of broadcasting with which the options were drawn (unused)
+        :return: ``q``
+        """
         return q
 
 
@@ -122,7 +128,14 @@ class AfterstateCritic(OptionCritic):
         return policy.afterstate_features(obs, broadcast)
 
     def _option_values(self, q: th.Tensor, price: th.Tensor | float, p_broadcast: th.Tensor | None) -> th.Tensor:
-        """``[W_i(after(s, 0)), W_i(after(s, 1)) - price_i]`` from the afterstate values ``q`` (B, 2, N, 1)."""
+        """``[W_i(after(s, 0)), W_i(after(s, 1)) - price_i]`` from the afterstate values ``q`` (B, 2, N, 1).
+
+        :param q: outputs of the critic network on :meth:`features`: ``[:, v, i, 0]`` is ``W_i`` of
+            agent ``i``'s afterstate for its own option ``v``, (B, 2, N, 1)
+        :param price: what a broadcast costs agent ``i`` (B, N), or 0.0
+        :param p_broadcast: probability of broadcasting with which the options were drawn (unused)
+        :return: ``Q_i(s, o)``, (B, N, 2)
+        """
         values = q[..., 0].transpose(1, 2)
         return th.stack([values[..., 0], values[..., 1] - price], dim=-1)
 
@@ -144,7 +157,14 @@ class CentredCritic(OptionCritic):
     needs_draw_probabilities = True
 
     def _option_values(self, q: th.Tensor, price: th.Tensor | float, p_broadcast: th.Tensor | None) -> th.Tensor:
-        """``V - p (D - price)`` and ``V + (1 - p) (D - price)`` from ``q = (V, D)`` (B, N, 2)."""
+        """``V - p (D - price)`` and ``V + (1 - p) (D - price)`` from ``q = (V, D)`` (B, N, 2).
+
+        :param q: outputs of the critic network: state value ``V_i(s)`` and broadcast gap ``D_i(s)``, (B, N, 2)
+        :param price: what a broadcast costs agent ``i`` (B, N), or 0.0
+        :param p_broadcast: probability of broadcasting ``p_i`` with which the options were drawn (B, N);
+            not None (checked by :meth:`OptionCritic.option_values`)
+        :return: ``Q_i(s, o)``, (B, N, 2)
+        """
         value, gap = q[..., 0], q[..., 1] - price
         return th.stack([value - p_broadcast * gap, value + (1 - p_broadcast) * gap], dim=-1)
 

@@ -140,12 +140,26 @@ class MAPPOCLoss(nn.Module):
         )
 
     def _greedy(self, evaluation: HybridEvaluation, data: HybridRolloutSamples) -> th.Tensor:
+        """Greedy broadcast advantages with the current critic, optionally normalised, plus the offset.
+
+        :param evaluation: the current networks' evaluation of the minibatch (its ``option_values``)
+        :param data: the minibatch (its taken options ``broadcast``)
+        :return: advantages (B, N)
+        """
         advantages = greedy_broadcast_advantage(evaluation.option_values, data.broadcast)
         if self.normalize_broadcast_advantage:
             advantages = advantages / broadcast_gap_scale(evaluation.option_values)
         return advantages + self.offset
 
     def _sampled(self, evaluation: HybridEvaluation, data: HybridRolloutSamples) -> th.Tensor:
+        """Sampled broadcast advantages (lambda-return minus the state value at collection), plus the offset.
+
+        Standardised like the control advantages if ``normalize_advantage``.
+
+        :param evaluation: the current networks' evaluation of the minibatch (unused)
+        :param data: the minibatch (its ``broadcast_advantages``)
+        :return: advantages (B, N)
+        """
         return self.normalized(data.broadcast_advantages) + self.offset
 
     def forward(self, update: UpdateInputs, idx: th.Tensor) -> tuple[th.Tensor, th.Tensor]:

@@ -119,7 +119,11 @@ def make_rollout_workers(env_id: str, n_envs: int, seed: int | None = None) -> V
 
 
 def _as_joint_env(env: GymEnv | str | EventTriggeredNetwork | None) -> GymEnv | str | None:
-    """Adapt a PettingZoo event-triggered env to the joint Gymnasium view."""
+    """Adapt a PettingZoo event-triggered env to the joint Gymnasium view.
+
+    :param env: an env id, a Gymnasium or vector env, a PettingZoo :class:`EventTriggeredNetwork`, or None
+    :return: a :class:`JointEnv` of an :class:`EventTriggeredNetwork`, anything else as given
+    """
     return JointEnv(env) if isinstance(env, EventTriggeredNetwork) else env
 
 
@@ -624,7 +628,12 @@ class MAPPOC(OnPolicyAlgorithm):
         return self._pending
 
     def _sample_here(self, env: VecEnv, n_steps: int) -> Rollout:
-        """Sample and step ``n_steps`` steps of every env in this process."""
+        """Sample and step ``n_steps`` steps of every env in this process.
+
+        :param env: the training env
+        :param n_steps: steps per env
+        :return: the sampled steps, starting from :attr:`_last_obs`
+        """
         obs = self._last_obs
         steps = []
         for _ in range(n_steps):
@@ -659,7 +668,14 @@ class MAPPOC(OnPolicyAlgorithm):
         )  # type: ignore[arg-type]
 
     def _sample_in_workers(self, env: VecEnv, n_steps: int) -> Rollout:
-        """Let every env sample and step ``n_steps`` steps with a copy of the current policy (in parallel)."""
+        """Let every env sample and step ``n_steps`` steps with a copy of the current policy (in parallel).
+
+        While worker processes sample, the learner compiles its gradient step if it needs to.
+
+        :param env: the training env (of rollout workers)
+        :param n_steps: steps per env
+        :return: the sampled steps
+        """
         sample = self._worker_rollout(env, n_steps, self.policy.state_dict())
         if self.gradient_step.needs_warm_up and isinstance(env, SubprocVecEnv):
             # The learner waits for the worker processes: compile its gradient step meanwhile.
@@ -911,7 +927,11 @@ class MAPPOC(OnPolicyAlgorithm):
         self.gradient_step.warm_up(update, th.arange(min(self.batch_size, samples), device=self.device))
 
     def _broadcast_costs(self, env: VecEnv) -> np.ndarray:
-        """The communication cost ``xi`` of every environment, (n_envs,); zeros unless the critic needs it."""
+        """The communication cost ``xi`` of every environment, (n_envs,); zeros unless the critic needs it.
+
+        :param env: the training env
+        :raises ValueError: if the critic needs the cost and the envs have no ``broadcast_cost``
+        """
         if not self.policy.option_critic.needs_price:
             return np.zeros(env.num_envs, dtype=np.float32)  # such critics learn it from the rewards
         try:
@@ -1059,12 +1079,23 @@ def has_rollout_workers(env: VecEnv) -> bool:
 
 
 def _stack_dicts(dicts: list[dict[str, np.ndarray]], axis: int) -> dict[str, np.ndarray]:
-    """Stack same-keyed dicts of arrays key by key along a new ``axis``."""
+    """Stack same-keyed dicts of arrays key by key along a new ``axis``.
+
+    :param dicts: the dicts (at least one), each key with arrays of the same shape in all of them
+    :param axis: position of the new axis (0: steps of one rollout; 1: the envs' trajectories, (T, n_envs, ...))
+    :return: key -> stacked array
+    """
     return {key: np.stack([d[key] for d in dicts], axis=axis) for key in dicts[0]}
 
 
 def _truncated(infos: list[dict[str, Any]], dones: np.ndarray) -> list[tuple[int, dict[str, np.ndarray]]]:
-    """The envs whose episode was cut by a time limit in this step, with their last observations (checked)."""
+    """The envs whose episode was cut by a time limit in this step, with their last observations (checked).
+
+    :param infos: every env's info of the step (n_envs,)
+    :param dones: episode ends of the step (n_envs,)
+    :return: ``(env index, terminal observation)`` of every truncated episode
+    :raises ValueError: if a terminal observation is not finite
+    """
     cut = []
     for idx, (info, done) in enumerate(zip(infos, dones, strict=True)):
         if done and info.get("TimeLimit.truncated", False) and "terminal_observation" in info:
@@ -1074,6 +1105,12 @@ def _truncated(infos: list[dict[str, Any]], dones: np.ndarray) -> list[tuple[int
 
 
 def _check_same_agents(env: GymEnv, n_agents: int) -> None:
+    """Check that a joint env has ``n_agents`` agents (if its action space is a joint one; the rest is checked later).
+
+    :param env: the joint env (Gymnasium or vector env)
+    :param n_agents: number of agents N of the model
+    :raises ValueError: if the env's ``broadcast`` action has another number of agents
+    """
     action_space = env.action_space
     if isinstance(action_space, spaces.Dict) and "broadcast" in action_space.spaces:
         n_env = len(action_space["broadcast"].nvec)
@@ -1142,7 +1179,11 @@ def check_observation_normalization(norm_obs: bool, norm_obs_keys: Sequence[str]
 
 
 def _check_vec_normalize(env: GymEnv | None) -> None:
-    """Apply :func:`check_observation_normalization` to a ``VecNormalize`` anywhere in ``env``'s vector wrappers."""
+    """Apply :func:`check_observation_normalization` to a ``VecNormalize`` anywhere in ``env``'s vector wrappers.
+
+    :param env: the training env (only a vector env can have a ``VecNormalize``), or None
+    :raises ValueError: if the ``VecNormalize`` normalises one of :data:`NETWORK_KEYS`
+    """
     vec_normalize = unwrap_vec_normalize(env) if isinstance(env, VecEnv) else None
     if vec_normalize is not None:
         check_observation_normalization(vec_normalize.norm_obs, vec_normalize.norm_obs_keys)

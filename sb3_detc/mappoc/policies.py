@@ -520,7 +520,12 @@ class MlpHybridPolicy(BasePolicy):
 
     @staticmethod
     def _sample_options(logits: th.Tensor, deterministic: bool) -> th.Tensor:
-        """Options from the logits of ``mu``: the mode, or a sample (B, N)."""
+        """Options from the logits of ``mu``: the mode, or a sample (B, N).
+
+        :param logits: outputs of ``mu``, (B, N, 2): the logits of silent (0) and broadcast (1)
+        :param deterministic: the most likely option instead of a sample
+        :return: options (B, N), 1 for a broadcast
+        """
         if deterministic:
             return logits.argmax(-1)
         p_broadcast = broadcast_probability(logits)
@@ -708,6 +713,11 @@ class AgentController(nn.Module):
         self.register_buffer("control_high", control_high)
 
     def _with_id(self, x: th.Tensor) -> th.Tensor:
+        """A network input with the one-hot agent id appended (shared parameters; else as it is).
+
+        :param x: the agent's features, 1-D
+        :return: the network's input, 1-D
+        """
         return th.cat([x, self.agent_id.to(x.dtype)])
 
     @th.no_grad()

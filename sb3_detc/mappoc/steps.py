@@ -266,7 +266,14 @@ class FusedGradientStep:
         update: UpdateInputs,
         idx: th.Tensor,
     ) -> th.Tensor:
-        """Run the compiled step on these parameters and Adam state (updated in place); return its statistics."""
+        """Run the compiled step on these parameters and Adam state (updated in place); return its statistics.
+
+        :param params: the optimizer's parameters, in its order (or copies of them, :meth:`warm_up`)
+        :param state: their ``step``, ``exp_avg`` and ``exp_avg_sq`` (:func:`adam_state`, or copies)
+        :param update: what the loss needs of the rollout and the update (:class:`UpdateInputs`)
+        :param idx: indices of the minibatch's samples
+        :return: the statistics named in :data:`STEP_STATS`
+        """
         group = self.optimizer.param_groups[0]
         if update is not self._update:
             # Scheduled numbers as tensors: a float would be compiled in, and each new value recompile the step.

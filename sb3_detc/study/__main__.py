@@ -22,6 +22,11 @@ STUDIES_DIR = Path(__file__).resolve().parent.parent / "studies"
 
 
 def _study_path(name: str) -> Path:
+    """The study file of a ``run`` argument: a bare file name not found here is looked up in :data:`STUDIES_DIR`.
+
+    :param name: the study file, or the name of one shipped with the package (``multiwalker_paper.yml``)
+    :return: the shipped study file if ``name`` is a bare name of one and no such file exists here, else ``name``
+    """
     path = Path(name)
     if not path.is_file() and (STUDIES_DIR / path.name).is_file() and path.parent == Path():
         return STUDIES_DIR / path.name
@@ -29,6 +34,11 @@ def _study_path(name: str) -> Path:
 
 
 def _main() -> None:
+    """Run the ``run`` or ``report`` command given in ``sys.argv``.
+
+    :raises SystemExit: with code 1 if ``run`` leaves a trial not done (failed, or unfinished after a stop)
+    :raises StudyError: if the folder given to ``report`` is not a study folder
+    """
     parser = argparse.ArgumentParser(prog="python -m sb3_detc.study", description=__doc__.splitlines()[0])
     commands = parser.add_subparsers(dest="command", required=True)
     run = commands.add_parser("run", help="run (or continue) every trial of a study")

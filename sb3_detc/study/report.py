@@ -100,6 +100,12 @@ def _bootstrap(
 
     rliable draws its resamples from NumPy's global generator: it is seeded for the call and
     restored afterwards.
+
+    :param values: label -> array (seeds, metrics), or a tuple of such arrays (resampled alike) that
+        ``statistic`` takes together
+    :param statistic: one label's (resampled) array, or the arrays of its tuple as arguments -> estimates (k,)
+    :param reps: bootstrap resamples
+    :return: label -> point estimates (k,), label -> intervals (2, k) (low, high)
     """
     state = np.random.get_state()
     np.random.seed(0)
@@ -137,6 +143,12 @@ def read_trials(directory: str | Path) -> tuple[Any, dict[str, dict[int, dict[st
 
 
 def _trials(directory: Path) -> tuple[Any, dict[str, dict[int, dict[str, Any]]], dict[str, dict[int, str]]]:
+    """:func:`read_trials` with every evaluation reduced to its metrics and its ``timesteps``.
+
+    :param directory: the study folder
+    :return: the study, label -> seed -> metric -> value of every finished trial, and label -> seed ->
+        state of the others
+    """
     spec, evaluations, states = read_trials(directory)
     results = {
         label: {seed: {"timesteps": e["timesteps"], **e["metrics"]} for seed, e in seeds.items()}
@@ -193,6 +205,12 @@ def summarise(directory: str | Path) -> dict[str, Any]:
 
 
 def _number(value: float, digits: int = 2) -> str:
+    """A number for the report's tables.
+
+    :param value: the number (None or NaN: not available)
+    :param digits: decimals shown below 1000 in size (from 1000 on: no decimals, thousands separated by commas)
+    :return: the text, ``n/a`` for None or NaN
+    """
     if value is None or (isinstance(value, float) and math.isnan(value)):
         return "n/a"
     if abs(value) >= 1000:
@@ -201,6 +219,13 @@ def _number(value: float, digits: int = 2) -> str:
 
 
 def _markdown(directory: Path, spec: Any, summary: dict[str, Any]) -> str:
+    """The Markdown report of a study: per algorithm its unfinished seeds, metric table and seed table; comparisons.
+
+    :param directory: the study folder (its name is the title's)
+    :param spec: the study (:class:`~sb3_detc.study.spec.StudySpec`)
+    :param summary: the study's statistics (:func:`summarise`)
+    :return: the report
+    """
     lines = [f"# Study {directory.name}: {spec.env}", ""]
     lines += [
         f"Evaluation: {spec.episodes} episodes per mode, the same seeded episodes for every trial "
@@ -271,7 +296,11 @@ def _markdown(directory: Path, spec: Any, summary: dict[str, Any]) -> str:
 
 
 def _logged_iterations(run: Path) -> int:
-    """Rows of a run's ``progress.csv`` (one per logged iteration)."""
+    """Rows of a run's ``progress.csv`` (one per logged iteration).
+
+    :param run: the trial folder, holding a ``progress.csv``
+    :return: the number of non-empty lines after the header
+    """
     with open(run / "progress.csv") as file:
         return max(0, sum(1 for line in file if line.strip()) - 1)
 

@@ -70,6 +70,11 @@ def prepare_folder(spec: StudySpec, directory: str | os.PathLike) -> Path:
 
 
 def _format_duration(seconds: float) -> str:
+    """A duration in whole minutes, as ``42 min`` or ``3 h 05 min``.
+
+    :param seconds: the duration in seconds (NaN or infinite: not known)
+    :return: the text, ``unknown`` for a duration that is not finite
+    """
     if not math.isfinite(seconds):
         return "unknown"
     minutes = int(round(seconds / 60))
@@ -77,6 +82,14 @@ def _format_duration(seconds: float) -> str:
 
 
 def _make_progress_callback(tune: Any) -> type:
+    """The Ray Tune callback class that reports trial starts, results and ends to a :class:`StudyProgress`.
+
+    Made on demand so that Ray is imported only when a study runs.
+
+    :param tune: the ``ray.tune`` module
+    :return: the class, to be called with the :class:`StudyProgress`
+    """
+
     class StudyProgressCallback(tune.Callback):
         """Ray Tune callback that feeds a :class:`StudyProgress`."""
 
@@ -99,6 +112,14 @@ def _make_progress_callback(tune: Any) -> type:
 
 
 def _make_stopper(tune: Any) -> type:
+    """The Ray Tune stopper class that ends the study once :data:`STOP_FILE` exists and no trial runs.
+
+    Made on demand so that Ray is imported only when a study runs.
+
+    :param tune: the ``ray.tune`` module
+    :return: the class, to be called with the stop file and the :class:`StudyProgress`
+    """
+
     class StudyStopper(tune.Stopper):
         """Ends the study once it was asked to stop and no trial runs any more: pending trials do not start.
 
@@ -250,7 +271,13 @@ def _check_address(address: str, timeout: float = 10.0) -> None:
 
 
 def _trainable(config: dict[str, Any]) -> None:
-    """One Ray Tune trial: run (or resume) a study trial and report its progress."""
+    """One Ray Tune trial: run (or resume) a study trial and report its progress.
+
+    :param config: ``study`` (path of the study file), ``directory`` (the study folder) and ``trial``
+        (the trial's name, :attr:`Trial.name <sb3_detc.study.spec.Trial.name>`)
+    :raises KeyboardInterrupt: if the trial is interrupted other than by a stop request (and whatever
+        :func:`~sb3_detc.study.trial.run_trial` raises when the trial fails)
+    """
     from ray import tune
 
     spec = load_study(config["study"])
@@ -281,7 +308,10 @@ def _stop_on_first_interrupt(stop_file: Path, stream: Any) -> Any:
     """Within the context, the first Ctrl-C (SIGINT) writes ``stop_file``; the next one interrupts at once.
 
     Ray Tune's own handler is switched off: it ends running trials about ten seconds after the
-    signal, which cuts off a checkpoint that is being written.
+    signal, which cuts off a checkpoint that is being written. Outside the main thread it does nothing.
+
+    :param stop_file: the file whose existence asks the study to stop (:data:`STOP_FILE` in the study folder)
+    :param stream: where the message that the study is stopping goes
     """
     if threading.current_thread() is not threading.main_thread():  # signals reach the main thread only
         yield

@@ -143,10 +143,25 @@ class StudySpec:
 
 
 def _fail(path: Path, message: str) -> StudyError:
+    """The error of a malformed study file, for the caller to raise.
+
+    :param path: the study file
+    :param message: what is wrong
+    :return: the error, its message prefixed with the file
+    """
     return StudyError(f"{path}: {message}")
 
 
 def _int(path: Path, where: str, value: Any, minimum: int) -> int:
+    """A checked integer setting of a study file.
+
+    :param path: the study file
+    :param where: the setting, for the message (e.g. ``'n_timesteps'``)
+    :param value: the parsed value (a float with an integer value, e.g. ``100000.0``, counts as an integer)
+    :param minimum: the smallest allowed value
+    :return: the value as an ``int``
+    :raises StudyError: if it is no integer (or a bool) or below ``minimum``
+    """
     if isinstance(value, float) and value.is_integer():
         value = int(value)
     if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
@@ -155,6 +170,14 @@ def _int(path: Path, where: str, value: Any, minimum: int) -> int:
 
 
 def _seeds(path: Path, where: str, value: Any) -> tuple[int, ...]:
+    """A checked list of seeds of a study file.
+
+    :param path: the study file
+    :param where: the setting, for the message (e.g. ``'seeds'``)
+    :param value: the parsed value
+    :return: the seeds, in the file's order
+    :raises StudyError: if it is no non-empty list of integers >= 0, or lists a seed twice
+    """
     if not isinstance(value, list) or not value:
         raise _fail(path, f"{where} must be a non-empty list of integers, got {value!r}")
     seeds = tuple(_int(path, where, seed, 0) for seed in value)
@@ -164,12 +187,30 @@ def _seeds(path: Path, where: str, value: Any) -> tuple[int, ...]:
 
 
 def _unknown(path: Path, where: str, keys: Any, allowed: frozenset[str]) -> None:
+    """Check that a mapping of a study file has only known keys.
+
+    :param path: the study file
+    :param where: the mapping, for the message (e.g. ``the study``)
+    :param keys: the mapping's keys
+    :param allowed: the known keys
+    :raises StudyError: naming the first unknown key (in sorted order) and the allowed ones
+    """
     extra = sorted(set(map(str, keys)) - allowed)
     if extra:
         raise _fail(path, f"unknown key {extra[0]!r} in {where} (allowed: {', '.join(sorted(allowed))})")
 
 
 def _algorithm(path: Path, env: str, label: Any, settings: Any, seeds: tuple[int, ...] | None) -> AlgorithmSpec:
+    """One checked algorithm of a study file, with its entry of the hyperparameter file.
+
+    :param path: the study file (a relative ``conf`` is relative to its folder)
+    :param env: the study's environment id
+    :param label: the algorithm's key under ``algorithms``
+    :param settings: its parsed settings (``algo``, and optionally ``conf``, ``hyperparams``, ``seeds``, ``cpus``)
+    :param seeds: the study's top-level seeds, used where the algorithm has none (None: not given)
+    :return: the algorithm; ``cpus`` defaults to the entry's ``n_envs`` where it uses rollout workers, else 1
+    :raises StudyError: on the first problem of the algorithm's settings or of its entry
+    """
     if not isinstance(label, str) or not label or "/" in label or label.startswith("."):
         raise _fail(path, f"an algorithm label must be a non-empty name without '/', got {label!r}")
     if not isinstance(settings, dict):
@@ -208,7 +249,17 @@ def _algorithm(path: Path, env: str, label: Any, settings: Any, seeds: tuple[int
 def _checked_entry(
     path: Path, env: str, label: str, algo: str, conf: Path, hyperparams: dict[str, Any]
 ) -> dict[str, Any]:
-    """The entry with the overrides, checked as a whole (as rl-zoo3's ``-params`` would be)."""
+    """The entry with the overrides, checked as a whole (as rl-zoo3's ``-params`` would be).
+
+    :param path: the study file, for the message
+    :param env: environment id, the entry's key in ``conf`` (else its ``default`` entry)
+    :param label: the algorithm's label, for the message
+    :param algo: rl-zoo3 algorithm name
+    :param conf: the hyperparameter file
+    :param hyperparams: overrides of the entry
+    :return: the entry with the overrides applied
+    :raises StudyError: if the file, the entry or the overrides are not valid
+    """
     try:
         return check_hyperparams_file(conf, algo, env, hyperparams)
     except InputError as error:

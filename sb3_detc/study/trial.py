@@ -95,6 +95,11 @@ def trial_folder(directory: str | os.PathLike, trial: Trial) -> Path:
 
 
 def _write_json(path: Path, content: dict[str, Any]) -> None:
+    """Write a JSON file atomically (through a ``.tmp`` file next to it), so that readers never see half of it.
+
+    :param path: the file
+    :param content: what it holds
+    """
     scratch = path.with_suffix(".tmp")
     scratch.write_text(json.dumps(content, indent=1) + "\n")
     os.replace(scratch, path)
@@ -187,6 +192,10 @@ def merged_progress(folder: Path) -> pd.DataFrame:
 
 
 def _write_progress(folder: Path) -> None:
+    """Write the trial's ``progress.csv`` (atomically): :func:`merged_progress`; nothing if nothing was logged.
+
+    :param folder: the trial folder
+    """
     rows = merged_progress(folder)
     if not rows.empty:
         scratch = folder / "progress.tmp.csv"
@@ -244,6 +253,12 @@ def machine_record() -> dict[str, Any]:
 
 
 def _episodes_json(episodes: Episodes) -> dict[str, Any]:
+    """One evaluation mode's episodes as JSON lists, one entry per episode.
+
+    :param episodes: the mode's episodes
+    :return: ``return``, ``control_return``, ``length``, ``broadcasts`` (of all agents), ``failed`` and
+        ``package_travel`` (None where not reported) per episode, and ``savings`` over all of them
+    """
     return {
         "return": episodes.returns.tolist(),
         "control_return": episodes.control_returns.tolist(),
@@ -330,6 +345,18 @@ def entry_fixed_trigger(entry: dict[str, Any]) -> Any:
 
 
 def _train(spec: StudySpec, trial: Trial, folder: Path, on_progress: Callable[[int], None] | None) -> None:
+    """Train a trial to its budget (from its checkpoint if it has one) and save ``policy.pt`` and ``progress.csv``.
+
+    Every attempt logs to its own segment ``segments/<first step>/``; ``status.json`` keeps the step
+    count and training seconds.
+
+    :param spec: the study
+    :param trial: the trial
+    :param folder: the trial folder
+    :param on_progress: called with the step count at the start of every rollout (None: nothing is called)
+    :raises RuntimeError: if the checkpoint is not below the budget
+    :raises KeyboardInterrupt: if training stopped before the budget (status ``interrupted``, checkpoint saved)
+    """
     algorithm = trial.algorithm
     budget = spec.budget(algorithm)
     checkpoint = folder / "checkpoint.zip"
