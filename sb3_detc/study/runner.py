@@ -91,7 +91,10 @@ def _make_progress_callback(tune: Any) -> type:
     """
 
     class StudyProgressCallback(tune.Callback):
-        """Ray Tune callback that feeds a :class:`StudyProgress`."""
+        """Ray Tune callback that feeds a :class:`StudyProgress`.
+
+        :param progress: the study's progress, told of every trial's start, results and end
+        """
 
         def __init__(self, progress: StudyProgress) -> None:
             self.progress = progress
