@@ -2,8 +2,9 @@
 
 Every finished trial of a study folder (``policy.pt``) runs the study's seeded evaluation
 episodes (the same for every controller and trigger) with its deterministic control policy
-and, instead of its own options, random skips at several rates and periodic communication
-every ``k`` steps. Its learned trigger comes from the trial's ``evaluation.json`` (the same
+and, instead of its own options, random skips at several rates, periodic communication
+every ``k`` steps and send-on-delta (a walker broadcasts when the package, as it sees it, moved
+more than ``delta`` since its last broadcast). Its learned trigger comes from the trial's ``evaluation.json`` (the same
 episodes, options sampled from its policy over options); a trial that learned its options also
 runs with the most likely option of its policy over options (``mode of mu``: what
 ``predict(deterministic=True)`` does with the policy's ``deterministic_options=True``). For
@@ -40,28 +41,33 @@ from sb3_detc.mappoc.policies import MlpHybridPolicy
 from sb3_detc.study.report import interval_estimates, splice
 from sb3_detc.study.spec import StudyError, load_study
 from sb3_detc.study.trial import entry_fixed_trigger, read_status, trial_folder
-from sb3_detc.triggers import PeriodicTrigger, RandomTrigger
+from sb3_detc.triggers import PeriodicTrigger, RandomTrigger, SendOnDelta
 
 #: Skip probabilities of the random triggers.
 RATES = (0.0, 0.25, 0.5, 0.75, 0.85, 0.9, 0.95, 1.0)
 #: Periods of the periodic triggers (savings 1 - 1/k).
 PERIODS = (2, 4, 8, 16, 32)
+#: Thresholds of the send-on-delta triggers, in the units of the trigger features (the package relative to the
+#: walker: dx and dy divided by the package length, and its angle); their savings depend on the controller.
+DELTAS = (0.01, 0.02, 0.04, 0.08)
 #: Name of the row of the policy over options' most likely options.
 MODE = "mode of mu"
 #: The name in the marks between which ``--splice`` puts the side-by-side table.
 MARK = "multiwalker_value_of_information.py"
 
 
-def triggers(rates: list[float], periods: list[int], seed: int) -> dict[str, Any]:
+def triggers(rates: list[float], periods: list[int], deltas: list[float], seed: int) -> dict[str, Any]:
     """The fixed triggers of the sweep by name (random ones seeded with ``seed``).
 
     :param rates: skip probabilities of the random triggers (``random <rate>``)
     :param periods: periods in steps of the periodic triggers (``periodic <k>``)
+    :param deltas: thresholds of the send-on-delta triggers (``send-on-delta <delta>``)
     :param seed: seed of every random trigger (the study's ``eval_seed``)
     :return: trigger name -> trigger
     """
     named: dict[str, Any] = {f"random {rate:g}": RandomTrigger(rate, seed=seed) for rate in rates}
     named.update({f"periodic {k}": PeriodicTrigger(k) for k in periods})
+    named.update({f"send-on-delta {delta:g}": SendOnDelta(delta) for delta in deltas})
     return named
 
 
@@ -83,13 +89,14 @@ def row(control_returns: Any, package_travel: Any, failed: Any, savings: float) 
     }
 
 
-def sweep(folder: Path, out: Path, rates: list[float], periods: list[int]) -> dict[str, Any]:
+def sweep(folder: Path, out: Path, rates: list[float], periods: list[int], deltas: list[float]) -> dict[str, Any]:
     """Evaluate every finished trial under every trigger not in ``out`` yet; return all results.
 
     :param folder: the study folder
     :param out: the JSON file of results (read first, written after every evaluation)
     :param rates: skip probabilities of the random triggers
     :param periods: periods of the periodic triggers
+    :param deltas: thresholds of the send-on-delta triggers
     :return: trial name -> trigger name -> metrics
     """
     spec = load_study(folder / "study.yml")
@@ -104,7 +111,7 @@ def sweep(folder: Path, out: Path, rates: list[float], periods: list[int]) -> di
         done["learned"] = row(
             learned["control_return"], learned["package_travel"], learned["failed"], learned["savings"]
         )
-        named = triggers(rates, periods, spec.eval_seed)
+        named = triggers(rates, periods, deltas, spec.eval_seed)
         if entry_fixed_trigger(trial.algorithm.entry) is None:
             named[MODE] = None  # no fixed trigger: the policy's own options, their mode (below)
         todo = {name: t for name, t in named.items() if name not in done}
@@ -185,6 +192,8 @@ def markdown(table: dict[str, dict[str, dict[str, list[float]]]]) -> str:
     return "\n".join(lines)
 
 
+#: Savings of one trigger that differ more than this between algorithms are shown in every cell.
+SAVINGS_DIFFER = 0.005
 #: Names on the results page of the fixed triggers that never and always skip.
 PAGE_NAMES = {"random 0": "every step", "random 1": "never"}
 
@@ -193,9 +202,11 @@ def page_table(table: dict[str, dict[str, dict[str, list[float]]]], labels: list
     """The algorithms side by side: one row per trigger, sorted by savings, for the results page.
 
     A cell holds the control return, mean [95 % interval] over the algorithm's seeds, and in
-    parentheses package travel and fall rate (and the number of seeds where fewer than the
-    algorithm's own have the trigger). The fixed triggers' savings are the mean over the
-    columns; each algorithm's own options ("learned", "mode of mu") have a row of their own.
+    parentheses package travel and fall rate (then the algorithm's savings if a trigger's savings
+    differ between the columns by more than :data:`SAVINGS_DIFFER`, as send-on-delta's do, and
+    the number of seeds where fewer than the algorithm's own have the trigger). The fixed
+    triggers' savings are the mean over the columns; each algorithm's own options ("learned",
+    "mode of mu") have a row of their own.
 
     :param table: the summary (:func:`summary`)
     :param labels: the algorithms to show, in this order
@@ -208,12 +219,17 @@ def page_table(table: dict[str, dict[str, dict[str, list[float]]]], labels: list
         raise StudyError(f"no results of {', '.join(missing)}")
     seeds = {label: max(int(v["seeds"][0]) for v in table[label].values()) for label in labels}
 
+    def savings(trigger: str) -> list[float]:
+        return [table[label][trigger]["savings"][0] for label in labels if trigger in table[label]]
+
     def cell(label: str, trigger: str) -> str:
         values = table[label].get(trigger)
         if values is None:
             return ""
         mean, low, high = values["control_return"]
-        extra = f", {int(values['seeds'][0])} seeds" if values["seeds"][0] < seeds[label] else ""
+        extra = f", savings {values['savings'][0]:.3f}" if np.ptp(savings(trigger)) > SAVINGS_DIFFER else ""
+        n = int(values["seeds"][0])
+        extra += f", {n} seed{'s' * (n != 1)}" if n < seeds[label] else ""
         return (
             f"{mean:.1f} [{low:.1f}, {high:.1f}] "
             f"({values['package_travel'][0]:.2f}, {values['fall_rate'][0]:.2f}{extra})"
@@ -221,14 +237,7 @@ def page_table(table: dict[str, dict[str, dict[str, list[float]]]], labels: list
 
     own = ("learned", MODE)
     shared = dict.fromkeys(t for label in labels for t in table[label] if t not in own)
-    rows = [
-        (
-            float(np.mean([table[label][t]["savings"][0] for label in labels if t in table[label]])),
-            PAGE_NAMES.get(t, t),
-            [cell(label, t) for label in labels],
-        )
-        for t in shared
-    ]
+    rows = [(float(np.mean(savings(t))), PAGE_NAMES.get(t, t), [cell(label, t) for label in labels]) for t in shared]
     rows += [
         (
             table[label][t]["savings"][0],
@@ -251,7 +260,7 @@ def page_table(table: dict[str, dict[str, dict[str, list[float]]]], labels: list
 
 
 def plot(table: dict[str, dict[str, dict[str, list[float]]]], path: Path) -> None:
-    """Control return and package travel against savings: random skips as lines, periodic and learned as markers.
+    """Control return and package travel against savings: random skips and send-on-delta as lines, the rest as markers.
 
     :param table: the summary (:func:`summary`)
     :param path: the PNG to write
@@ -269,10 +278,19 @@ def plot(table: dict[str, dict[str, dict[str, list[float]]]], path: Path) -> Non
             kinds = {
                 "random": sorted((v for k, v in rows.items() if k.startswith("random")), key=lambda v: v["savings"][0]),
                 "periodic": [v for k, v in rows.items() if k.startswith("periodic")],
+                "send-on-delta": sorted(
+                    (v for k, v in rows.items() if k.startswith("send-on-delta")), key=lambda v: v["savings"][0]
+                ),
                 "learned": [rows["learned"]] if "learned" in rows else [],
                 MODE: [rows[MODE]] if MODE in rows else [],
             }
-            for kind, style in (("random", "-o"), ("periodic", "s"), ("learned", "*"), (MODE, "X")):
+            for kind, style in (
+                ("random", "-o"),
+                ("periodic", "s"),
+                ("send-on-delta", ":^"),
+                ("learned", "*"),
+                (MODE, "X"),
+            ):
                 values = kinds[kind]
                 if not values:
                     continue
@@ -284,7 +302,7 @@ def plot(table: dict[str, dict[str, dict[str, list[float]]]], path: Path) -> Non
                     yerr=[y[:, 0] - y[:, 1], y[:, 2] - y[:, 0]],
                     fmt=style,
                     color=color,
-                    markersize=5 if kind in ("random", "periodic") else 10,
+                    markersize=10 if kind in ("learned", MODE) else 5,
                     capsize=2,
                     label=f"{label}: {kind}",
                 )
@@ -304,6 +322,9 @@ def main() -> None:
     parser.add_argument("--out", type=Path, required=True, help="JSON file of the results (resumed if present)")
     parser.add_argument("--rates", type=float, nargs="+", default=list(RATES), help="skip probabilities")
     parser.add_argument("--periods", type=int, nargs="+", default=list(PERIODS), help="periods in steps")
+    parser.add_argument(
+        "--deltas", type=float, nargs="*", default=list(DELTAS), help="send-on-delta thresholds (none: no such rows)"
+    )
     parser.add_argument("--plot", action="store_true", help="draw <out>.png")
     parser.add_argument(
         "--splice",
@@ -313,7 +334,7 @@ def main() -> None:
     parser.add_argument("--columns", nargs="+", help="the algorithms side by side (default: all with results)")
     args = parser.parse_args()
     th.set_num_threads(1)
-    results = sweep(args.folder, args.out, args.rates, args.periods)
+    results = sweep(args.folder, args.out, args.rates, args.periods, args.deltas)
     table = summary(args.folder, results)
     print(markdown(table))
     if args.splice:

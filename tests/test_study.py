@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import os
 import signal
@@ -281,6 +282,7 @@ def test_the_value_of_information_sweep_runs_fixed_triggers_and_the_mode_of_lear
     script = ROOT / "benchmarks" / "multiwalker_value_of_information.py"
     results_file = tmp_path / "voi.json"
     command = [sys.executable, str(script), str(out), "--out", str(results_file), "--rates", "0.5", "--periods", "2"]
+    command += ["--deltas", "0.02"]
     printed = subprocess.run(command, check=True, capture_output=True, text=True, cwd=ROOT).stdout
     results = json.loads(results_file.read_text())
     spec = load_study(out / "study.yml")
@@ -291,6 +293,7 @@ def test_the_value_of_information_sweep_runs_fixed_triggers_and_the_mode_of_lear
         learned = json.loads((trial_folder(out, trial) / "evaluation.json").read_text())["modes"]["learned"]
         assert rows["learned"]["control_return"] == pytest.approx(np.mean(learned["control_return"]))
         assert rows["periodic 2"]["savings"] == pytest.approx(0.5, abs=0.1)
+        assert 0 <= rows["send-on-delta 0.02"]["savings"] <= 1
         # Only a trial that learned its options has their mode: the policy's most likely options.
         assert ("mode of mu" in rows) == (trial.algorithm.label == "learned")
         if "mode of mu" in rows:
@@ -315,7 +318,14 @@ def test_the_value_of_information_sweep_runs_fixed_triggers_and_the_mode_of_lear
     table = [line.split(" | ") for line in text.splitlines() if line.startswith("| ") and "---" not in line]
     assert table[0] == ["| trigger", "savings", "`random` (2 seeds)", "`learned` (2 seeds) |"]
     rows = {cells[0][2:]: cells[1:] for cells in table[1:]}
-    assert set(rows) == {"random 0.5", "periodic 2", "learned (random)", "learned (learned)", "mode of mu (learned)"}
+    assert set(rows) == {
+        "random 0.5",
+        "periodic 2",
+        "send-on-delta 0.02",
+        "learned (random)",
+        "learned (learned)",
+        "mode of mu (learned)",
+    }
     assert [float(cells[1]) for cells in table[1:]] == sorted(float(cells[1]) for cells in table[1:])
     for label, column in (("random", 1), ("learned", 2)):
         section = printed.split(f"### {label}")[1].split("###")[0]
@@ -324,6 +334,38 @@ def test_the_value_of_information_sweep_runs_fixed_triggers_and_the_mode_of_lear
         assert rows[f"learned ({label})"][3 - column].strip(" |") == ""  # own options: its own column only
     refused = subprocess.run([*side_by_side[:-2], "nobody"], capture_output=True, text=True, cwd=ROOT)
     assert refused.returncode == 2 and "no results of nobody" in refused.stderr and page.read_text() == text
+
+
+def test_the_side_by_side_table_shows_each_algorithms_savings_where_a_trigger_saves_differently():
+    spec = importlib.util.spec_from_file_location("voi", ROOT / "benchmarks" / "multiwalker_value_of_information.py")
+    voi = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(voi)
+
+    def entry(savings: float, control: float, seeds: int = 2) -> dict[str, list[float]]:
+        return {
+            "control_return": [control, control - 1, control + 1],
+            "package_travel": [1.0, 0.5, 1.5],
+            "fall_rate": [0.1, 0.0, 0.2],
+            "savings": [savings, savings, savings],
+            "seeds": [float(seeds)],
+        }
+
+    table = {
+        "a": {"learned": entry(0.6, 10.0), "periodic 2": entry(0.5, 20.0), "send-on-delta 0.1": entry(0.9, 30.0)},
+        "b": {"periodic 2": entry(0.5, 40.0), "send-on-delta 0.1": entry(0.7, 50.0, seeds=1)},
+    }
+    text = voi.page_table(table, ["a", "b"], episodes=7)
+    assert "on the same 7 episodes" in text
+    lines = [line for line in text.splitlines() if line.startswith("| ") and "---" not in line]
+    assert lines == [
+        "| trigger | savings | `a` (2 seeds) | `b` (2 seeds) |",
+        "| periodic 2 | 0.500 | 20.0 [19.0, 21.0] (1.00, 0.10) | 40.0 [39.0, 41.0] (1.00, 0.10) |",
+        "| learned (a) | 0.600 | 10.0 [9.0, 11.0] (1.00, 0.10) |  |",
+        "| send-on-delta 0.1 | 0.800 | 30.0 [29.0, 31.0] (1.00, 0.10, savings 0.900) "
+        "| 50.0 [49.0, 51.0] (1.00, 0.10, savings 0.700, 1 seed) |",
+    ]
+    with pytest.raises(StudyError, match="no results of c"):
+        voi.page_table(table, ["a", "c"], episodes=7)
 
 
 def test_a_failing_trial_is_kept_with_its_traceback_and_the_others_go_on(tmp_path):
