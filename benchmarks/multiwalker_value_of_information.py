@@ -192,6 +192,8 @@ def markdown(table: dict[str, dict[str, dict[str, list[float]]]]) -> str:
     return "\n".join(lines)
 
 
+#: Savings from which the lower panels of the figure show the results (where timing matters).
+ZOOM = 0.75
 #: Savings of one trigger that differ more than this between algorithms are shown in every cell.
 SAVINGS_DIFFER = 0.005
 #: Names on the results page of the fixed triggers that never and always skip.
@@ -260,7 +262,9 @@ def page_table(table: dict[str, dict[str, dict[str, list[float]]]], labels: list
 
 
 def plot(table: dict[str, dict[str, dict[str, list[float]]]], path: Path) -> None:
-    """Control return and package travel against savings: random skips and send-on-delta as lines, the rest as markers.
+    """Control return and package travel against savings, over all savings and from :data:`ZOOM` on.
+
+    Random skips and send-on-delta are lines, periodic messages, learned options and their mode markers.
 
     :param table: the summary (:func:`summary`)
     :param path: the PNG to write
@@ -270,45 +274,56 @@ def plot(table: dict[str, dict[str, dict[str, list[float]]]], path: Path) -> Non
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+    fig, axes = plt.subplots(2, 2, figsize=(11, 8))
+    metrics = (("control_return", "control return"), ("package_travel", "package travel"))
+    zoomed: list[list[float]] = [[], []]  # per metric: the interval ends of every point from ZOOM on
     for (label, rows), color in zip(table.items(), plt.rcParams["axes.prop_cycle"].by_key()["color"], strict=False):
-        for ax, metric, name in zip(
-            axes, ("control_return", "package_travel"), ("control return", "package travel"), strict=True
+        kinds = {
+            "random": sorted((v for k, v in rows.items() if k.startswith("random")), key=lambda v: v["savings"][0]),
+            "periodic": [v for k, v in rows.items() if k.startswith("periodic")],
+            "send-on-delta": sorted(
+                (v for k, v in rows.items() if k.startswith("send-on-delta")), key=lambda v: v["savings"][0]
+            ),
+            "learned": [rows["learned"]] if "learned" in rows else [],
+            MODE: [rows[MODE]] if MODE in rows else [],
+        }
+        for kind, style in (
+            ("random", "-o"),
+            ("periodic", "s"),
+            ("send-on-delta", ":^"),
+            ("learned", "*"),
+            (MODE, "X"),
         ):
-            kinds = {
-                "random": sorted((v for k, v in rows.items() if k.startswith("random")), key=lambda v: v["savings"][0]),
-                "periodic": [v for k, v in rows.items() if k.startswith("periodic")],
-                "send-on-delta": sorted(
-                    (v for k, v in rows.items() if k.startswith("send-on-delta")), key=lambda v: v["savings"][0]
-                ),
-                "learned": [rows["learned"]] if "learned" in rows else [],
-                MODE: [rows[MODE]] if MODE in rows else [],
-            }
-            for kind, style in (
-                ("random", "-o"),
-                ("periodic", "s"),
-                ("send-on-delta", ":^"),
-                ("learned", "*"),
-                (MODE, "X"),
-            ):
-                values = kinds[kind]
-                if not values:
-                    continue
-                x = [v["savings"][0] for v in values]
+            values = kinds[kind]
+            if not values:
+                continue
+            x = np.array([v["savings"][0] for v in values])
+            for column, (metric, _) in enumerate(metrics):
                 y = np.array([v[metric] for v in values])
-                ax.errorbar(
-                    x,
-                    y[:, 0],
-                    yerr=[y[:, 0] - y[:, 1], y[:, 2] - y[:, 0]],
-                    fmt=style,
-                    color=color,
-                    markersize=10 if kind in ("learned", MODE) else 5,
-                    capsize=2,
-                    label=f"{label}: {kind}",
-                )
+                zoomed[column] += [*y[x >= ZOOM, 1], *y[x >= ZOOM, 2]]
+                for ax in axes[:, column]:
+                    ax.errorbar(
+                        x,
+                        y[:, 0],
+                        yerr=[y[:, 0] - y[:, 1], y[:, 2] - y[:, 0]],
+                        fmt=style,
+                        color=color,
+                        markersize=10 if kind in ("learned", MODE) else 5,
+                        capsize=2,
+                        label=f"{label}: {kind}",
+                    )
+    for column, (_, name) in enumerate(metrics):
+        for ax in axes[:, column]:
             ax.set_xlabel("communication savings")
             ax.set_ylabel(name)
-    axes[1].legend(fontsize=7, loc="center left", bbox_to_anchor=(1.02, 0.5))  # beside the data, not over it
+        shown = [end for end in zoomed[column] if np.isfinite(end)]  # NaN: a metric the env does not report
+        if shown:
+            low, high = min(shown), max(shown)
+            margin = 0.05 * (high - low) or 1.0
+            axes[1, column].set_ylim(low - margin, high + margin)
+        axes[1, column].set_xlim(ZOOM - 0.01, 1.01)
+        axes[1, column].set_title(f"savings from {ZOOM:g} on", fontsize=9)
+    axes[0, 1].legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0))  # beside the data, not over it
     fig.suptitle("Multiwalker: final controllers under fixed triggers (mean over seeds, 95 % CI)")
     fig.tight_layout()
     fig.savefig(path, dpi=120, bbox_inches="tight")

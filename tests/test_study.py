@@ -310,9 +310,12 @@ def test_the_value_of_information_sweep_runs_fixed_triggers_and_the_mode_of_lear
         "above\n<!-- multiwalker_value_of_information.py: start -->\n"
         "<!-- multiwalker_value_of_information.py: end -->\nbelow\n"
     )
-    side_by_side = [*command, "--splice", str(page), "--columns", "random", "learned"]
+    side_by_side = [*command, "--plot", "--splice", str(page), "--columns", "random", "learned"]
     again = subprocess.run(side_by_side, check=True, capture_output=True, text=True, cwd=ROOT).stdout
     assert "control return" not in again.split("### ")[0] and json.loads(results_file.read_text()) == results
+    assert (
+        results_file.with_suffix(".png").stat().st_size > 0 and f"Figure: {results_file.with_suffix('.png')}" in again
+    )
     text = page.read_text()
     assert text.startswith("above\n") and text.endswith("below\n") and f"on the same {spec.episodes} episodes" in text
     table = [line.split(" | ") for line in text.splitlines() if line.startswith("| ") and "---" not in line]
