@@ -38,7 +38,7 @@ import torch as th
 
 from sb3_detc.evaluation import evaluate_episodes
 from sb3_detc.mappoc.policies import MlpHybridPolicy
-from sb3_detc.study.report import interval_estimates, splice
+from sb3_detc.study.report import interval_estimates, splice, splice_marks
 from sb3_detc.study.spec import StudyError, load_study
 from sb3_detc.study.trial import entry_fixed_trigger, read_status, trial_folder
 from sb3_detc.triggers import PeriodicTrigger, RandomTrigger, SendOnDelta
@@ -154,7 +154,7 @@ def summary(folder: Path, results: dict[str, Any]) -> dict[str, dict[str, dict[s
         if not names:
             continue
         table[algorithm.label] = {}
-        for trigger in results[names[0]]:
+        for trigger in dict.fromkeys(t for n in names for t in results[n]):  # every seed's, in order
             values = np.array([[results[n][trigger][m] for m in metrics] for n in names if trigger in results[n]])
             means, intervals = interval_estimates({"x": values})
             table[algorithm.label][trigger] = {
@@ -200,26 +200,40 @@ SAVINGS_DIFFER = 0.005
 PAGE_NAMES = {"random 0": "every step", "random 1": "never"}
 
 
+def _seeds(n: int) -> str:
+    """``"1 seed"``, ``"2 seeds"``, ...
+
+    :param n: the number of seeds
+    """
+    return f"{n} seed{'s' * (n != 1)}"
+
+
 def page_table(table: dict[str, dict[str, dict[str, list[float]]]], labels: list[str], episodes: int) -> str:
     """The algorithms side by side: one row per trigger, sorted by savings, for the results page.
 
     A cell holds the control return, mean [95 % interval] over the algorithm's seeds, and in
-    parentheses package travel and fall rate (then the algorithm's savings if a trigger's savings
-    differ between the columns by more than :data:`SAVINGS_DIFFER`, as send-on-delta's do, and
-    the number of seeds where fewer than the algorithm's own have the trigger). The fixed
-    triggers' savings are the mean over the columns; each algorithm's own options ("learned",
-    "mode of mu") have a row of their own.
+    parentheses package travel ("n/a" where the env reports none) and fall rate (then the
+    algorithm's savings if a trigger's savings differ between the columns by more than
+    :data:`SAVINGS_DIFFER`, as send-on-delta's do, and the number of seeds where fewer than the
+    algorithm's own have the trigger). The fixed triggers' savings are the mean over the columns;
+    ``random 0`` and ``random 1`` are named as in :data:`PAGE_NAMES`. Each algorithm's own options
+    ("learned", "mode of mu") have a row of their own, with its savings.
 
     :param table: the summary (:func:`summary`)
     :param labels: the algorithms to show, in this order
     :param episodes: the number of evaluation episodes (for the text above the table)
     :return: Markdown
-    :raises StudyError: if an algorithm has no results
+    :raises StudyError: if there is no algorithm to show, one is named twice or has no results
     """
+    if not labels:
+        raise StudyError("no results to put on the page")
+    if len(set(labels)) < len(labels):
+        raise StudyError(f"an algorithm named twice among {', '.join(labels)}")
     missing = [label for label in labels if label not in table]
     if missing:
         raise StudyError(f"no results of {', '.join(missing)}")
     seeds = {label: max(int(v["seeds"][0]) for v in table[label].values()) for label in labels}
+    own = ("learned", MODE)
 
     def savings(trigger: str) -> list[float]:
         return [table[label][trigger]["savings"][0] for label in labels if trigger in table[label]]
@@ -229,15 +243,17 @@ def page_table(table: dict[str, dict[str, dict[str, list[float]]]], labels: list
         if values is None:
             return ""
         mean, low, high = values["control_return"]
-        extra = f", savings {values['savings'][0]:.3f}" if np.ptp(savings(trigger)) > SAVINGS_DIFFER else ""
-        n = int(values["seeds"][0])
-        extra += f", {n} seed{'s' * (n != 1)}" if n < seeds[label] else ""
+        travel = values["package_travel"][0]
+        extra = ""
+        if trigger not in own and np.ptp(savings(trigger)) > SAVINGS_DIFFER:
+            extra += f", savings {values['savings'][0]:.3f}"
+        if values["seeds"][0] < seeds[label]:
+            extra += f", {_seeds(int(values['seeds'][0]))}"
         return (
             f"{mean:.1f} [{low:.1f}, {high:.1f}] "
-            f"({values['package_travel'][0]:.2f}, {values['fall_rate'][0]:.2f}{extra})"
+            f"({'n/a' if math.isnan(travel) else f'{travel:.2f}'}, {values['fall_rate'][0]:.2f}{extra})"
         )
 
-    own = ("learned", MODE)
     shared = dict.fromkeys(t for label in labels for t in table[label] if t not in own)
     rows = [(float(np.mean(savings(t))), PAGE_NAMES.get(t, t), [cell(label, t) for label in labels]) for t in shared]
     rows += [
@@ -254,7 +270,7 @@ def page_table(table: dict[str, dict[str, dict[str, list[float]]]], labels: list
         f"Control return, mean [95 % interval] over seeds (package travel, fall rate), on the same {episodes} "
         "episodes; savings of a fixed trigger: mean over the columns.",
         "",
-        "| trigger | savings | " + " | ".join(f"`{label}` ({seeds[label]} seeds)" for label in labels) + " |",
+        "| trigger | savings | " + " | ".join(f"`{label}` ({_seeds(seeds[label])})" for label in labels) + " |",
         "|---|---:|" + "---|" * len(labels),
     ]
     lines += [f"| {name} | {savings:.3f} | " + " | ".join(cells) + " |" for savings, name, cells in sorted(rows)]
@@ -331,14 +347,18 @@ def plot(table: dict[str, dict[str, dict[str, list[float]]]], path: Path) -> Non
 
 
 def main() -> None:
-    """Sweep the triggers, print the tables, and splice the page and draw the figure if asked."""
+    """Sweep the triggers, print the tables, draw the figure and splice the page if asked."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("folder", type=Path, help="a study folder with finished trials")
     parser.add_argument("--out", type=Path, required=True, help="JSON file of the results (resumed if present)")
     parser.add_argument("--rates", type=float, nargs="+", default=list(RATES), help="skip probabilities")
     parser.add_argument("--periods", type=int, nargs="+", default=list(PERIODS), help="periods in steps")
     parser.add_argument(
-        "--deltas", type=float, nargs="*", default=list(DELTAS), help="send-on-delta thresholds (none: no such rows)"
+        "--deltas",
+        type=float,
+        nargs="*",
+        default=list(DELTAS),
+        help="send-on-delta thresholds (none given: evaluate no new ones)",
     )
     parser.add_argument("--plot", action="store_true", help="draw <out>.png")
     parser.add_argument(
@@ -346,22 +366,40 @@ def main() -> None:
         type=Path,
         help=f"put the algorithms side by side between '<!-- {MARK}: start -->' and '... end -->' of this file",
     )
-    parser.add_argument("--columns", nargs="+", help="the algorithms side by side (default: all with results)")
+    parser.add_argument(
+        "--columns", nargs="+", help="with --splice: the algorithms side by side (default: all with results)"
+    )
     args = parser.parse_args()
+    if any(not 0 <= rate <= 1 for rate in args.rates):
+        parser.error(f"--rates must lie in [0, 1], got {args.rates}")
+    if any(period < 1 for period in args.periods):
+        parser.error(f"--periods must be at least 1, got {args.periods}")
+    if any(not (math.isfinite(delta) and delta >= 0) for delta in args.deltas):
+        parser.error(f"--deltas must be finite and >= 0, got {args.deltas}")
+    if args.columns and not args.splice:
+        parser.error("--columns needs --splice")
+    try:  # what can be checked before the sweep
+        spec = load_study(args.folder / "study.yml")
+        unknown = sorted(set(args.columns or []) - {algorithm.label for algorithm in spec.algorithms})
+        if unknown:
+            raise StudyError(f"{args.folder}: no algorithm {', '.join(unknown)} in the study")
+        if args.splice:
+            splice_marks(args.splice, MARK)
+    except StudyError as error:
+        parser.exit(2, f"error: {error}\n")
     th.set_num_threads(1)
     results = sweep(args.folder, args.out, args.rates, args.periods, args.deltas)
     table = summary(args.folder, results)
     print(markdown(table))
-    if args.splice:
-        try:
-            episodes = load_study(args.folder / "study.yml").episodes
-            splice(args.splice, MARK, page_table(table, args.columns or list(table), episodes))
-        except StudyError as error:
-            parser.exit(2, f"error: {error}\n")
-        print(f"Spliced into {args.splice}")
     if args.plot and table:
         plot(table, args.out.with_suffix(".png"))
         print(f"Figure: {args.out.with_suffix('.png')}")
+    if args.splice:
+        try:
+            splice(args.splice, MARK, page_table(table, args.columns or list(table), spec.episodes))
+        except StudyError as error:
+            parser.exit(2, f"error: {error}\n")
+        print(f"Spliced into {args.splice}")
 
 
 if __name__ == "__main__":

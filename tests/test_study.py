@@ -282,7 +282,7 @@ def test_the_value_of_information_sweep_runs_fixed_triggers_and_the_mode_of_lear
     script = ROOT / "benchmarks" / "multiwalker_value_of_information.py"
     results_file = tmp_path / "voi.json"
     command = [sys.executable, str(script), str(out), "--out", str(results_file), "--rates", "0.5", "--periods", "2"]
-    command += ["--deltas", "0.02"]
+    command += ["--deltas", "0", "1e9"]  # send-on-delta at every change and never
     printed = subprocess.run(command, check=True, capture_output=True, text=True, cwd=ROOT).stdout
     results = json.loads(results_file.read_text())
     spec = load_study(out / "study.yml")
@@ -293,7 +293,7 @@ def test_the_value_of_information_sweep_runs_fixed_triggers_and_the_mode_of_lear
         learned = json.loads((trial_folder(out, trial) / "evaluation.json").read_text())["modes"]["learned"]
         assert rows["learned"]["control_return"] == pytest.approx(np.mean(learned["control_return"]))
         assert rows["periodic 2"]["savings"] == pytest.approx(0.5, abs=0.1)
-        assert 0 <= rows["send-on-delta 0.02"]["savings"] <= 1
+        assert rows["send-on-delta 0"]["savings"] < 0.2 and rows["send-on-delta 1e+09"]["savings"] == 1.0
         # Only a trial that learned its options has their mode: the policy's most likely options.
         assert ("mode of mu" in rows) == (trial.algorithm.label == "learned")
         if "mode of mu" in rows:
@@ -324,7 +324,8 @@ def test_the_value_of_information_sweep_runs_fixed_triggers_and_the_mode_of_lear
     assert set(rows) == {
         "random 0.5",
         "periodic 2",
-        "send-on-delta 0.02",
+        "send-on-delta 0",
+        "send-on-delta 1e+09",
         "learned (random)",
         "learned (learned)",
         "mode of mu (learned)",
@@ -335,8 +336,17 @@ def test_the_value_of_information_sweep_runs_fixed_triggers_and_the_mode_of_lear
         periodic = next(line for line in section.splitlines() if line.startswith("| periodic 2 |"))
         assert rows["periodic 2"][column].startswith(periodic.split(" | ")[3] + " (")  # its control return
         assert rows[f"learned ({label})"][3 - column].strip(" |") == ""  # own options: its own column only
-    refused = subprocess.run([*side_by_side[:-2], "nobody"], capture_output=True, text=True, cwd=ROOT)
-    assert refused.returncode == 2 and "no results of nobody" in refused.stderr and page.read_text() == text
+    # Mistakes are refused before the sweep, the page left as it was
+    for extra, message in (
+        (["--splice", str(page), "--columns", "random", "nobody"], "no algorithm nobody in the study"),
+        (["--splice", str(tmp_path / "missing.md")], "cannot be read as a text page"),
+    ):
+        refused = subprocess.run([*command, *extra], capture_output=True, text=True, cwd=ROOT)
+        assert refused.returncode == 2 and message in refused.stderr and refused.stdout == "", refused.stderr
+    for extra in (["--columns", "random"], ["--deltas", "-1"], ["--rates", "2"], ["--periods", "0"]):
+        refused = subprocess.run([*command, *extra], capture_output=True, text=True, cwd=ROOT)
+        assert refused.returncode == 2 and "error: " in refused.stderr and refused.stdout == "", extra
+    assert page.read_text() == text
 
 
 def test_the_side_by_side_table_shows_each_algorithms_savings_where_a_trigger_saves_differently():
@@ -355,7 +365,12 @@ def test_the_side_by_side_table_shows_each_algorithms_savings_where_a_trigger_sa
 
     table = {
         "a": {"learned": entry(0.6, 10.0), "periodic 2": entry(0.5, 20.0), "send-on-delta 0.1": entry(0.9, 30.0)},
-        "b": {"periodic 2": entry(0.5, 40.0), "send-on-delta 0.1": entry(0.7, 50.0, seeds=1)},
+        "b": {
+            "periodic 2": entry(0.5, 40.0),
+            "send-on-delta 0.1": entry(0.7, 50.0, seeds=1),
+            "learned": entry(0.95, 60.0),
+        },
+        "c": {"periodic 2": entry(0.5, float("nan"), seeds=1)},
     }
     text = voi.page_table(table, ["a", "b"], episodes=7)
     assert "on the same 7 episodes" in text
@@ -366,9 +381,14 @@ def test_the_side_by_side_table_shows_each_algorithms_savings_where_a_trigger_sa
         "| learned (a) | 0.600 | 10.0 [9.0, 11.0] (1.00, 0.10) |  |",
         "| send-on-delta 0.1 | 0.800 | 30.0 [29.0, 31.0] (1.00, 0.10, savings 0.900) "
         "| 50.0 [49.0, 51.0] (1.00, 0.10, savings 0.700, 1 seed) |",
+        "| learned (b) | 0.950 |  | 60.0 [59.0, 61.0] (1.00, 0.10) |",  # its own savings: in the savings column
     ]
-    with pytest.raises(StudyError, match="no results of c"):
-        voi.page_table(table, ["a", "c"], episodes=7)
+    table["c"]["periodic 2"]["package_travel"] = [float("nan")] * 3  # an env without package travel
+    assert "| `c` (1 seed) |" in voi.page_table(table, ["c"], episodes=7)
+    assert "(n/a, 0.10) |" in voi.page_table(table, ["c"], episodes=7)
+    for labels, message in (([], "no results to put"), (["a", "a"], "named twice"), (["a", "d"], "no results of d")):
+        with pytest.raises(StudyError, match=message):
+            voi.page_table(table, labels, episodes=7)
 
 
 def test_a_failing_trial_is_kept_with_its_traceback_and_the_others_go_on(tmp_path):
@@ -644,3 +664,7 @@ def test_generated_text_is_spliced_between_its_own_marks_and_again_in_the_same_p
         with pytest.raises(StudyError, match="needs the lines"):
             splice(page, "table.py", "| a | b |\n")
         assert page.read_text() == broken
+    for unreadable in (tmp_path / "missing.md", tmp_path):
+        with pytest.raises(StudyError, match="cannot be read as a text page"):
+            splice(unreadable, "table.py", "| a | b |\n")
+    assert sorted(path.name for path in tmp_path.iterdir()) == ["README.md"]  # no scratch file left

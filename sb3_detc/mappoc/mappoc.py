@@ -930,6 +930,7 @@ class MAPPOC(OnPolicyAlgorithm):
         """The communication cost ``xi`` of every environment, (n_envs,); zeros unless the critic needs it.
 
         :param env: the training env
+        :return: the cost of a broadcast in every env, float32 (n_envs,)
         :raises ValueError: if the critic needs the cost and the envs have no ``broadcast_cost``
         """
         if not self.policy.option_critic.needs_price:

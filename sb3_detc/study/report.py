@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import warnings
 from pathlib import Path
 from typing import Any
@@ -355,22 +356,41 @@ def report_study(directory: str | Path, plot: bool = True) -> str:
     return text
 
 
+def splice_marks(path: str | Path, name: str) -> tuple[list[str], int, int]:
+    """A Markdown page's lines and where its marks ``<!-- name: start -->`` and ``<!-- name: end -->`` are.
+
+    Check a page with it before long work whose result goes there (:func:`splice`).
+
+    :param path: the Markdown file
+    :param name: the name in the two marks
+    :return: the page's lines (with their line ends), the index of the start mark and of the end mark
+    :raises StudyError: if the file cannot be read as text, or lacks the two lines, in this order, once each
+    """
+    path = Path(path)
+    start, end = f"<!-- {name}: start -->", f"<!-- {name}: end -->"
+    try:
+        lines = path.read_text(encoding="utf-8").splitlines(keepends=True)
+    except (OSError, UnicodeDecodeError) as error:
+        raise StudyError(f"{path}: cannot be read as a text page ({error})") from error
+    marks = [i for i, line in enumerate(lines) if line.strip() in (start, end)]
+    if [lines[i].strip() for i in marks] != [start, end]:
+        raise StudyError(f"{path}: needs the lines {start!r} and {end!r}, in this order, once each")
+    return lines, marks[0], marks[1]
+
+
 def splice(path: str | Path, name: str, text: str) -> None:
     """Put generated text into a Markdown page between the lines ``<!-- name: start -->`` and ``<!-- name: end -->``.
 
     Splicing the same text again leaves the page as it is, so a results page can be regenerated
-    from its study folders whenever seeds finish.
+    from its study folders whenever seeds finish. The page is replaced at once (through a
+    ``.tmp`` file next to it): an interruption leaves it whole.
 
     :param path: the Markdown file
     :param name: the name in the two marks (the generating command, say)
     :param text: what goes between them
-    :raises StudyError: if the file lacks the two lines, in this order, once each (it is left as it is)
+    :raises StudyError: as :func:`splice_marks` (the page is left as it is)
     """
-    path = Path(path)
-    start, end = f"<!-- {name}: start -->", f"<!-- {name}: end -->"
-    lines = path.read_text().splitlines(keepends=True)
-    marks = [i for i, line in enumerate(lines) if line.strip() in (start, end)]
-    if [lines[i].strip() for i in marks] != [start, end]:
-        raise StudyError(f"{path}: needs the lines {start!r} and {end!r}, in this order, once each")
-    first, last = marks
-    path.write_text("".join([*lines[: first + 1], "\n", text, "\n", *lines[last:]]))
+    lines, first, last = splice_marks(path, name)
+    scratch = Path(path).with_suffix(".tmp")
+    scratch.write_text("".join([*lines[: first + 1], "\n", text, "\n", *lines[last:]]), encoding="utf-8")
+    os.replace(scratch, path)
