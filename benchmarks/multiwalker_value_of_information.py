@@ -4,10 +4,11 @@ Every finished trial of a study folder (``policy.pt``) runs the study's seeded e
 episodes (the same for every controller and trigger) with its deterministic control policy
 and, instead of its own options, random skips at several rates, periodic communication
 every ``k`` steps and send-on-delta (a walker broadcasts when the package, as it sees it, moved
-more than ``delta`` since its last broadcast). Its learned trigger comes from the trial's ``evaluation.json`` (the same
-episodes, options sampled from its policy over options); a trial that learned its options also
-runs with the most likely option of its policy over options (``mode of mu``: what
-``predict(deterministic=True)`` does with the policy's ``deterministic_options=True``). For
+more than ``delta`` since its last broadcast). Its learned trigger comes from the trial's
+``evaluation.json`` (the same episodes, options sampled from its policy over options); a trial
+that learned its options also runs with the most likely option of its policy over options
+(``mode of mu``: what ``predict(deterministic=True)`` does with the policy's
+``deterministic_options=True``). For
 every algorithm of the study and every trigger: control return (without the communication
 cost), package travel, savings and fall rate, mean over seeds with a 95 % bootstrap interval
 (:func:`sb3_detc.study.report.interval_estimates`).
@@ -164,6 +165,17 @@ def summary(folder: Path, results: dict[str, Any]) -> dict[str, dict[str, dict[s
     return table
 
 
+def estimate(values: dict[str, list[float]], metric: str, digits: int) -> str:
+    """One metric as ``mean [low, high]``.
+
+    :param values: one algorithm's results under one trigger (a row of :func:`summary`)
+    :param metric: the metric
+    :param digits: digits after the decimal point
+    """
+    mean, low, high = values[metric]
+    return f"{mean:.{digits}f} [{low:.{digits}f}, {high:.{digits}f}]"
+
+
 def markdown(table: dict[str, dict[str, dict[str, list[float]]]]) -> str:
     """One Markdown table per algorithm: trigger, seeds, savings, control return, package travel, fall rate.
 
@@ -179,14 +191,10 @@ def markdown(table: dict[str, dict[str, dict[str, list[float]]]]) -> str:
             "|---|---:|---|---|---|---|",
         ]
         for trigger, values in sorted(rows.items(), key=lambda item: item[1]["savings"][0]):
-
-            def cell(metric: str, digits: int, values: dict[str, list[float]] = values) -> str:
-                mean, low, high = values[metric]
-                return f"{mean:.{digits}f} [{low:.{digits}f}, {high:.{digits}f}]"
-
             lines.append(
-                f"| {trigger} | {int(values['seeds'][0])} | {cell('savings', 3)} | {cell('control_return', 1)} "
-                f"| {cell('package_travel', 2)} | {cell('fall_rate', 2)} |"
+                f"| {trigger} | {int(values['seeds'][0])} | {estimate(values, 'savings', 3)} "
+                f"| {estimate(values, 'control_return', 1)} | {estimate(values, 'package_travel', 2)} "
+                f"| {estimate(values, 'fall_rate', 2)} |"
             )
         lines.append("")
     return "\n".join(lines)
@@ -242,7 +250,6 @@ def page_table(table: dict[str, dict[str, dict[str, list[float]]]], labels: list
         values = table[label].get(trigger)
         if values is None:
             return ""
-        mean, low, high = values["control_return"]
         travel = values["package_travel"][0]
         extra = ""
         if trigger not in own and np.ptp(savings(trigger)) > SAVINGS_DIFFER:
@@ -250,7 +257,7 @@ def page_table(table: dict[str, dict[str, dict[str, list[float]]]], labels: list
         if values["seeds"][0] < seeds[label]:
             extra += f", {_seeds(int(values['seeds'][0]))}"
         return (
-            f"{mean:.1f} [{low:.1f}, {high:.1f}] "
+            f"{estimate(values, 'control_return', 1)} "
             f"({'n/a' if math.isnan(travel) else f'{travel:.2f}'}, {values['fall_rate'][0]:.2f}{extra})"
         )
 
@@ -370,12 +377,10 @@ def main() -> None:
         "--columns", nargs="+", help="with --splice: the algorithms side by side (default: all with results)"
     )
     args = parser.parse_args()
-    if any(not 0 <= rate <= 1 for rate in args.rates):
-        parser.error(f"--rates must lie in [0, 1], got {args.rates}")
-    if any(period < 1 for period in args.periods):
-        parser.error(f"--periods must be at least 1, got {args.periods}")
-    if any(not (math.isfinite(delta) and delta >= 0) for delta in args.deltas):
-        parser.error(f"--deltas must be finite and >= 0, got {args.deltas}")
+    try:  # the triggers check their own settings
+        triggers(args.rates, args.periods, args.deltas, seed=0)
+    except ValueError as error:
+        parser.error(str(error))
     if args.columns and not args.splice:
         parser.error("--columns needs --splice")
     try:  # what can be checked before the sweep
