@@ -39,7 +39,7 @@ import torch as th
 
 from sb3_detc.evaluation import evaluate_episodes
 from sb3_detc.mappoc.policies import MlpHybridPolicy
-from sb3_detc.study.report import interval_estimates, splice, splice_marks
+from sb3_detc.study.report import interval_estimates, mark_lines, splice, splice_marks
 from sb3_detc.study.spec import StudyError, load_study
 from sb3_detc.study.trial import entry_fixed_trigger, read_status, trial_folder
 from sb3_detc.triggers import PeriodicTrigger, RandomTrigger, SendOnDelta
@@ -371,7 +371,7 @@ def main() -> None:
     parser.add_argument(
         "--splice",
         type=Path,
-        help=f"put the algorithms side by side between '<!-- {MARK}: start -->' and '... end -->' of this file",
+        help="put the algorithms side by side between the lines {!r} and {!r} of this file".format(*mark_lines(MARK)),
     )
     parser.add_argument(
         "--columns", nargs="+", help="with --splice: the algorithms side by side (default: all with results)"

@@ -36,7 +36,7 @@ import math
 from pathlib import Path
 from typing import Any
 
-from sb3_detc.study.report import splice, summarise
+from sb3_detc.study.report import mark_lines, splice, summarise
 from sb3_detc.study.spec import StudyError, load_study
 from sb3_detc.study.trial import SUCCESS_NO_FALL, SUCCESS_TRAVEL, carries_package, trial_folder
 
@@ -258,7 +258,7 @@ def main() -> None:
     parser.add_argument(
         "--splice",
         type=Path,
-        help=f"put the table between the lines '<!-- {MARK}: start -->' and '... end -->' of this file",
+        help="put the table between the lines {!r} and {!r} of this file".format(*mark_lines(MARK)),
     )
     args = parser.parse_args()
     try:

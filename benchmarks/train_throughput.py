@@ -148,7 +148,7 @@ def measure_one_liner(name: str, seed: int, iterations: int, overlap_rollouts: b
     :param iterations: timed iterations, after the first (the warm-up)
     :param overlap_rollouts: MAPPOC's ``overlap_rollouts``
     :return: the warm-up and its parts in seconds, timed env steps, seconds, env steps/s, rollout and
-        update seconds, gradient steps (epochs) and ms per gradient step, the number of envs and the class
+        update seconds, epochs and ms per minibatch gradient step, the number of envs and the class
         of the gradient step (compiled or not)
     """
     start = time.perf_counter()
@@ -173,7 +173,7 @@ def measure_one_liner(name: str, seed: int, iterations: int, overlap_rollouts: b
         "steps_per_s": iterations * model.n_steps * model.n_envs / seconds,
         "rollout_s": rollout,
         "update_s": seconds - rollout,
-        "gradient_steps": iterations * model.n_epochs,
+        "epochs": iterations * model.n_epochs,
         "ms_per_gradient_step": 1e3 * (seconds - rollout) / gradient_steps,
         "n_envs": model.n_envs,
         "compiled": type(model.gradient_step).__name__,
@@ -231,7 +231,7 @@ def measure(name: str, model: BaseAlgorithm, iterations: int, agent_steps_per_en
         "steps_per_s": env_steps / total,
         "rollout_s": timer.rollout,
         "update_s": timer.update,
-        "gradient_steps": model._n_updates - warm_up_updates,
+        "epochs": model._n_updates - warm_up_updates,
         "ms_per_gradient_step": 1e3 * timer.update / ((model._n_updates - warm_up_updates) * minibatches),
     }
 
@@ -383,7 +383,7 @@ def main() -> None:
             else:
                 cells = (
                     f"{run['warm_up_s']:.1f} | {run['env_steps']} | {run['seconds']:.1f} | {run['steps_per_s']:.0f} | "
-                    f"{run['rollout_s']:.1f} | {run['update_s']:.1f} | {run['gradient_steps']} | "
+                    f"{run['rollout_s']:.1f} | {run['update_s']:.1f} | {run['epochs']} | "
                     f"{run['ms_per_gradient_step']:.2f} |"
                 )
             print(f"| {name} | {cells}")

@@ -356,6 +356,15 @@ def report_study(directory: str | Path, plot: bool = True) -> str:
     return text
 
 
+def mark_lines(name: str) -> tuple[str, str]:
+    """The two lines of a Markdown page between which :func:`splice` puts generated text.
+
+    :param name: the name in the marks (the generating command, say)
+    :return: the start mark and the end mark
+    """
+    return f"<!-- {name}: start -->", f"<!-- {name}: end -->"
+
+
 def splice_marks(path: str | Path, name: str) -> tuple[list[str], int, int]:
     """A Markdown page's lines and where its marks ``<!-- name: start -->`` and ``<!-- name: end -->`` are.
 
@@ -367,7 +376,7 @@ def splice_marks(path: str | Path, name: str) -> tuple[list[str], int, int]:
     :raises StudyError: if the file cannot be read as text, or lacks the two lines, in this order, once each
     """
     path = Path(path)
-    start, end = f"<!-- {name}: start -->", f"<!-- {name}: end -->"
+    start, end = mark_lines(name)
     try:
         lines = path.read_text(encoding="utf-8").splitlines(keepends=True)
     except (OSError, UnicodeDecodeError) as error:
