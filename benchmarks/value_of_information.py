@@ -17,7 +17,7 @@ import argparse
 import numpy as np
 
 from sb3_detc.envs.linear import LinearSystem, LQRController, lqr_cost_per_step
-from sb3_detc.network import hold
+from sb3_detc.network import hold, initial_network
 
 CONFIGS = {
     "Gaussian noise, weak coupling (earlier defaults)": dict(
@@ -43,7 +43,7 @@ def steady_cost(system: LinearSystem, trigger, steps: int, burn_in: int, seed: i
     n = system.n_agents
     rng = np.random.default_rng(seed)
     obs, _ = system.reset_arrays(seed)
-    held = obs.message.copy()
+    held, _ = initial_network(obs.message)
     costs, broadcasts = [], 0
     for k in range(steps):
         broadcast = trigger(obs.message, held, rng)

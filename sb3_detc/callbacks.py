@@ -33,10 +33,10 @@ import torch as th
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.type_aliases import Schedule
 
+from sb3_detc.mappoc.mappoc import PAPER_ITERATION
 from sb3_detc.triggers import PeriodicTrigger, RandomTrigger
 
 __all__ = [
-    "PAPER_STEPS_PER_ITERATION",
     "set_broadcast_cost",
     "ActionNoiseSchedule",
     "CommMetricsCallback",
@@ -50,9 +50,6 @@ __all__ = [
     "linear_decay",
     "tent",
 ]
-
-#: Environment steps of one iteration in the paper; converts its boundaries to ``unit="timesteps"``.
-PAPER_STEPS_PER_ITERATION = 2048
 
 UNITS = ("iterations", "timesteps")
 
@@ -119,7 +116,7 @@ def _boundaries(unit: str, **named: tuple[float | None, float]) -> list[float]:
     :return: the boundaries in the order given
     :raises ValueError: if a boundary is negative or not finite, or they do not strictly increase
     """
-    scale = 1 if unit == "iterations" else PAPER_STEPS_PER_ITERATION
+    scale = 1 if unit == "iterations" else PAPER_ITERATION
     values = []
     for name, (given, paper) in named.items():
         values.append(_check_value(name, paper * scale if given is None else given))
@@ -205,7 +202,7 @@ class ActionNoiseSchedule(_NoiseSchedule):
     The noise schedules (this one and :class:`TentNoiseSchedule`) each set their own term
     (``model.set_action_noise_std(value, source=self)``) while they train: the model's value is
     the **maximum** of the terms of all noise schedules attached to it (whatever their order
-    in a ``CallbackList``), and the constructor's value is overwritten at the first rollout.
+    in a ``CallbackList``), and the constructor's value is overwritten when training starts.
 
     :param initial_std: noise standard deviation until ``start`` (>= 0)
     :param start: end of the constant part (default 0)

@@ -80,16 +80,28 @@ def others_ages(age: ArrayT, others: ArrayT) -> ArrayT:
     return age[..., others, 0]
 
 
-def relative_views(held: ArrayT, own: ArrayT, others: ArrayT) -> ArrayT:
-    """What every agent sees of the others: their held broadcasts relative to its own message.
+def relative_to_receivers(seen: ArrayT, own: ArrayT) -> ArrayT:
+    """Held broadcasts as their receivers see them: relative to the receiver's own message.
 
     Receivers compute ``x~_j - m_i`` themselves, with their own *current* message
     (networked observation ``x^_i``, Sec. 2), so a stale broadcast stays stale in
     absolute terms while the receiver's own motion is always up to date.
+
+    :param seen: row ``i`` holds the broadcasts that agent ``i`` sees, shape (..., N, M, d)
+    :param own: current messages of all agents, shape (..., N, d)
+    :return: shape (..., N, M, d)
+    """
+    return seen - own[..., :, None, :]
+
+
+def relative_views(held: ArrayT, own: ArrayT, others: ArrayT) -> ArrayT:
+    """What every agent sees of the others: their held broadcasts relative to its own message.
+
+    :func:`relative_to_receivers` of the others' held broadcasts.
 
     :param held: held broadcasts of all agents, shape (..., N, d)
     :param own: current messages of all agents, shape (..., N, d)
     :param others: index from :func:`others_index`, shape (N, N - 1)
     :return: shape (..., N, N - 1, d); entry ``[i, k]`` is agent ``others[i, k]`` seen by ``i``
     """
-    return held[..., others, :] - own[..., :, None, :]
+    return relative_to_receivers(held[..., others, :], own)

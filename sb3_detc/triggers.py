@@ -19,7 +19,7 @@ import numpy as np
 
 from sb3_detc.envs.linear import LinearSystem, LQRController
 from sb3_detc.envs.wrappers import JointEnv
-from sb3_detc.network import hold
+from sb3_detc.network import advance_timer, hold
 
 
 class RandomTrigger:
@@ -44,6 +44,14 @@ class RandomTrigger:
         """
         shape = obs["age"].shape[:-1]
         return (self.rng.random(shape) >= self.skip_prob).astype(np.int64)
+
+    def broadcast_probability(self, obs: dict[str, np.ndarray]) -> np.ndarray:
+        """Every agent's probability of broadcasting in these observations (draws nothing), (B, N).
+
+        :param obs: a batch of joint observations, as :meth:`__call__` reads them
+        :return: ``1 - skip_prob`` everywhere, float64
+        """
+        return np.full(obs["age"].shape[:-1], 1.0 - self.skip_prob)
 
     def fork(self, seed: int) -> RandomTrigger:
         """An independent copy with its own seed (one per rollout worker, see :mod:`sb3_detc.mappoc.workers`).
@@ -85,9 +93,18 @@ class PeriodicTrigger:
             (B, N, 1), the ages of information in steps before this step's decision
         :return: options (B, N), int64: 1 (broadcast) where ``age + 1 >= period``, else 0
         """
-        age = np.asarray(obs["age"])[..., 0]
+        age = np.asarray(obs["age"])
+        silent = advance_timer(age, np.zeros(age.shape[:-1]))[..., 0]  # the timers if nobody broadcast now
         # Ages are whole numbers of steps (float32 in the observation): compare with half a step of margin.
-        return (age + 1 > self.period - 0.5).astype(np.int64)
+        return (silent > self.period - 0.5).astype(np.int64)
+
+    def broadcast_probability(self, obs: dict[str, np.ndarray]) -> np.ndarray:
+        """Every agent's probability of broadcasting in these observations, (B, N): its options (no state).
+
+        :param obs: a batch of joint observations, as :meth:`__call__` reads them
+        :return: 1.0 where an agent broadcasts, else 0.0
+        """
+        return self(obs).astype(np.float64)
 
 
 class SendOnDelta:
@@ -129,6 +146,14 @@ class SendOnDelta:
         :return: options (B, N), int64: 1 (broadcast) where :meth:`distance` exceeds ``delta``, else 0
         """
         return (self.distance(obs) > self.delta).astype(np.int64)
+
+    def broadcast_probability(self, obs: dict[str, np.ndarray]) -> np.ndarray:
+        """Every agent's probability of broadcasting in these observations, (B, N): its options (no state).
+
+        :param obs: a batch of joint observations, as :meth:`__call__` reads them
+        :return: 1.0 where an agent broadcasts, else 0.0
+        """
+        return self(obs).astype(np.float64)
 
     def fork(self, seed: int) -> SendOnDelta:
         """A copy for a rollout worker: the trigger itself, which has no state.

@@ -526,7 +526,11 @@ def _check_values(entry: dict[str, Any], algo: str, where: str) -> None:
     if issubclass(algorithm, MAPPOC):
         defaults = {name: p.default for name, p in inspect.signature(algorithm.__init__).parameters.items()}
         try:
-            check_hyperparameters(**{**defaults, **entry})
+            values = {**defaults, **entry}
+            for key in ("learning_rate", "clip_range"):  # a schedule 'lin_<initial value>': check its start
+                if isinstance(values[key], str):
+                    values[key] = float(values[key].split("_")[1])
+            check_hyperparameters(**values)
             if normalize:  # rl-zoo3 wraps the envs in VecNormalize(**normalize) or VecNormalize()
                 kwargs = normalize if isinstance(normalize, dict) else {}
                 check_observation_normalization(kwargs.get("norm_obs", True), kwargs.get("norm_obs_keys"))

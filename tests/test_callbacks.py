@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import math
 from typing import Any
 
@@ -16,7 +17,6 @@ from stable_baselines3.common.vec_env import DummyVecEnv
 
 import sb3_detc  # noqa: F401  (registers the env ids)
 from sb3_detc.callbacks import (
-    PAPER_STEPS_PER_ITERATION,
     ActionNoiseSchedule,
     BroadcastEntropySchedule,
     CommMetricsCallback,
@@ -32,6 +32,7 @@ from sb3_detc.callbacks import (
 )
 from sb3_detc.envs import linear_etc_v0, multiwalker_etc_v0
 from sb3_detc.mappoc import MAPPOC
+from sb3_detc.mappoc.mappoc import PAPER_ITERATION
 from sb3_detc.mappoc.workers import RolloutWorker
 from sb3_detc.triggers import PeriodicTrigger, RandomTrigger, SendOnDelta
 
@@ -159,7 +160,7 @@ def test_curriculum_values_and_phases(h: int, phase: str, noise: float, zeta: fl
 
 
 def test_timesteps_unit_defaults_are_the_paper_iterations_times_2048() -> None:
-    steps = PAPER_STEPS_PER_ITERATION
+    steps = PAPER_ITERATION
     assert steps == 2048
     curriculum = CurriculumCallback(unit="timesteps")
     for h in (0, 450, 800, 900, 1150, 1500, 1750, 2000, 2250, 2500):
@@ -434,6 +435,24 @@ def test_joint_env_broadcast_cost_property() -> None:
 
 
 # --------------------------------------------------------------------------- triggers
+@pytest.mark.parametrize("trigger", [RandomTrigger(0.3, seed=2), PeriodicTrigger(3), SendOnDelta(0.5)])
+def test_triggers_tell_their_probabilities_of_broadcasting_without_drawing(trigger) -> None:
+    rng = np.random.default_rng(0)
+    obs = {
+        "age": rng.integers(0, 4, (4000, 3, 1)).astype(np.float32),
+        "trigger": rng.normal(size=(4000, 3, 2)).astype(np.float32),
+        "trigger_held": np.zeros((4000, 3, 2), np.float32),
+    }
+    twin = copy.deepcopy(trigger)
+    p = trigger.broadcast_probability(obs)
+    options = trigger(obs)
+    np.testing.assert_array_equal(options, twin(obs))  # asking drew nothing
+    assert p.shape == options.shape and ((p >= 0) & (p <= 1)).all()
+    assert abs(options.mean() - p.mean()) < 0.02
+    if not isinstance(trigger, RandomTrigger):
+        np.testing.assert_array_equal(p, options)
+
+
 def test_send_on_delta_broadcasts_exactly_when_the_threshold_is_crossed() -> None:
     # Moves (dx, dy) from the held features, exactly representable: |(0.375, 0.5)| = 0.625.
     eps = 2.0**-10

@@ -895,6 +895,35 @@ def test_non_positive_sizes_are_rejected(name: str, value: int) -> None:
         MAPPOC("MlpHybridPolicy", env, **kwargs)
 
 
+@pytest.mark.parametrize(
+    ("name", "value"),
+    [
+        ("clip_range", -1.0),
+        ("clip_range", "0.2"),
+        ("clip_range_broadcast", 0.0),
+        ("broadcast_ent_coef", -5.0),
+        ("learning_rate", -1e-3),
+    ],
+)
+def test_out_of_range_coefficients_are_rejected(name: str, value: object) -> None:
+    env = linear_etc_v0.joint_env(n_agents=2)
+    with pytest.raises(ValueError, match=f"{name} must be"):
+        MAPPOC("MlpHybridPolicy", env, n_steps=16, batch_size=16, **{name: value})
+
+
+def test_numpy_sizes_and_schedules_are_accepted() -> None:
+    env = linear_etc_v0.joint_env(n_agents=2)
+    sizes = {"n_steps": np.int64(16), "batch_size": np.int32(16)}
+    model = MAPPOC("MlpHybridPolicy", env, **sizes, clip_range=lambda _: 0.1, policy_kwargs=TINY)
+    assert type(model.n_steps) is int and type(model.batch_size) is int
+
+
+def test_contradicting_share_parameters_are_rejected() -> None:
+    env = linear_etc_v0.joint_env(n_agents=2)
+    with pytest.raises(ValueError, match="share_parameters"):
+        MAPPOC("MlpHybridPolicy", env, share_parameters=True, policy_kwargs={"share_parameters": False})
+
+
 def test_use_sde_is_rejected() -> None:
     env = linear_etc_v0.joint_env(n_agents=2)
     with pytest.raises(ValueError, match="use_sde|gSDE"):

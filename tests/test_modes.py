@@ -10,6 +10,7 @@ import pytest
 import torch as th
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.env_util import make_vec_env
+from stable_baselines3.common.utils import obs_as_tensor
 from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
 
 import sb3_detc  # noqa: F401  (registers the env ids)
@@ -23,9 +24,15 @@ from sb3_detc.mappoc.mappoc import (
 )
 from sb3_detc.mappoc.rewards import RewardTransform
 from sb3_detc.mappoc.steps import FusedGradientStep, GradientStep
+from sb3_detc.triggers import RandomTrigger
 
 ENV_ID = "sb3_detc/LinearETC-v0"
 TINY = {"net_arch": [8]}
+
+
+def always_broadcast(obs: dict[str, np.ndarray]) -> np.ndarray:
+    """A fixed trigger: every agent broadcasts (options for the batch of joint observations)."""
+    return np.ones(obs["age"].shape[:-1], np.int64)
 
 
 def make_model(**kwargs) -> MAPPOC:
@@ -97,7 +104,7 @@ def test_envs_built_from_an_id_on_request(tmp_path) -> None:
 
 
 def test_a_fixed_trigger_decides_and_mu_is_not_trained() -> None:
-    model = make_model(fixed_trigger=lambda obs: np.ones((1, 2), np.int64))
+    model = make_model(fixed_trigger=always_broadcast)
     mu = [view.clone() for view in model.policy.net_parameters("mu")]
     model.learn(32)
     assert model.rollout_buffer.broadcast.all()
@@ -111,7 +118,38 @@ def test_a_fixed_trigger_decides_and_mu_is_not_trained() -> None:
         model.set_fixed_trigger(0.5)
     centred = make_model(policy_kwargs={**TINY, "critic": "centred"})  # needs the probabilities mu drew with
     with pytest.raises(ValueError, match="use critic='option_heads' or 'afterstate' with a fixed trigger"):
-        centred.set_fixed_trigger(lambda obs: np.ones((1, 2), np.int64))
+        centred.set_fixed_trigger(always_broadcast)
+
+
+@pytest.mark.parametrize("critic", ["option_heads", "afterstate"])
+@pytest.mark.parametrize("skip_prob", [0.0, 0.3])
+def test_under_a_fixed_trigger_the_rollout_ends_are_valued_under_its_probabilities(
+    critic: str, skip_prob: float
+) -> None:
+    """The bootstrap averages Q(s_T, o) under the trigger's probabilities of broadcasting, not under mu's.
+
+    mu almost never broadcasts here, the trigger mostly does: the two values differ. Asking the
+    trigger for its probabilities draws nothing: training goes on as with a trigger without them.
+    """
+    kwargs = {**TINY, "critic": critic, "broadcast_prob_init": 1e-3}
+    trigger = RandomTrigger(skip_prob, seed=5)
+    model = make_model(policy_kwargs=kwargs, learning_rate=0.0, fixed_trigger=trigger)
+    model.learn(16)  # one rollout of 16 steps; the episodes of 20 steps go on after it
+    buffer = model.rollout_buffer
+    assert not buffer.episode_starts[1:].any()
+    obs = obs_as_tensor(model._last_obs, model.device)
+    price = th.as_tensor(buffer.broadcast_price[-1], device=model.device)
+    with th.no_grad():
+        q = model.policy.evaluate_actions(obs, th.ones((1, 2)), th.zeros((1, 2, 1)), price).option_values
+        under_mu = model.policy.state_values(obs, price)
+    bootstrap = th.as_tensor((buffer.returns[-1] - buffer.rewards[-1]) / model.gamma)
+    if critic == "option_heads":  # (the afterstate critic's values depend on the others' options drawn)
+        th.testing.assert_close(bootstrap, skip_prob * q[..., 0] + (1 - skip_prob) * q[..., 1], rtol=1e-4, atol=1e-5)
+    assert not th.allclose(bootstrap, under_mu, rtol=1e-3, atol=1e-4)
+    untold = RandomTrigger(skip_prob, seed=5).__call__  # the same trigger, without broadcast_probability
+    untold = make_model(policy_kwargs=kwargs, learning_rate=0.0, fixed_trigger=untold)
+    untold.learn(16)
+    np.testing.assert_array_equal(untold.rollout_buffer.broadcast, buffer.broadcast)
 
 
 def test_trained_policies_are_chosen_by_level() -> None:

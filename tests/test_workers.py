@@ -26,6 +26,11 @@ ENV_ID = "sb3_detc/LinearETC-v0"
 CERTAIN = {"net_arch": [16, 16], "broadcast_prob_init": 1 - 1e-6, "log_std_init": -30.0, "critic": "afterstate"}
 
 
+def always_broadcast(obs: dict[str, np.ndarray]) -> np.ndarray:
+    """A fixed trigger: every agent broadcasts (options for the batch of joint observations)."""
+    return np.ones(obs["age"].shape[:-1], np.int64)
+
+
 def make(workers: bool, vec_env_cls: type = DummyVecEnv, **kwargs: Any) -> MAPPOC:
     env = make_vec_env(
         ENV_ID,
@@ -105,7 +110,7 @@ def test_random_skips_run_in_the_workers_with_one_fork_per_env_and_rollout() -> 
 def test_other_triggers_and_vec_env_wrappers_keep_the_rollout_in_the_learner() -> None:
     """A trigger without fork() draws its options in the learner; a VecNormalize changes what the policy sees."""
     model = make(True)
-    model.set_fixed_trigger(lambda obs: np.ones((2, 3), np.int64))
+    model.set_fixed_trigger(always_broadcast)
     model.learn(48)
     assert model.last_rollout_in_workers is False and model.rollout_buffer.broadcast.all()
     assert not has_rollout_workers(VecNormalize(model.get_env()))
@@ -244,6 +249,45 @@ def test_overlapping_rollouts_are_sampled_before_the_update_and_weighted_by_the_
                 expected[i] = pytest.approx(float((th.exp(now - then) - 1 - (now - then)).mean()), rel=1e-4)
             assert callback.sampler_kl[k][0] > 0
         assert list(callback.sampler_kl[k]) == expected, k
+
+
+class TriggerOffAtSecondRollout(BaseCallback):
+    """Sets the fixed trigger off at the second rollout's start; keeps mu's parameters at every rollout's end."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.rollouts = 0
+        self.mu: list[list[th.Tensor]] = []
+
+    def _on_rollout_start(self) -> None:
+        self.rollouts += 1
+        if self.rollouts == 2:
+            self.model.set_fixed_trigger(None)
+
+    def _on_rollout_end(self) -> None:
+        self.mu.append([view.clone() for view in self.model.policy.net_parameters("mu")])
+
+    def _on_step(self) -> bool:
+        return True
+
+
+def test_an_overlapping_rollout_drawn_by_a_fixed_trigger_does_not_train_mu() -> None:
+    """The rollout sampled during the last update under a trigger keeps mu untrained, though the trigger is off now."""
+    model = make(
+        True,
+        vec_env_cls=SubprocVecEnv,
+        overlap_rollouts=True,
+        learning_rate=3e-3,
+        fixed_trigger=RandomTrigger(0.5, seed=1),
+        policy_kwargs={"net_arch": [16, 16]},
+    )
+    callback = TriggerOffAtSecondRollout()
+    model.learn(4 * 96, callback=callback)
+    model.get_env().close()
+    ends = callback.mu
+    unchanged = [all(th.equal(a, b) for a, b in zip(*pair, strict=True)) for pair in zip(ends, ends[1:], strict=False)]
+    # updates 1 and 2 on the trigger's options (the second sampled before the trigger went off), update 3 on mu's
+    assert unchanged == [True, True, False]
 
 
 def test_an_error_in_an_overlapping_update_keeps_the_sampled_rollout_for_the_next_learn(tmp_path) -> None:

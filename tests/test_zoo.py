@@ -365,6 +365,8 @@ def test_bad_values_inside_rl_zoo_are_one_line(tmp_path: Path, capsys: pytest.Ca
         (["policy_kwargs:'dict(net_arch=[8]'"], "policy_kwargs 'dict(net_arch=[8]' is not a Python expression"),
         (["n_timesteps:'1e6'"], "n_timesteps must be a number >= 0, got '1e6' (YAML reads 1e6 as text"),
         (["n_envs:0"], "n_envs must be a positive integer"),
+        (["clip_range:'lin_-0.2'"], "clip_range must be > 0 or a schedule, got -0.2"),
+        (["broadcast_ent_coef:-1"], "broadcast_ent_coef must be >= 0 or a schedule, got -1"),
         (["env_wrapper:'sb3_detc.envs.Nope'"], "unknown env wrapper 'sb3_detc.envs.Nope'"),
         (["normalize:True"], "MAPPOC cannot use a VecNormalize that normalises the observations 'message'"),
         (["normalize:\"dict(norm_obs_keys=['local', 'age'])\""], "normalises the observations 'age'"),
@@ -375,6 +377,12 @@ def test_bad_values_are_found_before_the_run(
 ) -> None:
     argv = ["-f", str(tmp_path / "logs"), "-n", "64", "--eval-freq", "-1", "--num-threads", "1", "-params", *params]
     assert message in bad(train.main, argv, capsys)
+
+
+def test_linear_schedules_pass_the_checks() -> None:
+    overrides = {"learning_rate": "lin_0.001", "clip_range": "lin_0.2"}
+    entry = zoo.check_hyperparams_file(zoo.HYPERPARAMS_DIR / "mappoc.yml", "mappoc", LINEAR, overrides)
+    assert entry["learning_rate"] == "lin_0.001"  # rl-zoo3 builds the schedule
 
 
 def test_observation_normalization_of_the_local_state_passes_the_checks() -> None:

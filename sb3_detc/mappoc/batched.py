@@ -31,8 +31,7 @@ class BatchedMLP(nn.Module):
     :param out_features: output width of every group
     :param hidden: hidden layer sizes (common to all groups)
     :param activation_fn: activation class applied after every hidden layer
-    :param output_gains: orthogonal-init gain of every group's output layer
-    :param hidden_gain: orthogonal-init gain of the hidden layers
+    :param output_gains: orthogonal-init gain of every group's output layer (the hidden layers': sqrt(2))
     """
 
     def __init__(
@@ -42,7 +41,6 @@ class BatchedMLP(nn.Module):
         hidden: Sequence[int],
         activation_fn: type[nn.Module],
         output_gains: Sequence[float],
-        hidden_gain: float = math.sqrt(2),
     ) -> None:
         super().__init__()
         self.in_features = list(in_features)
@@ -58,7 +56,7 @@ class BatchedMLP(nn.Module):
             for g in range(n_groups):
                 rows = self.in_features[g] if layer == 0 else sizes[layer]
                 cols = self.out_features[g] if layer == n_layers - 1 else sizes[layer + 1]
-                gain = output_gains[g] if layer == n_layers - 1 else hidden_gain
+                gain = output_gains[g] if layer == n_layers - 1 else math.sqrt(2)  # as SB3's hidden layers
                 block = th.empty(cols, rows)
                 nn.init.orthogonal_(block, gain=gain)
                 weight[g, :rows, :cols] = block.T

@@ -107,10 +107,6 @@ class HybridRolloutBuffer:
         self.pos = 0
         self.full = False
 
-    def size(self) -> int:
-        """Number of steps per environment stored."""
-        return self.buffer_size if self.full else self.pos
-
     def add(
         self,
         obs: dict[str, np.ndarray],
@@ -251,22 +247,14 @@ class HybridRolloutBuffer:
             ),
         )
 
-    def minibatch_indices(self, batch_size: int | None = None) -> Generator[th.Tensor, None, None]:
+    def minibatch_indices(self, batch_size: int) -> Generator[th.Tensor, None, None]:
         """Shuffled index minibatches over all stored samples (the last one may be smaller).
 
-        :param batch_size: samples per minibatch (None: everything at once)
+        Select a minibatch of :meth:`tensors` with ``HybridRolloutSamples.select``.
+
+        :param batch_size: samples per minibatch
         """
         total = self.buffer_size * self.n_envs
-        batch_size = total if batch_size is None else batch_size
         order = th.randperm(total, device=self.device)
         for start in range(0, total, batch_size):
             yield order[start : start + batch_size]
-
-    def get(self, batch_size: int | None = None) -> Generator[HybridRolloutSamples, None, None]:
-        """Shuffled minibatches over all stored steps and environments.
-
-        :param batch_size: samples per minibatch (None: everything at once)
-        """
-        data = self.tensors()
-        for idx in self.minibatch_indices(batch_size):
-            yield data.select(idx)

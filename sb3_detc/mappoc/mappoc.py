@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import copy
 import functools
+import numbers
 import os
 import pathlib
 import pickle
@@ -42,7 +43,10 @@ SelfMAPPOC = TypeVar("SelfMAPPOC", bound="MAPPOC")
 #: ``VecNormalize`` must pass them on as the environment returns them.
 NETWORK_KEYS = ("message", "held", "age", "trigger", "trigger_held")
 
-#: Signature of a fixed trigger: joint observations (n_envs, N, ...) -> options (n_envs, N).
+#: Signature of a fixed trigger: a batch of joint observations (B, N, ...) -> options (B, N). A trigger
+#: with ``broadcast_probability(obs)`` (B, N) (without side effects, as :mod:`sb3_detc.triggers` have)
+#: gives the learner its probabilities of broadcasting for the values at the rollout's end and at
+#: truncations; for any other the learner takes ``mu``'s.
 #: With rollout workers (:mod:`sb3_detc.mappoc.workers`) a trigger that has ``fork(seed)``
 #: (an independent copy, like :meth:`sb3_detc.triggers.RandomTrigger.fork`) runs in the workers,
 #: one fork per env and rollout; any other keeps the rollout in the learner's process.
@@ -76,6 +80,7 @@ class PendingRollout(NamedTuple):
 
     rollout: Future[Rollout]  # the workers' steps, once they are done
     behaviour: dict[str, th.Tensor]  # the policy's parameters that sample it (a copy)
+    trigger: FixedTrigger | None  # the fixed trigger that takes its options (None: mu)
 
 
 def default_n_envs() -> int:
@@ -164,8 +169,8 @@ class MAPPOC(OnPolicyAlgorithm):
     :param broadcast_advantage: advantage of the taken option in ``mu``'s loss: ``"greedy"``
         (the paper: ``Q(o) - max_o' Q(o')`` with the current critic) or ``"return"`` (the
         lambda-return minus ``V(s) = sum_o mu(o) Q(s, o)`` at collection time, standardised
-        per agent like the control advantages: a sampled advantage that does not rely on the
-        critic telling the two options apart)
+        per agent like the control advantages if ``normalize_advantage``: a sampled advantage
+        that does not rely on the critic telling the two options apart)
     :param broadcast_advantage_offset: constant added to the greedy broadcast advantage (the
         paper's code used a 0.1 "deliberation" offset; the paper and the default use 0)
     :param normalize_broadcast_advantage: divide every agent's greedy broadcast advantages by the
@@ -181,7 +186,8 @@ class MAPPOC(OnPolicyAlgorithm):
     :param team_reward: train every agent on the team's mean reward instead of its own (the
         paper: own rewards). A broadcast mostly helps the *others* act, so with own rewards the
         sender sees only part of its value
-    :param normalize_advantage: standardise the control advantages per agent and minibatch
+    :param normalize_advantage: standardise the control advantages per agent and minibatch (and
+        the broadcast advantages with ``broadcast_advantage="return"``)
     :param target_kl: stop the epochs of an update early when the control policy's
         approximate KL divergence exceeds ``1.5 * target_kl`` (None: never)
     :param share_parameters: one network set for all agents with an agent-id input
@@ -294,11 +300,15 @@ class MAPPOC(OnPolicyAlgorithm):
             n_envs_given = n_envs if isinstance(env, str) else env.num_envs if isinstance(env, VecEnv) else 1
             n_steps = max(1, PAPER_ITERATION // n_envs_given)
         check_hyperparameters(
+            learning_rate=learning_rate,
             n_steps=n_steps,
             batch_size=batch_size,
             n_epochs=n_epochs,
             gamma=gamma,
             gae_lambda=gae_lambda,
+            clip_range=clip_range,
+            clip_range_broadcast=clip_range_broadcast,
+            broadcast_ent_coef=broadcast_ent_coef,
             vf_coef=vf_coef,
             max_grad_norm=max_grad_norm,
             action_noise_std=action_noise_std,
@@ -308,7 +318,10 @@ class MAPPOC(OnPolicyAlgorithm):
         )
         if isinstance(env, str):  # after the checks: no worker processes for a model that cannot be built
             env = make_rollout_workers(env, n_envs, seed)  # type: ignore[arg-type]
+        n_steps, batch_size, n_epochs = int(n_steps), int(batch_size), int(n_epochs)  # e.g. from numpy
         policy_kwargs = dict(policy_kwargs or {})
+        if share_parameters and not policy_kwargs.get("share_parameters", True):
+            raise ValueError("share_parameters=True contradicts policy_kwargs['share_parameters']=False: give one.")
         policy_kwargs.setdefault("share_parameters", share_parameters)
         super().__init__(
             policy,
@@ -359,6 +372,9 @@ class MAPPOC(OnPolicyAlgorithm):
         self._learner_threads: int | None = None  # the learner's threads while a rollout is pending
         self._behaviour_hold: tuple[MlpHybridPolicy, MlpHybridPolicy] | None = None  # (policy, its spare copy)
         self.fixed_trigger: FixedTrigger | None = fixed_trigger  # checked by set_fixed_trigger in _setup_model
+        #: the fixed trigger that took the options of the rollout being collected or in the buffer (None: ``mu``);
+        #: with ``overlap_rollouts`` the one set when the rollout started, which a callback may have changed since
+        self._rollout_trigger: FixedTrigger | None = fixed_trigger
         self._action_noise_terms: dict[Hashable, float] = {}
         #: whether the last rollout was sampled inside rollout workers (None: no rollout yet)
         self.last_rollout_in_workers: bool | None = None
@@ -457,16 +473,20 @@ class MAPPOC(OnPolicyAlgorithm):
             "_waiter",
             "_learner_threads",
             "_behaviour_hold",
+            "_rollout_trigger",
         ]
 
     # ------------------------------------------------------------------ modes
     def set_fixed_trigger(self, trigger: FixedTrigger | None) -> None:
         """Take every rollout's options from a fixed trigger instead of ``mu`` (None: from ``mu`` again).
 
-        ``mu`` is not trained while a fixed trigger decides (its options are not ``mu``'s).
-        Not saved with the model.
+        ``mu`` is not trained on the rollouts whose options a fixed trigger took (with
+        ``overlap_rollouts`` also the one sampled before the trigger was set off). The values at
+        the rollout's end and at truncations average the option values under the trigger's
+        ``broadcast_probability(obs)`` if it has one (the triggers of :mod:`sb3_detc.triggers`
+        do), else under ``mu``. Not saved with the model.
 
-        :param trigger: callable joint observations (n_envs, N, ...) -> options (n_envs, N), e.g.
+        :param trigger: callable batch of joint observations (B, N, ...) -> options (B, N), e.g.
             from :mod:`sb3_detc.triggers`; with rollout workers, a trigger with ``fork(seed)``
             runs in the workers (one fork per env and rollout), any other keeps the rollout in
             this process
@@ -564,6 +584,8 @@ class MAPPOC(OnPolicyAlgorithm):
         self._pending = None
         callback.on_rollout_start()  # callbacks may change the mode, the noise or the cost here
         behaviour = None
+        # The options of a rollout sampled during the last update are those of the trigger set then.
+        self._rollout_trigger = self.fixed_trigger if pending is None else pending.trigger
         if pending is not None:
             rollout, behaviour = pending.rollout.result(), pending.behaviour
             self.last_rollout_in_workers = True
@@ -573,7 +595,7 @@ class MAPPOC(OnPolicyAlgorithm):
         else:
             rollout = self._sample_here(env, n_rollout_steps)
             self.last_rollout_in_workers = False
-        if not self._record_rollout(rollout, env, callback, rollout_buffer, behaviour):  # type: ignore[arg-type]
+        if not self._record_rollout(rollout, env, callback, rollout_buffer, behaviour, self._rollout_trigger):  # type: ignore[arg-type]
             return False
         another_follows = self.num_timesteps < self._total_timesteps  # learn's loop goes on
         if self.overlap_rollouts and another_follows and self._in_workers(env, processes=True):
@@ -611,7 +633,7 @@ class MAPPOC(OnPolicyAlgorithm):
         sample = self._worker_rollout(env, n_steps, behaviour, niceness)
         if self._waiter is None:
             self._waiter = ThreadPoolExecutor(max_workers=1, thread_name_prefix="rollout")
-        self._pending = PendingRollout(self._waiter.submit(sample), behaviour)
+        self._pending = PendingRollout(self._waiter.submit(sample), behaviour, self.fixed_trigger)
         self._learner_threads = th.get_num_threads()
         th.set_num_threads(1)
 
@@ -744,16 +766,18 @@ class MAPPOC(OnPolicyAlgorithm):
         callback: BaseCallback,
         buffer: HybridRolloutBuffer,
         behaviour: dict[str, th.Tensor] | None = None,
+        trigger: FixedTrigger | None = None,
     ) -> bool:
         """Take sampled steps into training, in order, whoever sampled them.
 
         Per step: the learner's rewards (:class:`~sb3_detc.mappoc.rewards.RewardTransform`) and
         the price of a broadcast, ``num_timesteps``, the callbacks, the episode statistics and
         the truncated episodes; then, for the whole rollout in one batch, log-probabilities and
-        option values of the current policy, the bootstrap of truncated episodes with
-        ``V(s_T) = sum_o mu(o) Q(s_T, o)`` (as SB3 does for PPO), the buffer, GAE and
-        ``on_rollout_end``. The envs are at the rollout's end whether or not a callback stops
-        on the way.
+        option values of the current policy, the bootstrap of truncated episodes and of the
+        rollout's end with ``V(s_T) = sum_o p(o) Q(s_T, o)`` (as SB3 does for PPO) under the
+        options' probabilities ``p`` of what took them: ``mu``, or a fixed trigger that tells its
+        ``broadcast_probability``; the buffer, GAE and ``on_rollout_end``. The envs are at the
+        rollout's end whether or not a callback stops on the way.
 
         :param rollout: the sampled steps
         :param env: the training environment
@@ -761,6 +785,7 @@ class MAPPOC(OnPolicyAlgorithm):
         :param buffer: the buffer to fill
         :param behaviour: the parameters that sampled the steps if they are not the current ones
             (``overlap_rollouts``), for the log-probabilities of the behaviour policy
+        :param trigger: the fixed trigger that took the steps' options (None: ``mu``)
         :return: True if the rollout was completed, False if a callback stopped it
         """
         n_steps, n_envs = rollout.dones.shape
@@ -805,19 +830,23 @@ class MAPPOC(OnPolicyAlgorithm):
                 ):
                     log_weight = now - then
                     self.logger.record(f"rollout/sampler_kl_{name}", float((th.expm1(log_weight) - log_weight).mean()))
-            if truncated:
-                terminal = _stack_dicts([obs for _, _, obs in truncated], axis=0)
-                at = [(step, idx) for step, idx, _ in truncated]
-                values = self.policy.state_values(
-                    obs_as_tensor(terminal, self.device),
-                    th.as_tensor(np.stack([price[s, i] for s, i in at]), device=self.device),
+            probability = getattr(trigger, "broadcast_probability", None)
+
+            def state_values(obs: dict[str, np.ndarray], prices: np.ndarray) -> th.Tensor:
+                p = None if probability is None else th.as_tensor(probability(obs), dtype=th.float32)
+                return self.policy.state_values(
+                    obs_as_tensor(obs, self.device),  # type: ignore[arg-type]
+                    th.as_tensor(prices, device=self.device),
+                    None if p is None else p.to(self.device),
                 )
+
+            if truncated:
+                at = [(step, idx) for step, idx, _ in truncated]
+                terminal = _stack_dicts([obs for _, _, obs in truncated], axis=0)
+                values = state_values(terminal, np.stack([price[s, i] for s, i in at]))
                 for (step, idx), value in zip(at, values.cpu().numpy(), strict=True):
                     all_rewards[step][idx] += self.gamma * value
-            last_values = self.policy.state_values(
-                obs_as_tensor(rollout.last_obs, self.device),
-                th.as_tensor(self.reward_transform.price(broadcast_cost), device=self.device),
-            )
+            last_values = state_values(rollout.last_obs, self.reward_transform.price(broadcast_cost))  # type: ignore[arg-type]
 
         def per_step(x: th.Tensor) -> np.ndarray:
             return x.cpu().numpy().reshape(n_steps, n_envs, *x.shape[1:])
@@ -916,7 +945,7 @@ class MAPPOC(OnPolicyAlgorithm):
             FloatSchedule(self.clip_range_broadcast)(progress),
             FloatSchedule(self.broadcast_ent_coef)(progress),
             self.train_control_policy,
-            self.train_broadcast_policy and self.fixed_trigger is None,
+            self.train_broadcast_policy and self._rollout_trigger is None,  # mu learns from its own options only
         )
 
     def _warm_up_gradient_step(self) -> None:
@@ -977,6 +1006,9 @@ class MAPPOC(OnPolicyAlgorithm):
             pending = self._wait_for_pending()
             if pending is not None and pending.rollout.exception() is not None:
                 self._pending = None
+            if self._waiter is not None:  # its thread is idle now (a kept rollout stays in its future)
+                self._waiter.shutdown()
+                self._waiter = None
 
     def set_env(self, env: GymEnv | EventTriggeredNetwork, force_reset: bool = True) -> None:
         """Use a new environment (a PettingZoo event-triggered env is adapted to the joint view).
@@ -1121,11 +1153,15 @@ def _check_same_agents(env: GymEnv, n_agents: int) -> None:
 
 #: Hyperparameter checks: name -> (rule, what the rule needs).
 _HYPERPARAMETER_RULES: dict[str, tuple[Callable[[Any], bool], str]] = {
-    "n_steps": (lambda v: isinstance(v, int) and v > 0, "a positive integer"),
-    "batch_size": (lambda v: isinstance(v, int) and v > 0, "a positive integer"),
-    "n_epochs": (lambda v: isinstance(v, int) and v > 0, "a positive integer"),
+    "learning_rate": (lambda v: callable(v) or v >= 0, ">= 0 or a schedule"),
+    "n_steps": (lambda v: isinstance(v, numbers.Integral) and v > 0, "a positive integer"),
+    "batch_size": (lambda v: isinstance(v, numbers.Integral) and v > 0, "a positive integer"),
+    "n_epochs": (lambda v: isinstance(v, numbers.Integral) and v > 0, "a positive integer"),
     "gamma": (lambda v: 0 < v <= 1, "in (0, 1]"),
     "gae_lambda": (lambda v: 0 <= v <= 1, "in [0, 1]"),
+    "clip_range": (lambda v: callable(v) or v > 0, "> 0 or a schedule"),
+    "clip_range_broadcast": (lambda v: callable(v) or v > 0, "> 0 or a schedule"),
+    "broadcast_ent_coef": (lambda v: callable(v) or v >= 0, ">= 0 or a schedule"),
     "vf_coef": (lambda v: v >= 0, ">= 0"),
     "max_grad_norm": (lambda v: v is None or v > 0, "None or > 0"),
     "action_noise_std": (lambda v: v >= 0, ">= 0"),

@@ -37,7 +37,7 @@ from torch.nn import functional as F
 from sb3_detc.envs.wrappers import JOINT_KEYS
 from sb3_detc.mappoc.batched import AgentBatchedNetworks, ChainInput, NetSpec
 from sb3_detc.mappoc.critics import CRITICS, OptionCritic
-from sb3_detc.network import advance_timer, hold, others_ages, others_index, relative_views
+from sb3_detc.network import advance_timer, hold, others_ages, others_index, relative_to_receivers, relative_views
 from sb3_detc.renamed import renamed_action_space
 
 #: Order of the networks inside the batched chains: ``mu`` (and a critic that reads the state
@@ -379,7 +379,7 @@ class MlpHybridPolicy(BasePolicy):
         :param age: their ages, (B, N, N, 1)
         :return: (B, N, n_local + N (n_msg + 1) + (N - 1) n_msg)
         """
-        views = (held - obs["message"][:, :, None, :]).flatten(2)
+        views = relative_to_receivers(held, obs["message"]).flatten(2)
         true = relative_views(obs["message"], obs["message"], self.others).flatten(2)
         return th.cat([obs["local"], views, age[..., 0] * self.age_scale, true], dim=-1)
 
@@ -580,13 +580,18 @@ class MlpHybridPolicy(BasePolicy):
         option_values = self.option_values(out["q"], broadcast_price, p_broadcast)
         return HybridEvaluation(log_prob_broadcast, entropy, control_log_prob, option_values)
 
-    def state_values(self, obs: PyTorchObs, broadcast_price: th.Tensor | None = None) -> th.Tensor:
+    def state_values(
+        self, obs: PyTorchObs, broadcast_price: th.Tensor | None = None, p_broadcast: th.Tensor | None = None
+    ) -> th.Tensor:
         """Option-value critic averaged under the policy over options, ``V_i(s) = sum_o mu_i(o) Q_i(s, o)``.
 
         A critic that reads the afterstate takes the others' options from one sample of their policies.
+        Under a fixed trigger's probabilities of broadcasting ``p`` instead of ``mu``'s:
+        ``V_i(s) = p_i Q_i(s, 1) + (1 - p_i) Q_i(s, 0)``, the others' options sampled from ``p``.
 
         :param obs: joint observation (B, N, ...)
         :param broadcast_price: cost of a broadcast in the learner's reward units (B, N), see :meth:`option_values`
+        :param p_broadcast: probabilities of broadcasting (B, N) to average under (None: ``mu``'s)
         :return: values (B, N)
         """
         critic = self.option_critic
@@ -595,10 +600,15 @@ class MlpHybridPolicy(BasePolicy):
             before["q"] = critic.features(self, obs, None)
         out = self.chains.run(before)
         if critic.reads_afterstate:
-            broadcast = self._sample_options(out["mu"], deterministic=False)
+            if p_broadcast is None:
+                broadcast = self._sample_options(out["mu"], deterministic=False)
+            else:
+                broadcast = th.bernoulli(p_broadcast).long()
             out.update(self.chains.run({"q": critic.features(self, obs, broadcast)}))
         q = self.option_values(out["q"], broadcast_price, broadcast_probability(out["mu"]))
-        return (F.softmax(out["mu"], dim=-1) * q).sum(-1)
+        if p_broadcast is None:
+            return (F.softmax(out["mu"], dim=-1) * q).sum(-1)
+        return (1 - p_broadcast) * q[..., 0] + p_broadcast * q[..., 1]
 
     def _predict(self, observation: PyTorchObs, deterministic: bool = False) -> th.Tensor:
         """Options and controls side by side, (B, N, 1 + m); :meth:`predict` returns them as a Dict.
