@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import copy
 import math
+from types import SimpleNamespace
 from typing import Any
 
 import gymnasium as gym
@@ -406,6 +407,27 @@ def test_greedy_broadcast_advantage_hand_computed() -> None:
     # No gradient flows into Q through the advantage.
     (greedy_broadcast_advantage(q, broadcast, 0.1).sum() * 3.0 + q.sum()).backward()
     th.testing.assert_close(q.grad, th.ones_like(q))
+
+
+@pytest.mark.parametrize(
+    ("kind", "normalize"), [("greedy", False), ("greedy", True), ("return", False), ("return", True)]
+)
+def test_the_loss_takes_the_broadcast_advantage_asked_for(kind: str, normalize: bool) -> None:
+    model = make_model(
+        broadcast_advantage=kind,
+        normalize_broadcast_advantage=normalize,
+        broadcast_advantage_offset=0.1,
+        normalize_advantage=False,
+    )
+    q = th.randn(6, 2, 2, generator=th.Generator().manual_seed(0))
+    broadcast = th.randint(0, 2, (6, 2), generator=th.Generator().manual_seed(1))
+    sampled = th.randn(6, 2, generator=th.Generator().manual_seed(2))
+    evaluation = SimpleNamespace(option_values=q)
+    data = SimpleNamespace(broadcast=broadcast, broadcast_advantages=sampled)
+    greedy = greedy_broadcast_advantage(q, broadcast)
+    # normalize_broadcast_advantage scales the greedy advantages only
+    expected = sampled if kind == "return" else greedy / broadcast_gap_scale(q) if normalize else greedy
+    th.testing.assert_close(model.loss.broadcast_advantages(evaluation, data), expected + 0.1)
 
 
 def test_broadcast_gap_scale_makes_greedy_advantages_scale_free() -> None:

@@ -133,23 +133,33 @@ class MAPPOCLoss(nn.Module):
         self.policy = policy
         self.vf_coef = vf_coef
         self.offset = broadcast_advantage_offset
-        self.normalize_broadcast_advantage = normalize_broadcast_advantage
         self.normalized: Callable[[th.Tensor], th.Tensor] = standardized if normalize_advantage else unchanged
         self.broadcast_advantages: Callable[[HybridEvaluation, HybridRolloutSamples], th.Tensor] = (
-            self._greedy if broadcast_advantage == "greedy" else self._sampled
+            self._sampled
+            if broadcast_advantage == "return"
+            else self._greedy_normalized
+            if normalize_broadcast_advantage
+            else self._greedy
         )
 
     def _greedy(self, evaluation: HybridEvaluation, data: HybridRolloutSamples) -> th.Tensor:
-        """Greedy broadcast advantages with the current critic, optionally normalised, plus the offset.
+        """Greedy broadcast advantages with the current critic, plus the offset.
+
+        :param evaluation: the current networks' evaluation of the minibatch (its ``option_values``)
+        :param data: the minibatch (its taken options ``broadcast``)
+        :return: advantages (B, N)
+        """
+        return greedy_broadcast_advantage(evaluation.option_values, data.broadcast) + self.offset
+
+    def _greedy_normalized(self, evaluation: HybridEvaluation, data: HybridRolloutSamples) -> th.Tensor:
+        """Greedy broadcast advantages divided by every agent's broadcast gap scale, plus the offset.
 
         :param evaluation: the current networks' evaluation of the minibatch (its ``option_values``)
         :param data: the minibatch (its taken options ``broadcast``)
         :return: advantages (B, N)
         """
         advantages = greedy_broadcast_advantage(evaluation.option_values, data.broadcast)
-        if self.normalize_broadcast_advantage:
-            advantages = advantages / broadcast_gap_scale(evaluation.option_values)
-        return advantages + self.offset
+        return advantages / broadcast_gap_scale(evaluation.option_values) + self.offset
 
     def _sampled(self, evaluation: HybridEvaluation, data: HybridRolloutSamples) -> th.Tensor:
         """Sampled broadcast advantages (lambda-return minus the state value at collection), plus the offset.
