@@ -40,7 +40,7 @@ import torch as th
 from sb3_detc.evaluation import evaluate_episodes
 from sb3_detc.mappoc.policies import MlpHybridPolicy
 from sb3_detc.study.report import interval_estimates, mark_lines, splice, splice_marks
-from sb3_detc.study.spec import StudyError, load_study
+from sb3_detc.study.spec import StudyError, load_folder_study
 from sb3_detc.study.trial import entry_fixed_trigger, read_status, trial_folder
 from sb3_detc.triggers import PeriodicTrigger, RandomTrigger, SendOnDelta
 
@@ -100,7 +100,7 @@ def sweep(folder: Path, out: Path, rates: list[float], periods: list[int], delta
     :param deltas: thresholds of the send-on-delta triggers
     :return: trial name -> trigger name -> metrics
     """
-    spec = load_study(folder / "study.yml")
+    spec = load_folder_study(folder)
     results: dict[str, Any] = json.loads(out.read_text()) if out.is_file() else {}
     for trial in spec.trials():
         trial_dir = trial_folder(folder, trial)
@@ -147,7 +147,7 @@ def summary(folder: Path, results: dict[str, Any]) -> dict[str, dict[str, dict[s
     :return: label -> trigger -> metric -> [mean, low, high] (95 % bootstrap interval), and under
         ``seeds`` the number of seeds as ``[n]``; algorithms without results are left out
     """
-    spec = load_study(folder / "study.yml")
+    spec = load_folder_study(folder)
     table: dict[str, dict[str, dict[str, list[float]]]] = {}
     metrics = ("control_return", "package_travel", "savings", "fall_rate")
     for algorithm in spec.algorithms:
@@ -384,7 +384,7 @@ def main() -> None:
     if args.columns and not args.splice:
         parser.error("--columns needs --splice")
     try:  # what can be checked before the sweep
-        spec = load_study(args.folder / "study.yml")
+        spec = load_folder_study(args.folder)
         unknown = sorted(set(args.columns or []) - {algorithm.label for algorithm in spec.algorithms})
         if unknown:
             raise StudyError(f"{args.folder}: no algorithm {', '.join(unknown)} in the study")

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sb3_detc.study.spec import StudyError, load_study
+from sb3_detc.study.spec import StudyError, load_folder_study
 from sb3_detc.study.trial import merged_progress, trial_folder
 
 #: The logged columns of the table, in its order.
@@ -50,7 +50,7 @@ def staleness_table(folder: Path) -> str:
     """
     if not (folder / "study.yml").is_file():
         raise StudyError(f"{folder}: not a study folder (no study.yml)")
-    spec = load_study(folder / "study.yml")
+    spec = load_folder_study(folder)
     lines = []
     order = [algorithm.label for algorithm in spec.algorithms]
     for trial in sorted(spec.trials(), key=lambda t: (order.index(t.algorithm.label), t.seed)):

@@ -37,7 +37,7 @@ from pathlib import Path
 from typing import Any
 
 from sb3_detc.study.report import mark_lines, splice, summarise
-from sb3_detc.study.spec import StudyError, load_study
+from sb3_detc.study.spec import StudyError, load_folder_study
 from sb3_detc.study.trial import SUCCESS_NO_FALL, SUCCESS_TRAVEL, carries_package, trial_folder
 
 #: How far (nats) below a state-independent trigger's entropy the policy over options must end to count as learned.
@@ -67,7 +67,7 @@ def final_entropies(folder: Path, label: str) -> dict[int, float]:
     :return: seed -> final entropy of the policy over options (seeds that logged none are left out)
     :raises StudyError: if a finished trial has no ``progress.csv``
     """
-    spec = load_study(folder / "study.yml")
+    spec = load_folder_study(folder)
     entropies = {}
     for trial in spec.trials():
         trial_dir = trial_folder(folder, trial)
@@ -131,7 +131,7 @@ def claims(folder: Path, mappoc: str, baseline: str, recipe: str | None) -> str:
     :raises StudyError: if a named algorithm has no finished seed, or the trials report no package travel
     """
     summary = summarise(folder)
-    episodes = load_study(folder / "study.yml").episodes
+    episodes = load_folder_study(folder).episodes
     for label in (mappoc, baseline, recipe):
         if label is not None and not summary.get(label, {}).get("seeds"):
             raise StudyError(f"{folder}: no finished seed of {label!r}")

@@ -3,7 +3,7 @@
 ``python -m sb3_detc.compare`` (``make run``) runs a study (:mod:`sb3_detc.study`) of
 ``mappoc`` (learned communication) and ``ppo_random_skip`` (random skips, the paper's
 baseline) with the package's hyperparameter entries, for every seed (``--seeds``, default
-0, 1 and 2), on Ray on this machine (one core per run). Every final policy then runs the
+0, 1 and 2), on Ray on this machine (the cores each entry's rollout workers need). Every final policy then runs the
 same 50 seeded evaluation episodes with the training communication cost, with its own
 options (MAPPOC sampling from its policy over options, the baseline with its random
 trigger), with random skips at its own rate, always and never broadcasting. The default
@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+import tempfile
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -32,15 +33,15 @@ import gymnasium as gym
 import numpy as np
 import yaml
 from huggingface_sb3 import EnvironmentName
-from rl_zoo3.utils import get_callback_list, get_saved_hyperparams
+from rl_zoo3.utils import get_saved_hyperparams
 
-from sb3_detc.callbacks import FixedTriggerCallback
 from sb3_detc.evaluation import CommunicationReport, evaluate_communication
 from sb3_detc.mappoc import MAPPOC
 from sb3_detc.mappoc.mappoc import FixedTrigger
 from sb3_detc.study.report import report_study, summarise
-from sb3_detc.study.runner import run_study
+from sb3_detc.study.runner import prepare_folder, run_study
 from sb3_detc.study.spec import load_study
+from sb3_detc.study.trial import entry_fixed_trigger
 from sb3_detc.triggers import FixedControl
 from sb3_detc.zoo import InputError, check_env, run_cli
 
@@ -74,22 +75,21 @@ def evaluate_run(
     """
     name = EnvironmentName(env_id)
     config, _ = get_saved_hyperparams(str(run / name))
-    triggers = [c.trigger for c in get_callback_list(dict(config)) if isinstance(c, FixedTriggerCallback)]
-    if trigger is not None:
-        triggers = [trigger]
+    if trigger is None:
+        trigger = entry_fixed_trigger(dict(config))
     path = run / f"{name}.zip" if model is None else model
     if not path.is_file():
         raise FileNotFoundError(f"no saved model {path}")
-    env = gym.make(env_id, **(config.get("env_kwargs") or {}))
-    return evaluate_communication(
-        MAPPOC.load(path, device="cpu"),
-        env,
-        episodes,
-        deterministic=True,
-        deterministic_broadcast=False,
-        fixed_trigger=triggers[0] if triggers else None,
-        seed=EVAL_SEED,
-    )
+    with gym.make(env_id, **(config.get("env_kwargs") or {})) as env:
+        return evaluate_communication(
+            MAPPOC.load(path, device="cpu"),
+            env,
+            episodes,
+            deterministic=True,
+            deterministic_broadcast=False,
+            fixed_trigger=trigger,
+            seed=EVAL_SEED,
+        )
 
 
 def table(reports: dict[str, list[CommunicationReport]]) -> str:
@@ -199,8 +199,9 @@ def comparison_table(summary: dict[str, Any]) -> str:
 def _main() -> None:
     """The comparison command: write ``<dir>/study.yml`` from ``sys.argv``, run the study, print the table.
 
-    :raises InputError: for an unknown environment, ``--eval-episodes`` < 1 or a ``--dir`` that
-        holds a comparison with other settings
+    :raises InputError: for an unknown environment, ``--eval-episodes`` < 1, settings a study
+        refuses (e.g. negative seeds) or a ``--dir`` that holds a comparison with other settings
+        or other files
     :raises SystemExit: with code 1 if a run of the study did not finish
     """
     parser = argparse.ArgumentParser(prog="python -m sb3_detc.compare", description=__doc__.splitlines()[0])
@@ -221,8 +222,10 @@ def _main() -> None:
     path = folder / "study.yml"
     if path.is_file() and yaml.safe_load(path.read_text()) != yaml.safe_load(text):
         raise InputError(f"{folder} holds a comparison with other settings; give another --dir")
-    folder.mkdir(parents=True, exist_ok=True)
-    path.write_text(text)
+    with tempfile.TemporaryDirectory() as scratch:  # the settings are checked before the folder is touched
+        draft = Path(scratch) / "study.yml"
+        draft.write_text(text)
+        prepare_folder(load_study(draft), folder)  # writes <dir>/study.yml (into a new or empty folder)
     print(f"Training mappoc and ppo_random_skip on {args.env}, seeds {', '.join(map(str, args.seeds))}")
     if fixed:
         print(

@@ -99,7 +99,10 @@ def evaluate_episodes(
     policy call per step for all of them; otherwise one after another in ``env``. Episode
     ``k`` is reset with ``seeds[k]`` either way, and the results are in the order of ``seeds``.
     The copies have the settings of ``env.spec``: what was changed in ``env`` after it was
-    made (e.g. its broadcast cost set by hand) does not carry over.
+    made (e.g. its broadcast cost set by hand) does not carry over. Where every episode has its
+    seed, the policy's draws (options sampled from ``mu``, controls unless ``deterministic``)
+    are seeded with the first (PyTorch's global generator is left as it was): the same
+    policy, env and seeds give the same episodes.
 
     :param policy: the policy (of a trained model, ``model.policy``, or loaded on its own)
     :param env: a joint env (not vectorised) or its registered id
@@ -114,7 +117,8 @@ def evaluate_episodes(
     :return: the episodes' results
     """
     if isinstance(env, str):
-        env = gym.make(env)
+        with gym.make(env) as made:
+            return evaluate_episodes(policy, made, seeds, deterministic, deterministic_broadcast, fixed_trigger)
     if not isinstance(env.unwrapped, JointEnv):
         raise ValueError(f"evaluation needs a joint sb3_detc env, got {env}.")
     if len(seeds) < 1:
@@ -122,7 +126,8 @@ def evaluate_episodes(
     policy.set_training_mode(False)
     low, high = env.action_space["control"].low, env.action_space["control"].high
     n_agents = env.action_space["broadcast"].shape[0]
-    side_by_side = all(seed is not None for seed in seeds) and env.spec is not None
+    seeded = all(seed is not None for seed in seeds)
+    side_by_side = seeded and env.spec is not None
     copies = [gym.make(env.spec) for _ in range(min(len(seeds), MAX_SIDE_BY_SIDE) - 1)] if side_by_side else []
     envs = [env, *copies]
     pending = iter(enumerate(seeds))
@@ -136,44 +141,47 @@ def evaluate_episodes(
             running[slot] = _Running(index, obs, info.get("package_x", math.nan), np.zeros(n_agents, np.int64))
 
     try:
-        for slot in range(len(envs)):
-            start(slot)
-        while running:
-            slots = list(running)
-            batch = {key: np.stack([running[slot].obs[key] for slot in slots]) for key in running[slots[0]].obs}
-            with th.no_grad():
-                forced = None
-                if fixed_trigger is not None:
-                    forced = th.as_tensor(fixed_trigger(batch), device=policy.device)
-                sampled, controls = policy.sample_actions(
-                    obs_as_tensor(batch, policy.device),
-                    broadcast=forced,
-                    deterministic=deterministic,
-                    deterministic_broadcast=deterministic_broadcast,
-                )
-            sampled, controls = sampled.cpu().numpy(), np.clip(controls.cpu().numpy(), low, high)
-            for row, slot in enumerate(slots):
-                episode = running[slot]
-                obs, reward, terminated, truncated, info = envs[slot].step(
-                    {"broadcast": sampled[row], "control": controls[row]}
-                )
-                episode.obs = obs
-                episode.total += reward
-                episode.control_total += float(np.mean(info["control_rewards"]))
-                episode.broadcasts += sampled[row]
-                episode.steps += 1
-                if terminated or truncated:
-                    records[episode.index] = {
-                        "returns": episode.total,
-                        "control_returns": episode.control_total,
-                        "lengths": episode.steps,
-                        "broadcasts": episode.broadcasts,
-                        "terminated": bool(terminated),
-                        "failed": bool(info.get("failed", False)),
-                        "package_travel": info.get("package_x", math.nan) - episode.start_x,
-                    }
-                    del running[slot]
-                    start(slot)
+        with th.random.fork_rng(devices=[], enabled=seeded):
+            if seeded:
+                th.manual_seed(int(seeds[0]))  # type: ignore[arg-type]
+            for slot in range(len(envs)):
+                start(slot)
+            while running:
+                slots = list(running)
+                batch = {key: np.stack([running[slot].obs[key] for slot in slots]) for key in running[slots[0]].obs}
+                with th.no_grad():
+                    forced = None
+                    if fixed_trigger is not None:
+                        forced = th.as_tensor(fixed_trigger(batch), device=policy.device)
+                    sampled, controls = policy.sample_actions(
+                        obs_as_tensor(batch, policy.device),
+                        broadcast=forced,
+                        deterministic=deterministic,
+                        deterministic_broadcast=deterministic_broadcast,
+                    )
+                sampled, controls = sampled.cpu().numpy(), np.clip(controls.cpu().numpy(), low, high)
+                for row, slot in enumerate(slots):
+                    episode = running[slot]
+                    obs, reward, terminated, truncated, info = envs[slot].step(
+                        {"broadcast": sampled[row], "control": controls[row]}
+                    )
+                    episode.obs = obs
+                    episode.total += reward
+                    episode.control_total += float(np.mean(info["control_rewards"]))
+                    episode.broadcasts += sampled[row]
+                    episode.steps += 1
+                    if terminated or truncated:
+                        records[episode.index] = {
+                            "returns": episode.total,
+                            "control_returns": episode.control_total,
+                            "lengths": episode.steps,
+                            "broadcasts": episode.broadcasts,
+                            "terminated": bool(terminated),
+                            "failed": bool(info.get("failed", False)),
+                            "package_travel": info.get("package_x", math.nan) - episode.start_x,
+                        }
+                        del running[slot]
+                        start(slot)
     finally:
         for copy in copies:
             copy.close()

@@ -57,7 +57,18 @@ def test_deterministic_episodes_take_options_as_the_policy_says(deterministic_op
         seed=0,
     )
     runs = []
-    for torch_seed in (1, 2):
-        th.manual_seed(torch_seed)
-        runs.append(evaluate_episodes(model.policy, gym.make(ENV_ID, **SETTINGS), [1, 2, 3]).broadcasts)
+    for first in (1, 101):  # the first episode's seed seeds the draws: episodes 2 and 3 are the same
+        runs.append(evaluate_episodes(model.policy, gym.make(ENV_ID, **SETTINGS), [first, 2, 3]).broadcasts[1:])
     assert np.array_equal(runs[0], runs[1]) is deterministic_options
+
+
+def test_seeded_episodes_draw_the_same_options_and_leave_the_global_generator() -> None:
+    model = MAPPOC("MlpHybridPolicy", gym.make(ENV_ID, **SETTINGS), policy_kwargs={"net_arch": [8]}, seed=0)
+    th.manual_seed(5)
+    state = th.random.get_rng_state()
+    runs = [
+        evaluate_episodes(model.policy, gym.make(ENV_ID, **SETTINGS), [1, 2, 3], deterministic=False) for _ in range(2)
+    ]
+    assert th.equal(th.random.get_rng_state(), state)
+    np.testing.assert_array_equal(runs[0].broadcasts, runs[1].broadcasts)
+    np.testing.assert_array_equal(runs[0].returns, runs[1].returns)

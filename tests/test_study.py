@@ -21,7 +21,8 @@ from sb3_detc.evaluation import evaluate_episodes
 from sb3_detc.mappoc.policies import MlpHybridPolicy
 from sb3_detc.study.__main__ import main as study_main
 from sb3_detc.study.report import report_study, splice, summarise
-from sb3_detc.study.spec import StudyError, load_study
+from sb3_detc.study.runner import prepare_folder
+from sb3_detc.study.spec import StudyError, load_folder_study, load_study
 from sb3_detc.study.trial import MODES, code_commit, drop_stale_segments, read_status, trial_folder
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -78,11 +79,24 @@ def run_command(*args: str, timeout: float = 600) -> subprocess.CompletedProcess
         ({"evaluation": {"episods": 3}}, "unknown key 'episods'"),
         ({"budget": 3}, "unknown key 'budget'"),
         ({"algorithms": {}}, "'algorithms' must be a non-empty mapping"),
+        (
+            {"algorithms": {"a": {"algo": "mappoc", "hyperparams": {"normalize": "dict(norm_obs_keys=['local'])"}}}},
+            "does not carry VecNormalize statistics",
+        ),
     ],
 )
 def test_bad_study_files_are_refused_with_the_key_in_the_message(tmp_path, change, message):
     path = write_study(tmp_path, {**TINY, **change})
     with pytest.raises(StudyError, match=message):
+        load_study(path)
+
+
+def test_an_algorithm_without_steps_is_refused(tmp_path):
+    budgets = {key: value for key, value in TINY.items() if key != "n_timesteps"}
+    path = write_study(
+        tmp_path, {**budgets, "algorithms": {"a": {"algo": "mappoc", "hyperparams": {"n_timesteps": 0}}}}
+    )
+    with pytest.raises(StudyError, match="algorithm 'a' trains 0 steps"):
         load_study(path)
 
 
@@ -163,6 +177,24 @@ def test_a_folder_of_another_study_is_refused(tmp_path):
     with pytest.raises(SystemExit) as stop:
         study_main(["run", str(write_study(tmp_path, TINY)), "--dir", str(folder)])
     assert stop.value.code == 2
+
+
+def test_a_study_folder_keeps_the_hyperparameter_files_it_names(tmp_path):
+    """The folder is read with its copy of a ``conf`` file, without the study's own files; a changed file is refused."""
+    source = tmp_path / "source"
+    source.mkdir()
+    conf = source / "mine.yml"
+    conf.write_text((sb3_detc.zoo.HYPERPARAMS_DIR / "mappoc.yml").read_text())
+    study = {**TINY, "algorithms": {"mine": {"algo": "mappoc", "conf": "mine.yml"}}}
+    folder = prepare_folder(load_study(write_study(source, study)), tmp_path / "out")
+    assert (folder / "conf" / "mine.yml").read_text() == conf.read_text()
+    conf.write_text(conf.read_text() + "\n# changed\n")
+    with pytest.raises(StudyError, match="mine.yml changed since the trials"):
+        prepare_folder(load_study(source / "study.yml"), folder)
+    conf.unlink()  # the folder alone: as committed, on another machine
+    assert load_folder_study(folder).algorithms[0].conf == folder / "conf" / "mine.yml"
+    with pytest.raises(StudyError, match="not a study folder"):
+        load_folder_study(tmp_path)
 
 
 def test_an_address_that_does_not_answer_is_reported(tmp_path, capsys):

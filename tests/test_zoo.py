@@ -308,6 +308,18 @@ def bad(main, argv: list[str], capsys: pytest.CaptureFixture) -> str:
     return lines[0]
 
 
+def test_compare_refuses_bad_settings_before_it_writes(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    folder = tmp_path / "compare"
+    for argv in (["--seeds", "-1"], ["--seeds", "0", "0"], ["-n", "0"]):
+        bad(compare.main, [*argv, "--dir", str(folder)], capsys)
+        assert not folder.exists(), argv
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "notes.txt").write_text("mine")
+    assert "not empty and has no study.yml" in bad(compare.main, ["-n", "64", "--dir", str(other)], capsys)
+    assert sorted(path.name for path in other.iterdir()) == ["notes.txt"]
+
+
 def test_unknown_algorithm_and_environment(capsys: pytest.CaptureFixture) -> None:
     assert "unknown algorithm 'mapoc' (did you mean 'mappoc'?)" in bad(train.main, ["--algo", "mapoc"], capsys)
     line = bad(train.main, ["--env", "sb3_detc/LinearETC-v9"], capsys)

@@ -297,8 +297,8 @@ class MultiwalkerSystem(CommunicatingSystem):
     by a fall or a dropped package. The Box2D world lives in :attr:`physics` (:class:`EtcMultiWalkerEnv`).
 
     :param n_walkers: number of walkers N (2 to 40)
-    :param forward_reward: reward scale of package progress (one unit of travel, i.e. one
-        package length, is worth about 21.7 with the default 5)
+    :param forward_reward: reward scale of package progress (one metre of package travel,
+        ``package_x``, is worth about 21.7 with the default 5: :data:`PROGRESS_SCALE` times it)
     :param terminate_reward: reward of every walker when the episode fails
     :param fall_reward: extra reward of a walker that falls
     :param speed_penalty: coefficient c >= 0 of the horizontal-speed potential shaping

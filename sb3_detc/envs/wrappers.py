@@ -168,7 +168,7 @@ class EventTriggeredNetwork(BaseParallelWrapper):
         obs, info = self.system.reset_arrays(seed)
         self.agents = list(self.possible_agents)
         self.held, self.age = initial_network(obs.message)
-        self.trigger_held = self._trigger_of(obs).copy()
+        self.trigger_held, _ = initial_network(self._trigger_of(obs))  # the trigger features count as sent
         self.broadcasts = np.zeros(self.n_agents, dtype=np.int64)
         self.last_broadcast = np.zeros(self.n_agents, dtype=np.int64)
         return self._joint_obs(obs), info

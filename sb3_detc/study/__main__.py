@@ -14,7 +14,7 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from sb3_detc.study.spec import StudyError, load_study
+from sb3_detc.study.spec import load_study
 from sb3_detc.zoo import run_cli
 
 #: The study files shipped with the package.
@@ -65,8 +65,6 @@ def _main() -> None:
     else:
         from sb3_detc.study.report import report_study
 
-        if not (args.dir / "study.yml").is_file():
-            raise StudyError(f"{args.dir} is not a study folder (no study.yml)")
         print(report_study(args.dir, plot=not args.no_plot))
 
 

@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import warnings
 from pathlib import Path
 from typing import Any
@@ -25,8 +24,8 @@ from rliable import library as rly
 from rliable import metrics as rly_metrics
 
 from sb3_detc.plot import plot_estimates, plot_runs
-from sb3_detc.study.spec import StudyError, load_study
-from sb3_detc.study.trial import read_status, trial_folder
+from sb3_detc.study.spec import StudyError, load_folder_study
+from sb3_detc.study.trial import read_status, replace_atomically, trial_folder
 
 __all__ = [
     "BOOTSTRAP_REPS",
@@ -127,7 +126,7 @@ def read_trials(directory: str | Path) -> tuple[Any, dict[str, dict[int, dict[st
         label -> seed -> state (e.g. ``running, 2048 steps`` or ``failed (...)``) of the others
     """
     directory = Path(directory)
-    spec = load_study(directory / "study.yml")
+    spec = load_folder_study(directory)
     evaluations: dict[str, dict[int, dict[str, Any]]] = {a.label: {} for a in spec.algorithms}
     states: dict[str, dict[int, str]] = {a.label: {} for a in spec.algorithms}
     for trial in spec.trials():
@@ -163,7 +162,8 @@ def summarise(directory: str | Path) -> dict[str, Any]:
 
     :param directory: the study folder
     :return: label -> ``seeds`` (seed -> metrics), ``mean`` and ``ci95`` (metric -> value,
-        metric -> [low, high]), ``iqm_control_return``, ``unfinished`` (seed -> state);
+        metric -> [low, high]), ``iqm_control_return``, ``success_count`` (seeds succeeding;
+        None where the env reports no success), ``unfinished`` (seed -> state);
         and under ``"comparisons"`` the probability of improvement of control return for
         every ordered pair of labels with finished seeds
     """
@@ -317,9 +317,7 @@ def report_study(directory: str | Path, plot: bool = True) -> str:
     :raises StudyError: if the folder is not a study folder
     """
     directory = Path(directory)
-    if not (directory / "study.yml").is_file():
-        raise StudyError(f"{directory} is not a study folder (no study.yml)")
-    spec = load_study(directory / "study.yml")
+    spec = load_folder_study(directory)
     summary = summarise(directory)
     (directory / "summary.json").write_text(json.dumps(summary, indent=1, default=str) + "\n")
     text = _markdown(directory, spec, summary)
@@ -400,6 +398,5 @@ def splice(path: str | Path, name: str, text: str) -> None:
     :raises StudyError: as :func:`splice_marks` (the page is left as it is)
     """
     lines, first, last = splice_marks(path, name)
-    scratch = Path(path).with_suffix(".tmp")
-    scratch.write_text("".join([*lines[: first + 1], "\n", text, "\n", *lines[last:]]), encoding="utf-8")
-    os.replace(scratch, path)
+    page = "".join([*lines[: first + 1], "\n", text, "\n", *lines[last:]])
+    replace_atomically(Path(path), lambda scratch: scratch.write_text(page, encoding="utf-8"))

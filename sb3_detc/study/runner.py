@@ -23,8 +23,8 @@ from typing import Any
 
 import yaml
 
-from sb3_detc.study.spec import StudyError, StudySpec, load_study, same_study
-from sb3_detc.study.trial import read_status, run_trial, trial_folder
+from sb3_detc.study.spec import CONF_FOLDER, StudyError, StudySpec, load_study, same_study
+from sb3_detc.study.trial import read_status, replace_atomically, run_trial, trial_folder
 
 __all__ = ["StudyProgress", "prepare_folder", "run_study"]
 
@@ -43,14 +43,16 @@ STOP_FILE = ".stop"
 def prepare_folder(spec: StudySpec, directory: str | os.PathLike) -> Path:
     """Create the study folder, or check that an existing one belongs to this study.
 
-    The folder keeps a copy of the study file (``study.yml``) and a ``.gitignore`` for
-    Ray's files and half-written checkpoints; it keeps ``checkpoint.zip`` in, so that a study
-    committed while it runs resumes on another machine.
+    The folder keeps a copy of the study file (``study.yml``), of every hyperparameter file
+    that it names (``conf/<label><suffix>``, see :func:`~sb3_detc.study.spec.load_folder_study`)
+    and a ``.gitignore`` for Ray's files and half-written checkpoints; it keeps
+    ``checkpoint.zip`` in, so that a study committed while it runs resumes on another machine.
 
     :param spec: the study
     :param directory: the study folder
     :return: the folder
-    :raises StudyError: if the folder holds another study's trials
+    :raises StudyError: if the folder holds another study's trials, or a hyperparameter file
+        changed since the folder's trials began
     """
     folder = Path(directory)
     copy = folder / "study.yml"
@@ -63,9 +65,22 @@ def prepare_folder(spec: StudySpec, directory: str | os.PathLike) -> Path:
     elif folder.exists() and any(folder.iterdir()):
         raise StudyError(f"{folder} is not empty and has no study.yml: not a study folder")
     folder.mkdir(parents=True, exist_ok=True)
+    for algorithm in spec.algorithms:
+        if not (algorithm.named_conf and algorithm.conf.is_file()):
+            continue
+        content = algorithm.conf.read_bytes()
+        kept = folder / CONF_FOLDER / f"{algorithm.label}{algorithm.conf.suffix}"
+        if kept.is_file() and kept.read_bytes() != content:
+            raise StudyError(
+                f"{algorithm.conf} changed since the trials of {folder} began (their copy: {kept}); "
+                "use a new --dir or the hyperparameters they were made with"
+            )
+        kept.parent.mkdir(exist_ok=True)
+        replace_atomically(kept, lambda scratch, content=content: scratch.write_bytes(content))
     if not copy.is_file():
-        copy.write_text(spec.text)
-    (folder / ".gitignore").write_text(f".ray/\n{STOP_FILE}\n*.tmp\n*.tmp.zip\n*.tmp.csv\n!checkpoint.zip\n")
+        replace_atomically(copy, lambda scratch: scratch.write_text(spec.text))
+    ignored = f".ray/\n{STOP_FILE}\n*.tmp\n*.tmp.zip\n*.tmp.csv\n*.tmp.pt\n!checkpoint.zip\n"
+    (folder / ".gitignore").write_text(ignored)
     return folder
 
 
@@ -363,7 +378,8 @@ def run_study(
     :param cpus: cores that Ray hands out to trials on this machine (default: all of them); fewer
         leave cores to other work, more run more trials at once (two Multiwalker trials on two
         cores were no faster together than one). Not with ``address`` (the cluster knows its cores).
-    :return: trial name -> final status (``done`` or ``failed``) of every trial of the study
+    :return: trial name -> final status of every trial of the study (``done``, ``failed``, or
+        ``interrupted``, ``running`` or ``pending`` when the study was stopped)
     :raises StudyError: if the folder belongs to another study, the cluster does not answer, or
         ``cpus`` is not a positive integer or comes with ``address``
     """
@@ -390,20 +406,20 @@ def run_study(
     # A learner thread that waits for a core sleeps instead of spinning: with OpenMP's default a
     # busy process next to a two-thread learner slows its updates many times, not twice.
     runtime_env = {"env_vars": {"OMP_WAIT_POLICY": os.environ.get("OMP_WAIT_POLICY", "PASSIVE")}}
-    try:
-        if address is None:
-            ray.init(
-                address="local",  # a Ray of its own, even where another one runs
-                num_cpus=cpus or os.cpu_count(),
-                include_dashboard=False,
-                log_to_driver=False,
-                logging_level=logging.WARNING,
-                runtime_env=runtime_env,
-            )
-        else:
+    if address is None:  # a local Ray that fails to start is a fault of its own: its traceback is kept
+        ray.init(
+            address="local",  # a Ray of its own, even where another one runs
+            num_cpus=cpus or os.cpu_count(),
+            include_dashboard=False,
+            log_to_driver=False,
+            logging_level=logging.WARNING,
+            runtime_env=runtime_env,
+        )
+    else:
+        try:
             ray.init(address=address, log_to_driver=False, logging_level=logging.WARNING, runtime_env=runtime_env)
-    except (ConnectionError, RuntimeError, ValueError) as error:
-        raise StudyError(f"cannot reach the Ray cluster at {address!r}: {' '.join(str(error).split())}") from None
+        except (ConnectionError, RuntimeError, ValueError) as error:
+            raise StudyError(f"cannot reach the Ray cluster at {address!r}: {' '.join(str(error).split())}") from None
     try:
         cores = int(ray.cluster_resources().get("CPU", 1))
         cpus = {t.name: min(t.algorithm.cpus, cores) for t in todo}

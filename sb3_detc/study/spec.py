@@ -52,6 +52,10 @@ __all__ = ["AlgorithmSpec", "StudyError", "StudySpec", "Trial", "load_study", "s
 #: Keys of a study file and of one algorithm's settings.
 STUDY_KEYS = frozenset({"env", "seeds", "n_timesteps", "checkpoint_interval", "evaluation", "algorithms"})
 ALGORITHM_KEYS = frozenset({"algo", "seeds", "cpus", "conf", "hyperparams"})
+
+#: A study folder's copies of the hyperparameter files its study file names (``conf``), one per algorithm,
+#: ``<label><suffix>``: the folder is read without the files the study was started from.
+CONF_FOLDER = "conf"
 EVALUATION_KEYS = frozenset({"episodes", "seed"})
 
 
@@ -70,6 +74,7 @@ class AlgorithmSpec:
     :param seeds: the seeds
     :param cpus: cores per trial
     :param entry: the entry of the study's env in ``conf``, with the overrides applied
+    :param named_conf: whether the study file names ``conf`` (else it is sb3-detc's file of ``algo``)
     """
 
     label: str
@@ -79,6 +84,7 @@ class AlgorithmSpec:
     seeds: tuple[int, ...]
     cpus: int
     entry: dict[str, Any]
+    named_conf: bool = False
 
 
 @dataclass(frozen=True)
@@ -200,7 +206,14 @@ def _unknown(path: Path, where: str, keys: Any, allowed: frozenset[str]) -> None
         raise _fail(path, f"unknown key {extra[0]!r} in {where} (allowed: {', '.join(sorted(allowed))})")
 
 
-def _algorithm(path: Path, env: str, label: Any, settings: Any, seeds: tuple[int, ...] | None) -> AlgorithmSpec:
+def _algorithm(
+    path: Path,
+    env: str,
+    label: Any,
+    settings: Any,
+    seeds: tuple[int, ...] | None,
+    conf_folder: Path | None = None,
+) -> AlgorithmSpec:
     """One checked algorithm of a study file, with its entry of the hyperparameter file.
 
     :param path: the study file (a relative ``conf`` is relative to its folder)
@@ -208,6 +221,8 @@ def _algorithm(path: Path, env: str, label: Any, settings: Any, seeds: tuple[int
     :param label: the algorithm's key under ``algorithms``
     :param settings: its parsed settings (``algo``, and optionally ``conf``, ``hyperparams``, ``seeds``, ``cpus``)
     :param seeds: the study's top-level seeds, used where the algorithm has none (None: not given)
+    :param conf_folder: where the copy of a ``conf`` file is (a study folder's :data:`CONF_FOLDER`;
+        None: at the path the study file gives)
     :return: the algorithm; ``cpus`` defaults to the entry's ``n_envs`` where it uses rollout workers, else 1
     :raises StudyError: on the first problem of the algorithm's settings or of its entry
     """
@@ -225,7 +240,10 @@ def _algorithm(path: Path, env: str, label: Any, settings: Any, seeds: tuple[int
         raise _fail(path, f"algorithm {label!r}: {error}") from None
     if "conf" in settings:
         conf = Path(os.path.expanduser(str(settings["conf"])))
-        conf = conf if conf.is_absolute() else path.parent / conf
+        if conf_folder is not None:
+            conf = conf_folder / f"{label}{conf.suffix}"
+        elif not conf.is_absolute():
+            conf = path.parent / conf
     elif algo in ALGORITHMS:
         conf = HYPERPARAMS_DIR / f"{algo}.yml"
     else:
@@ -239,11 +257,18 @@ def _algorithm(path: Path, env: str, label: Any, settings: Any, seeds: tuple[int
         raise _fail(path, f"algorithm {label!r} has no seeds (give 'seeds' at the top or in the algorithm)")
     hyperparams = renamed_keys(hyperparams)  # also a study file of an earlier version
     entry = _checked_entry(path, env, label, algo, conf, hyperparams)
+    if entry.get("normalize") not in (None, False, "False"):
+        raise _fail(
+            path,
+            f"algorithm {label!r}: a study does not carry VecNormalize statistics ('normalize') into its checkpoints "
+            "and evaluations; normalise the rewards with normalize_reward: true (MAPPOC) or train with "
+            "python -m sb3_detc.train",
+        )
     cpus = settings.get("cpus")
     if cpus is None:
         cpus = int(entry.get("n_envs", 1)) if uses_rollout_workers(entry) else 1
     cpus = _int(path, f"'cpus' of {label!r}", cpus, 1)
-    return AlgorithmSpec(label, algo, conf, dict(hyperparams), trial_seeds, cpus, entry)
+    return AlgorithmSpec(label, algo, conf, dict(hyperparams), trial_seeds, cpus, entry, "conf" in settings)
 
 
 def _checked_entry(
@@ -287,14 +312,31 @@ def same_study(first: Any, second: Any) -> bool:
     return renamed(first) == renamed(second)
 
 
-def load_study(path: str | os.PathLike) -> StudySpec:
+def load_folder_study(directory: str | os.PathLike) -> StudySpec:
+    """The study of a study folder, from its copies of the study file and of the hyperparameter files it names.
+
+    :param directory: the study folder
+    :return: the study
+    :raises StudyError: if the folder has no ``study.yml``, or as :func:`load_study`
+    """
+    directory = Path(directory)
+    if not (directory / "study.yml").is_file():
+        raise StudyError(f"{directory} is not a study folder (no study.yml)")
+    return load_study(directory / "study.yml", directory / CONF_FOLDER)
+
+
+def load_study(path: str | os.PathLike, conf_folder: str | os.PathLike | None = None) -> StudySpec:
     """Read and check a study file.
 
     :param path: the YAML file
+    :param conf_folder: where the hyperparameter files that algorithms name (``conf``) are, as
+        ``<label><suffix>`` (a study folder's copies, see :func:`load_folder_study`); None: at
+        the paths the study file gives
     :return: the study
     :raises StudyError: on the first problem, with the file and the key in the message
     """
     path = Path(path)
+    conf_folder = None if conf_folder is None else Path(conf_folder)
     if not path.is_file():
         raise StudyError(f"study file {str(path)!r} not found")
     text = path.read_text()
@@ -328,5 +370,9 @@ def load_study(path: str | os.PathLike) -> StudySpec:
     algorithms = content.get("algorithms")
     if not isinstance(algorithms, dict) or not algorithms:
         raise _fail(path, "'algorithms' must be a non-empty mapping of labels to settings")
-    specs = tuple(_algorithm(path, env, label, settings, seeds) for label, settings in algorithms.items())
-    return StudySpec(path, text, env, n_timesteps, interval, episodes, eval_seed, specs)
+    specs = tuple(_algorithm(path, env, label, settings, seeds, conf_folder) for label, settings in algorithms.items())
+    study = StudySpec(path, text, env, n_timesteps, interval, episodes, eval_seed, specs)
+    for algorithm in specs:
+        if study.budget(algorithm) < 1:
+            raise _fail(path, f"algorithm {algorithm.label!r} trains 0 steps: its 'n_timesteps' must be >= 1")
+    return study

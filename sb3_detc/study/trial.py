@@ -20,6 +20,7 @@ A trial's folder (``<study dir>/trials/<label>/seed<seed>/``) holds plain files:
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import math
 import os
@@ -94,15 +95,28 @@ def trial_folder(directory: str | os.PathLike, trial: Trial) -> Path:
     return Path(directory) / "trials" / trial.algorithm.label / f"seed{trial.seed}"
 
 
+def replace_atomically(path: Path, write: Callable[[Path], Any], scratch_name: str | None = None) -> None:
+    """Write a file through a scratch file next to it, then put it in place at once.
+
+    Readers never see half of it, and an interruption leaves the file as it was (a scratch
+    file at most, which the next write replaces).
+
+    :param path: the file
+    :param write: writes the content to the path it is given
+    :param scratch_name: the scratch file's name (default: the file's with the suffix ``.tmp``)
+    """
+    scratch = path.with_name(scratch_name) if scratch_name else path.with_suffix(".tmp")
+    write(scratch)
+    os.replace(scratch, path)
+
+
 def _write_json(path: Path, content: dict[str, Any]) -> None:
-    """Write a JSON file atomically (through a ``.tmp`` file next to it), so that readers never see half of it.
+    """Write a JSON file atomically (:func:`replace_atomically`).
 
     :param path: the file
     :param content: what it holds
     """
-    scratch = path.with_suffix(".tmp")
-    scratch.write_text(json.dumps(content, indent=1) + "\n")
-    os.replace(scratch, path)
+    replace_atomically(path, lambda scratch: scratch.write_text(json.dumps(content, indent=1) + "\n"))
 
 
 def read_status(folder: Path) -> dict[str, Any]:
@@ -120,9 +134,9 @@ class TrialCheckpoint(BaseCallback):
 
     At the start of a rollout the model has learned from every step it counted, so a run
     resumed from the checkpoint repeats nothing and loses nothing but the steps after it.
-    The file is replaced atomically; ``checkpoint.json`` repeats its step count for readers. After every
-    save (and at every rollout start) ``on_progress`` gets the step count. :meth:`save` saves
-    at any other moment (the trial does when it is interrupted).
+    The file is replaced atomically; ``checkpoint.json`` repeats its step count for readers.
+    At every rollout start ``on_progress`` gets the step count, after every save ``on_save``.
+    :meth:`save` saves at any other moment (the trial does when it is interrupted).
 
     :param folder: the trial folder
     :param interval: environment steps between checkpoints
@@ -153,9 +167,7 @@ class TrialCheckpoint(BaseCallback):
     def save(self) -> None:
         """Save the model now (replacing the checkpoint atomically) and call ``on_save``."""
         steps = self.model.num_timesteps
-        scratch = self.folder / "checkpoint.tmp.zip"
-        self.model.save(scratch)
-        os.replace(scratch, self.folder / "checkpoint.zip")
+        replace_atomically(self.folder / "checkpoint.zip", self.model.save, "checkpoint.tmp.zip")
         _write_json(self.folder / "checkpoint.json", {"timesteps": steps})
         self.saved_at = steps
         if self.on_save is not None:
@@ -198,9 +210,8 @@ def _write_progress(folder: Path) -> None:
     """
     rows = merged_progress(folder)
     if not rows.empty:
-        scratch = folder / "progress.tmp.csv"
-        rows.to_csv(scratch, index=False)
-        os.replace(scratch, folder / "progress.csv")
+        write = functools.partial(rows.to_csv, index=False)
+        replace_atomically(folder / "progress.csv", write, "progress.tmp.csv")
 
 
 def code_commit(source: Path | None = None) -> str | None:
@@ -410,15 +421,17 @@ def _train(spec: StudySpec, trial: Trial, folder: Path, on_progress: Callable[[i
         manager.learn(model)
     except (KeyboardInterrupt, SystemExit):  # what rl-zoo3's learn() does not catch itself
         interrupted = True
-    seconds = earlier + time.monotonic() - began
-    _write_json(folder / "status.json", {**read_status(folder), "timesteps": model.num_timesteps, "seconds": seconds})
     if interrupted or model.num_timesteps < budget:  # rl-zoo3's learn() ends quietly on a KeyboardInterrupt
         # said first: Ray may end the process before the checkpoint is written
         _write_json(folder / "status.json", {**read_status(folder), "status": "interrupted"})
         if model.num_timesteps > checkpoints.saved_at:
-            checkpoints.save()  # nothing is lost (stopped during an update, the rest of that update is)
+            # nothing is lost (stopped during an update, the rest of that update is); the status then
+            # counts the steps and the time up to this checkpoint (on_save), never more than it holds
+            checkpoints.save()
         raise KeyboardInterrupt(f"training of {trial.name} stopped at {model.num_timesteps} of {budget} steps")
-    model.policy.save(str(folder / "policy.pt"))
+    seconds = earlier + time.monotonic() - began
+    _write_json(folder / "status.json", {**read_status(folder), "timesteps": model.num_timesteps, "seconds": seconds})
+    replace_atomically(folder / "policy.pt", lambda scratch: model.policy.save(str(scratch)), "policy.tmp.pt")
     _write_progress(folder)
 
 
