@@ -39,7 +39,7 @@ import torch as th
 
 from sb3_detc.evaluation import evaluate_episodes
 from sb3_detc.mappoc.policies import MlpHybridPolicy
-from sb3_detc.study.report import interval_estimates, mark_lines, splice, splice_marks
+from sb3_detc.study.report import interval_estimates, interval_text, mark_lines, splice, splice_marks
 from sb3_detc.study.spec import StudyError, load_folder_study
 from sb3_detc.study.trial import entry_fixed_trigger, read_status, trial_folder
 from sb3_detc.triggers import PeriodicTrigger, RandomTrigger, SendOnDelta
@@ -172,8 +172,7 @@ def estimate(values: dict[str, list[float]], metric: str, digits: int) -> str:
     :param metric: the metric
     :param digits: digits after the decimal point
     """
-    mean, low, high = values[metric]
-    return f"{mean:.{digits}f} [{low:.{digits}f}, {high:.{digits}f}]"
+    return interval_text(*values[metric], digits)
 
 
 def markdown(table: dict[str, dict[str, dict[str, list[float]]]]) -> str:

@@ -36,7 +36,7 @@ import math
 from pathlib import Path
 from typing import Any
 
-from sb3_detc.study.report import mark_lines, splice, summarise
+from sb3_detc.study.report import interval_text, mark_lines, splice, summarise
 from sb3_detc.study.spec import StudyError, load_folder_study
 from sb3_detc.study.trial import SUCCESS_NO_FALL, SUCCESS_TRAVEL, carries_package, trial_folder
 
@@ -95,7 +95,7 @@ def estimate(entry: dict[str, Any], metric: str, scale: float = 1.0, digits: int
     """
     mean, (low, high) = entry["mean"][metric], entry["ci95"][metric]
     seeds = ", ".join(f"{scale * entry['seeds'][s][metric]:.{digits}f}" for s in sorted(entry["seeds"], key=int))
-    return f"{scale * mean:.{digits}f}{unit} [{scale * low:.{digits}f}, {scale * high:.{digits}f}] (seeds: {seeds})"
+    return f"{interval_text(scale * mean, scale * low, scale * high, digits, unit)} (seeds: {seeds})"
 
 
 def carriers(entry: dict[str, Any]) -> int:

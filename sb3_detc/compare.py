@@ -38,7 +38,7 @@ from rl_zoo3.utils import get_saved_hyperparams
 from sb3_detc.evaluation import CommunicationReport, evaluate_communication
 from sb3_detc.mappoc import MAPPOC
 from sb3_detc.mappoc.mappoc import FixedTrigger
-from sb3_detc.study.report import report_study, summarise
+from sb3_detc.study.report import interval_text, report_study, summarise
 from sb3_detc.study.runner import prepare_folder, run_study
 from sb3_detc.study.spec import load_study
 from sb3_detc.study.trial import entry_fixed_trigger
@@ -170,8 +170,7 @@ def comparison_table(summary: dict[str, Any]) -> str:
     """
 
     def cell(entry: dict[str, Any], metric: str, digits: int = 2) -> str:
-        low, high = entry["ci95"][metric]
-        return f"{entry['mean'][metric]:.{digits}f} [{low:.{digits}f}, {high:.{digits}f}]"
+        return interval_text(entry["mean"][metric], *entry["ci95"][metric], digits)
 
     lines = ["| algorithm | seeds | return | control return | savings |", "|---|---|---|---|---|"]
     for algo in ALGOS:

@@ -354,6 +354,19 @@ def report_study(directory: str | Path, plot: bool = True) -> str:
     return text
 
 
+def interval_text(mean: float, low: float, high: float, digits: int = 2, unit: str = "") -> str:
+    """A mean and its 95 % interval as ``mean [low, high]``.
+
+    :param mean: the mean
+    :param low: the interval's lower end
+    :param high: the interval's upper end
+    :param digits: decimals shown
+    :param unit: text after the mean (e.g. ``" %"``)
+    :return: the text
+    """
+    return f"{mean:.{digits}f}{unit} [{low:.{digits}f}, {high:.{digits}f}]"
+
+
 def mark_lines(name: str) -> tuple[str, str]:
     """The two lines of a Markdown page between which :func:`splice` puts generated text.
 
