@@ -197,6 +197,18 @@ def test_a_study_folder_keeps_the_hyperparameter_files_it_names(tmp_path):
         load_folder_study(tmp_path)
 
 
+def test_a_folder_another_run_uses_is_refused(tmp_path, capsys):
+    fcntl = pytest.importorskip("fcntl")
+    study = write_study(tmp_path, TINY)
+    folder = prepare_folder(load_study(study), tmp_path / "out")
+    with open(folder / ".lock", "a") as held:
+        fcntl.flock(held, fcntl.LOCK_EX | fcntl.LOCK_NB)  # as a running study holds it
+        with pytest.raises(SystemExit) as stop:
+            study_main(["run", str(study), "--dir", str(folder)])
+    assert stop.value.code == 2 and "another run of a study is using" in capsys.readouterr().err
+    assert not any((folder / "trials").glob("*/*/status.json"))
+
+
 def test_an_address_that_does_not_answer_is_reported(tmp_path, capsys):
     with pytest.raises(SystemExit) as stop:
         study_main(

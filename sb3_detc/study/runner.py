@@ -39,6 +39,9 @@ RATE_WINDOW = 600.0
 #: the first Ctrl-C (SIGINT) and removes it when it starts and ends.
 STOP_FILE = ".stop"
 
+#: The file a running study holds locked (:func:`run_study`).
+LOCK_FILE = ".lock"
+
 
 def prepare_folder(spec: StudySpec, directory: str | os.PathLike) -> Path:
     """Create the study folder, or check that an existing one belongs to this study.
@@ -79,7 +82,7 @@ def prepare_folder(spec: StudySpec, directory: str | os.PathLike) -> Path:
         replace_atomically(kept, lambda scratch, content=content: scratch.write_bytes(content))
     if not copy.is_file():
         replace_atomically(copy, lambda scratch: scratch.write_text(spec.text))
-    ignored = f".ray/\n{STOP_FILE}\n*.tmp\n*.tmp.zip\n*.tmp.csv\n*.tmp.pt\n!checkpoint.zip\n"
+    ignored = f".ray/\n{STOP_FILE}\n{LOCK_FILE}\n*.tmp\n*.tmp.zip\n*.tmp.csv\n*.tmp.pt\n!checkpoint.zip\n"
     (folder / ".gitignore").write_text(ignored)
     return folder
 
@@ -380,14 +383,53 @@ def run_study(
         cores were no faster together than one). Not with ``address`` (the cluster knows its cores).
     :return: trial name -> final status of every trial of the study (``done``, ``failed``, or
         ``interrupted``, ``running`` or ``pending`` when the study was stopped)
-    :raises StudyError: if the folder belongs to another study, the cluster does not answer, or
-        ``cpus`` is not a positive integer or comes with ``address``
+    :raises StudyError: if the folder belongs to another study or another run uses it, the cluster
+        does not answer, or ``cpus`` is not a positive integer or comes with ``address``
     """
     if cpus is not None and (isinstance(cpus, bool) or not isinstance(cpus, int) or cpus < 1):
         raise StudyError(f"cpus must be a positive integer, got {cpus!r}")
     if cpus is not None and address is not None:
         raise StudyError("give cpus or address, not both: a cluster's cores are its own")
     folder = prepare_folder(spec, directory).resolve()
+    with _only_run_in(folder):
+        return _run_locked(spec, folder, address, stream, cpus)
+
+
+def _only_run_in(folder: Path) -> contextlib.AbstractContextManager[Any]:
+    """Hold the study folder's lock (``.lock``) while a run uses it: a second ``run`` on it is refused.
+
+    Two runs on one folder would train the same trials twice and delete each other's segments and
+    stop file. The lock is the operating system's (``fcntl.flock``), released when the run ends,
+    however it ends; where ``fcntl`` is missing (Windows) nothing is locked.
+
+    :param folder: the study folder
+    :return: the context that holds the lock
+    :raises StudyError: if another process holds it
+    """
+    try:
+        import fcntl
+    except ImportError:
+        return contextlib.nullcontext()
+    handle = open(folder / LOCK_FILE, "a")  # noqa: SIM115 (closed by the returned context)
+    try:
+        fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        handle.close()
+        raise StudyError(f"another run of a study is using {folder}; wait for it or stop it (Ctrl-C)") from None
+    return contextlib.closing(handle)  # closing the file releases the lock
+
+
+def _run_locked(spec: StudySpec, folder: Path, address: str | None, stream: Any, cpus: int | None) -> dict[str, str]:
+    """:func:`run_study` in its prepared and locked folder.
+
+    :param spec: the study
+    :param folder: the study folder (prepared, locked)
+    :param address: as :func:`run_study`
+    :param stream: as :func:`run_study`
+    :param cpus: as :func:`run_study` (checked)
+    :return: as :func:`run_study`
+    :raises StudyError: if the cluster does not answer
+    """
     (folder / STOP_FILE).unlink(missing_ok=True)  # left by a run that was killed while stopping
     trials = spec.trials()
     todo = [t for t in trials if read_status(trial_folder(folder, t))["status"] != "done"]
