@@ -101,8 +101,8 @@ def evaluate_episodes(
     The copies have the settings of ``env.spec``: what was changed in ``env`` after it was
     made (e.g. its broadcast cost set by hand) does not carry over. Where every episode has its
     seed, the policy's draws (options sampled from ``mu``, controls unless ``deterministic``)
-    are seeded with the first (PyTorch's global generator is left as it was): the same
-    policy, env and seeds give the same episodes.
+    are seeded with the first (PyTorch's CPU generator, left as it was afterwards; a policy on
+    a GPU draws from the GPU's): the same policy, env and seeds give the same episodes.
 
     :param policy: the policy (of a trained model, ``model.policy``, or loaded on its own)
     :param env: a joint env (not vectorised) or its registered id
@@ -143,7 +143,7 @@ def evaluate_episodes(
     try:
         with th.random.fork_rng(devices=[], enabled=seeded):
             if seeded:
-                th.manual_seed(int(seeds[0]))  # type: ignore[arg-type]
+                th.default_generator.manual_seed(int(seeds[0]))  # type: ignore[arg-type]
             for slot in range(len(envs)):
                 start(slot)
             while running:

@@ -195,6 +195,15 @@ def test_a_study_folder_keeps_the_hyperparameter_files_it_names(tmp_path):
     assert load_folder_study(folder).algorithms[0].conf == folder / "conf" / "mine.yml"
     with pytest.raises(StudyError, match="not a study folder"):
         load_folder_study(tmp_path)
+    absolute = {**TINY, "algorithms": {"mine": {"algo": "mappoc", "conf": str(conf)}}}
+    (folder / "conf" / "mine.yml").rename(conf)
+    old = tmp_path / "old"  # a folder made before folders kept copies: the path the study file gives
+    old.mkdir()
+    write_study(old, absolute)
+    assert load_folder_study(old).algorithms[0].conf == conf
+    module = {**TINY, "algorithms": {"mine": {"algo": "mappoc", "conf": "my_package.hyperparams"}}}
+    with pytest.raises(StudyError, match="'conf' must name a .yml, .yaml or .py file"):
+        load_study(write_study(tmp_path, module))
 
 
 def test_a_folder_another_run_uses_is_refused(tmp_path, capsys):

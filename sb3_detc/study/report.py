@@ -33,8 +33,12 @@ __all__ = [
     "ESTIMATE_PANELS",
     "METRICS",
     "interval_estimates",
+    "interval_text",
+    "mark_lines",
     "read_trials",
     "report_study",
+    "splice",
+    "splice_marks",
     "summarise",
 ]
 

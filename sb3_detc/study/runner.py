@@ -17,6 +17,7 @@ import socket
 import sys
 import threading
 import time
+import warnings
 from collections import deque
 from pathlib import Path
 from typing import Any
@@ -301,7 +302,7 @@ def _trainable(config: dict[str, Any]) -> None:
     """
     from ray import tune
 
-    spec = load_study(config["study"])
+    spec = load_study(config["study"], Path(config["directory"]) / CONF_FOLDER)  # the folder's copies
     trial = next(t for t in spec.trials() if t.name == config["trial"])
     budget = spec.budget(trial.algorithm)
     stop_file = Path(config["directory"]) / STOP_FILE
@@ -400,7 +401,8 @@ def _only_run_in(folder: Path) -> contextlib.AbstractContextManager[Any]:
 
     Two runs on one folder would train the same trials twice and delete each other's segments and
     stop file. The lock is the operating system's (``fcntl.flock``), released when the run ends,
-    however it ends; where ``fcntl`` is missing (Windows) nothing is locked.
+    however it ends; where ``fcntl`` is missing (Windows) or the file system has no locks,
+    nothing is locked (the latter with a warning).
 
     :param folder: the study folder
     :return: the context that holds the lock
@@ -416,6 +418,12 @@ def _only_run_in(folder: Path) -> contextlib.AbstractContextManager[Any]:
     except BlockingIOError:
         handle.close()
         raise StudyError(f"another run of a study is using {folder}; wait for it or stop it (Ctrl-C)") from None
+    except OSError as error:  # e.g. a file system without locks: run, as where fcntl is missing
+        handle.close()
+        warnings.warn(
+            f"cannot lock {folder / LOCK_FILE} ({error}); make sure no other run uses the folder", stacklevel=3
+        )
+        return contextlib.nullcontext()
     return contextlib.closing(handle)  # closing the file releases the lock
 
 

@@ -47,7 +47,16 @@ from sb3_detc.zoo import (
     uses_rollout_workers,
 )
 
-__all__ = ["AlgorithmSpec", "StudyError", "StudySpec", "Trial", "load_study", "same_study"]
+__all__ = [
+    "CONF_FOLDER",
+    "AlgorithmSpec",
+    "StudyError",
+    "StudySpec",
+    "Trial",
+    "load_folder_study",
+    "load_study",
+    "same_study",
+]
 
 #: Keys of a study file and of one algorithm's settings.
 STUDY_KEYS = frozenset({"env", "seeds", "n_timesteps", "checkpoint_interval", "evaluation", "algorithms"})
@@ -56,6 +65,8 @@ ALGORITHM_KEYS = frozenset({"algo", "seeds", "cpus", "conf", "hyperparams"})
 #: A study folder's copies of the hyperparameter files its study file names (``conf``), one per algorithm,
 #: ``<label><suffix>``: the folder is read without the files the study was started from.
 CONF_FOLDER = "conf"
+#: What a study's ``conf`` may be: a YAML or Python hyperparameter file.
+CONF_SUFFIXES = (".yml", ".yaml", ".py")
 EVALUATION_KEYS = frozenset({"episodes", "seed"})
 
 
@@ -222,7 +233,7 @@ def _algorithm(
     :param settings: its parsed settings (``algo``, and optionally ``conf``, ``hyperparams``, ``seeds``, ``cpus``)
     :param seeds: the study's top-level seeds, used where the algorithm has none (None: not given)
     :param conf_folder: where the copy of a ``conf`` file is (a study folder's :data:`CONF_FOLDER`;
-        None: at the path the study file gives)
+        None, or no copy there: at the path the study file gives)
     :return: the algorithm; ``cpus`` defaults to the entry's ``n_envs`` where it uses rollout workers, else 1
     :raises StudyError: on the first problem of the algorithm's settings or of its entry
     """
@@ -240,9 +251,12 @@ def _algorithm(
         raise _fail(path, f"algorithm {label!r}: {error}") from None
     if "conf" in settings:
         conf = Path(os.path.expanduser(str(settings["conf"])))
-        if conf_folder is not None:
-            conf = conf_folder / f"{label}{conf.suffix}"
-        elif not conf.is_absolute():
+        if conf.suffix not in CONF_SUFFIXES:
+            raise _fail(path, f"algorithm {label!r}: 'conf' must name a .yml, .yaml or .py file, got {conf}")
+        kept = None if conf_folder is None else conf_folder / f"{label}{conf.suffix}"
+        if kept is not None and kept.is_file():
+            conf = kept
+        elif not conf.is_absolute():  # also a folder made before it kept copies
             conf = path.parent / conf
     elif algo in ALGORITHMS:
         conf = HYPERPARAMS_DIR / f"{algo}.yml"
@@ -330,8 +344,8 @@ def load_study(path: str | os.PathLike, conf_folder: str | os.PathLike | None = 
 
     :param path: the YAML file
     :param conf_folder: where the hyperparameter files that algorithms name (``conf``) are, as
-        ``<label><suffix>`` (a study folder's copies, see :func:`load_folder_study`); None: at
-        the paths the study file gives
+        ``<label><suffix>`` (a study folder's copies, see :func:`load_folder_study`); None, or
+        no copy there: at the paths the study file gives
     :return: the study
     :raises StudyError: on the first problem, with the file and the key in the message
     """

@@ -62,6 +62,7 @@ __all__ = [
     "machine_record",
     "merged_progress",
     "read_status",
+    "replace_atomically",
     "run_trial",
     "trial_folder",
 ]
