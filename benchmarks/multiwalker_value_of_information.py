@@ -41,7 +41,7 @@ from sb3_detc.evaluation import evaluate_episodes
 from sb3_detc.mappoc.policies import MlpHybridPolicy
 from sb3_detc.study.report import interval_estimates, interval_text, mark_lines, splice, splice_marks
 from sb3_detc.study.spec import StudyError, load_folder_study
-from sb3_detc.study.trial import entry_fixed_trigger, read_status, trial_folder
+from sb3_detc.study.trial import entry_fixed_trigger, read_status, replace_atomically, trial_folder
 from sb3_detc.triggers import PeriodicTrigger, RandomTrigger, SendOnDelta
 
 #: Skip probabilities of the random triggers.
@@ -101,7 +101,12 @@ def sweep(folder: Path, out: Path, rates: list[float], periods: list[int], delta
     :return: trial name -> trigger name -> metrics
     """
     spec = load_folder_study(folder)
-    results: dict[str, Any] = json.loads(out.read_text()) if out.is_file() else {}
+    results = read_results(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+
+    def write() -> None:  # at once: an interruption leaves the results of the evaluations before
+        replace_atomically(out, lambda scratch: scratch.write_text(json.dumps(results, indent=1) + "\n"))
+
     for trial in spec.trials():
         trial_dir = trial_folder(folder, trial)
         if read_status(trial_dir)["status"] != "done" or not (trial_dir / "policy.pt").is_file():
@@ -127,7 +132,7 @@ def sweep(folder: Path, out: Path, rates: list[float], periods: list[int], delta
                 policy, env, seeds, deterministic=True, deterministic_broadcast=name == MODE, fixed_trigger=trigger
             )
             done[name] = row(episodes.control_returns, episodes.package_travel, episodes.failed, episodes.savings)
-            out.write_text(json.dumps(results, indent=1) + "\n")
+            write()
             print(
                 f"{trial.name} {name}: control return {done[name]['control_return']:.1f}, package travel "
                 f"{done[name]['package_travel']:.2f}, savings {done[name]['savings']:.3f} "
@@ -135,7 +140,25 @@ def sweep(folder: Path, out: Path, rates: list[float], periods: list[int], delta
                 flush=True,
             )
         env.close()
-    out.write_text(json.dumps(results, indent=1) + "\n")
+    write()
+    return results
+
+
+def read_results(out: Path) -> dict[str, Any]:
+    """The results of an earlier sweep (none if ``out`` does not exist).
+
+    :param out: the JSON file of results
+    :return: trial name -> trigger name -> metrics
+    :raises StudyError: if the file is not such a JSON object
+    """
+    if not out.is_file():
+        return {}
+    try:
+        results = json.loads(out.read_text())
+    except (UnicodeDecodeError, json.JSONDecodeError) as error:
+        raise StudyError(f"{out}: not the JSON of an earlier sweep ({error}); give another --out") from None
+    if not isinstance(results, dict):
+        raise StudyError(f"{out}: not the JSON of an earlier sweep (not an object); give another --out")
     return results
 
 
@@ -389,6 +412,7 @@ def main() -> None:
             raise StudyError(f"{args.folder}: no algorithm {', '.join(unknown)} in the study")
         if args.splice:
             splice_marks(args.splice, MARK)
+        read_results(args.out)
     except StudyError as error:
         parser.exit(2, f"error: {error}\n")
     th.set_num_threads(1)

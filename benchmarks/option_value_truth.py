@@ -14,7 +14,13 @@ trigger features moved since its last broadcast (what send-on-delta looks at).
 With ``--critics``, MAPPOC then trains each kind of option-value critic on the same kind of
 data (fixed control, random options with the same probability, policies over options not
 trained) and its estimate of the same difference on the same states is set beside the
-truth: how much of the value of a broadcast each critic resolves.
+truth: how much of the value of a broadcast each critic resolves. A critic that learns the price
+of a broadcast with the rewards (``option_heads``) gives the value minus the price; the table adds
+the price back, so that every estimate is of the value without it. ``--tabulate`` prints the table
+of an earlier run from its JSON without running anything.
+
+    python benchmarks/option_value_truth.py --critics option_heads afterstate centred --timesteps 200000
+    python benchmarks/option_value_truth.py --tabulate
 """
 
 from __future__ import annotations
@@ -34,6 +40,7 @@ from stable_baselines3.common.env_util import make_vec_env
 import sb3_detc  # noqa: F401  (registers the env ids)
 from sb3_detc import MAPPOC
 from sb3_detc.mappoc.critics import CRITICS
+from sb3_detc.renamed import renamed_keys
 from sb3_detc.triggers import FixedControl
 
 #: MAPPOC settings of the critics' training (those of ``trigger_learning.py``'s sparse variants).
@@ -89,7 +96,8 @@ def critic_estimates(job: tuple[str, float, float, int, int, list[tuple[dict, np
 
     :param job: critic kind, broadcast probability, communication cost, timesteps, seed and
         the samples (observation before the decision, options of the step, deciding agent)
-    :return: the estimates without the communication cost, in team-mean reward (samples,)
+    :return: the estimates in team-mean reward (samples,): without the communication cost for a critic
+        that adds it to its option values itself (``needs_price``), with it for one that learns it
     """
     critic, p, broadcast_cost, timesteps, seed, samples = job
     th.set_num_threads(1)
@@ -129,7 +137,18 @@ def main() -> None:
     parser.add_argument("--timesteps", type=int, default=100_000, help="training steps of every critic")
     parser.add_argument("--workers", type=int, default=2, help="parallel training processes")
     parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "option_value_truth.json")
+    parser.add_argument("--tabulate", action="store_true", help="print the table of the run in --out, run nothing")
     args = parser.parse_args()
+    if args.tabulate:
+        try:
+            record = json.loads(args.out.read_text())
+            settings = renamed_keys(record["settings"])  # also a run of an earlier version
+            samples, estimates = record["samples"], {c: np.asarray(e) for c, e in record["estimates"].items()}
+        except (OSError, ValueError, KeyError) as error:
+            parser.error(f"--tabulate needs the JSON of an earlier run in --out ({error!r})")
+        n = FixedControl(gym.make("sb3_detc/LinearETC-v0")).unwrapped.n_agents
+        print_table(np.asarray(samples), estimates, float(settings["broadcast_cost"]) / n, settings)
+        return
     rng = np.random.default_rng(args.seed)
     env = FixedControl(gym.make("sb3_detc/LinearETC-v0"))
     n = env.unwrapped.n_agents
@@ -156,18 +175,32 @@ def main() -> None:
     record = {"settings": {k: str(v) for k, v in vars(args).items()}, "samples": samples}
     record["estimates"] = {c: e.tolist() for c, e in estimates.items()}
     args.out.write_text(json.dumps(record))
-    price = args.broadcast_cost / n  # a broadcast's cost in team-mean reward
+    print_table(data, estimates, args.broadcast_cost / n, {k: str(v) for k, v in vars(args).items()})
+
+
+def print_table(data: np.ndarray, estimates: dict[str, np.ndarray], price: float, settings: dict[str, str]) -> None:
+    """Print the samples and the critics' estimates, grouped by the change of the trigger features.
+
+    :param data: (trigger change, age, value of a broadcast) per sample
+    :param estimates: critic -> its estimates on the samples (:func:`critic_estimates`)
+    :param price: a broadcast's cost in team-mean reward, added back to the estimates of a critic
+        that learns it with the rewards
+    :param settings: the run's settings (``broadcast_prob``, ``gamma``, ``horizon``)
+    """
+    estimates = {c: e if CRITICS[c].needs_price else e + price for c, e in estimates.items()}
     print(
-        f"broadcast probability {args.broadcast_prob}, gamma {args.gamma}, horizon {args.horizon}, "
-        f"{len(data)} samples; price of a broadcast in team-mean reward: {price:.4f}"
+        f"broadcast probability {settings['broadcast_prob']}, gamma {settings['gamma']}, horizon "
+        f"{settings['horizon']}, {len(data)} samples; price of a broadcast in team-mean reward: {price:.4f} "
+        f"(added back to the estimates of {', '.join(c for c in estimates if not CRITICS[c].needs_price) or 'none'})"
     )
     print()
     header = "| trigger change | samples | value of a broadcast +- s.e. | share above the price |"
     print(header + "".join(f" {critic}: estimate (spread) |" for critic in estimates))
     print("|---|---:|---:|---:|" + "---:|" * len(estimates))
     edges = np.quantile(data[:, 0], [0, 0.2, 0.4, 0.6, 0.8, 0.9, 0.95, 1.0])
-    for lo, hi in zip(edges[:-1], edges[1:], strict=True):
-        rows = (data[:, 0] >= lo) & (data[:, 0] <= hi)
+    for k, (lo, hi) in enumerate(zip(edges[:-1], edges[1:], strict=True)):
+        # half-open bins, the last closed: a sample on an edge counts once
+        rows = (data[:, 0] >= lo) & ((data[:, 0] < hi) if k < len(edges) - 2 else (data[:, 0] <= hi))
         value = data[rows, 2]
         sem = value.std(ddof=1) / np.sqrt(len(value))
         line = (

@@ -211,7 +211,9 @@ def evaluate_communication(
         does: the mode if ``deterministic`` and the policy's ``deterministic_options`` are True)
     :param fixed_trigger: options to use instead of ``mu``'s (e.g. a
         :class:`~sb3_detc.triggers.RandomTrigger`), with the model's control policy
-    :param seed: seed of the first episode (the following ones continue its generator)
+    :param seed: seed of the first episode; episode ``k`` is reset with ``seed + k``, so that
+        evaluations of other policies or triggers with the same seed run the same episodes
+        (None: every episode continues the env's generator)
     :return: the averages
     """
     if n_eval_episodes < 1:
@@ -219,7 +221,7 @@ def evaluate_communication(
     episodes = evaluate_episodes(
         model.policy,
         env,
-        [seed] + [None] * (n_eval_episodes - 1),
+        [None if seed is None else seed + k for k in range(n_eval_episodes)],
         deterministic=deterministic,
         deterministic_broadcast=deterministic_broadcast,
         fixed_trigger=fixed_trigger,

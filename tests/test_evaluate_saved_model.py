@@ -36,9 +36,16 @@ def test_the_script_writes_the_study_protocol_of_a_saved_model(tmp_path: Path) -
     assert set(result["metrics"]) == set(expected["metrics"])
     for metric, value in expected["metrics"].items():
         assert result["metrics"][metric] == pytest.approx(value, rel=1e-6), metric
+    # A model of the baseline: its own options are the random trigger it trained with.
+    subprocess.run([*command, "--skip-prob", "1.0"], check=True, capture_output=True)
+    assert json.loads(out.read_text())["metrics"]["savings"] == 1.0
 
 
 def test_the_script_rejects_settings_without_a_value(tmp_path: Path) -> None:
     command = [sys.executable, str(SCRIPT), str(tmp_path / "model.zip"), "--env", ENV_ID, "--out", str(tmp_path / "x")]
     done = subprocess.run([*command, "--env-kwargs", "n_agents"], capture_output=True, text=True)
     assert done.returncode == 2 and "key=value" in done.stderr
+    done = subprocess.run([*command, "--episodes", "0"], capture_output=True, text=True)
+    assert done.returncode == 2 and "--episodes must be >= 1" in done.stderr
+    done = subprocess.run(command, capture_output=True, text=True)
+    assert done.returncode == 2 and "no saved model" in done.stderr

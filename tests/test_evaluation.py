@@ -72,3 +72,12 @@ def test_seeded_episodes_draw_the_same_options_and_leave_the_global_generator() 
     assert th.equal(th.random.get_rng_state(), state)
     np.testing.assert_array_equal(runs[0].broadcasts, runs[1].broadcasts)
     np.testing.assert_array_equal(runs[0].returns, runs[1].returns)
+
+
+def test_evaluate_communication_seeds_every_episode() -> None:
+    """Episode k of an evaluation with seed s is the episode seeded s + k: other triggers see the same episodes."""
+    model = MAPPOC("MlpHybridPolicy", gym.make(ENV_ID, **SETTINGS), policy_kwargs={"net_arch": [8]}, seed=0)
+    report = evaluation.evaluate_communication(model, gym.make(ENV_ID, **SETTINGS), 3, seed=7)
+    episodes = evaluate_episodes(model.policy, gym.make(ENV_ID, **SETTINGS), [7, 8, 9])
+    assert report.mean_control_return == pytest.approx(float(np.mean(episodes.control_returns)))
+    assert report.savings == pytest.approx(episodes.savings)

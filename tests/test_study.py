@@ -335,10 +335,18 @@ voi = importlib.util.module_from_spec(_voi_spec)
 _voi_spec.loader.exec_module(voi)
 
 
+def test_the_value_of_information_sweep_refuses_a_results_file_it_cannot_read(tmp_path):
+    assert voi.read_results(tmp_path / "none.json") == {}
+    for text in ("{half", "[1, 2]"):
+        (tmp_path / "broken.json").write_text(text)
+        with pytest.raises(StudyError, match="not the JSON of an earlier sweep"):
+            voi.read_results(tmp_path / "broken.json")
+
+
 def test_the_value_of_information_sweep_runs_fixed_triggers_and_the_mode_of_learned_options(finished_study, tmp_path):
     _, out, _ = finished_study
     script = ROOT / "benchmarks" / "multiwalker_value_of_information.py"
-    results_file = tmp_path / "voi.json"
+    results_file = tmp_path / "results" / "voi.json"  # a folder that does not exist yet
     command = [sys.executable, str(script), str(out), "--out", str(results_file), "--rates", "0.5", "--periods", "2"]
     command += ["--deltas", "0", "1e9"]  # send-on-delta at every change and never
     printed = subprocess.run(command, check=True, capture_output=True, text=True, cwd=ROOT).stdout
