@@ -94,9 +94,10 @@ def evaluate_episodes(
     """Run a policy for whole episodes, one per seed, and record each.
 
     Where every episode has its seed and ``env`` can be made again (``env.spec``, as for an
-    env from ``gym.make`` or an id), the episodes run side by side in ``env`` and copies
-    made with ``gym.make(env.spec)`` (at most :data:`MAX_SIDE_BY_SIDE` at once), with one
-    policy call per step for all of them; otherwise one after another in ``env``. Episode
+    env from ``gym.make`` or an id, with wrappers that Gymnasium can make again), the episodes
+    run side by side in ``env`` and copies made with ``gym.make(env.spec)`` (at most
+    :data:`MAX_SIDE_BY_SIDE` at once), with one policy call per step for all of them;
+    otherwise one after another in ``env``. Episode
     ``k`` is reset with ``seeds[k]`` either way, and the results are in the order of ``seeds``.
     The copies have the settings of ``env.spec``: what was changed in ``env`` after it was
     made (e.g. its broadcast cost set by hand) does not carry over. Where every episode has its
@@ -127,8 +128,14 @@ def evaluate_episodes(
     low, high = env.action_space["control"].low, env.action_space["control"].high
     n_agents = env.action_space["broadcast"].shape[0]
     seeded = all(seed is not None for seed in seeds)
-    side_by_side = seeded and env.spec is not None
-    copies = [gym.make(env.spec) for _ in range(min(len(seeds), MAX_SIDE_BY_SIDE) - 1)] if side_by_side else []
+    copies = []
+    if seeded and env.spec is not None:
+        try:
+            copies = [gym.make(env.spec) for _ in range(min(len(seeds), MAX_SIDE_BY_SIDE) - 1)]
+        except (ValueError, gym.error.Error):  # a wrapper that cannot be made again: one episode after another
+            for copy in copies:
+                copy.close()
+            copies = []
     envs = [env, *copies]
     pending = iter(enumerate(seeds))
     running: dict[int, _Running] = {}  # env position -> its episode
