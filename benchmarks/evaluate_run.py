@@ -66,12 +66,20 @@ def main() -> None:
     parser.add_argument("--episodes", type=int, default=20, help="evaluation episodes per trigger")
     parser.add_argument("--checkpoints", action="store_true", help="evaluate every checkpoint of the run")
     args = parser.parse_args()
-    if not args.checkpoints:
-        print(table({name: [report] for name, report in compare(args.run, args.env, args.episodes).items()}))
-        return
+    if args.episodes < 1:
+        parser.error(f"--episodes must be >= 1, got {args.episodes}")
+    if not args.run.is_dir():
+        parser.error(f"no run folder {args.run}")
+    try:
+        found = checkpoints(args.run) if args.checkpoints else []
+        if not args.checkpoints:
+            print(table({name: [report] for name, report in compare(args.run, args.env, args.episodes).items()}))
+            return
+    except FileNotFoundError as error:  # no model or no checkpoints in the folder
+        parser.exit(2, f"error: {error}\n")
     print("| steps | savings | control return: learned | random, same rate | periodic |")
     print("|---|---|---|---|---|")
-    for steps, path in checkpoints(args.run):
+    for steps, path in found:
         reports = compare(args.run, args.env, args.episodes, model=path)
         returns = " | ".join(f"{report.mean_control_return:.1f}" for report in reports.values())
         print(f"| {steps} | {reports['learned options'].savings:.3f} | {returns} |", flush=True)

@@ -90,7 +90,10 @@ def main() -> None:
     parser.add_argument("variant", type=Path, help="the variant study folder")
     parser.add_argument("--out", type=Path, default=None, help="also write the tables to this Markdown file")
     args = parser.parse_args()
-    text = compare(args.base, args.variant)
+    try:
+        text = compare(args.base, args.variant)
+    except StudyError as error:  # not study folders, or studies that cannot be compared
+        parser.exit(2, f"error: {error}\n")
     print(text, end="")
     if args.out is not None:
         args.out.write_text(text)

@@ -62,6 +62,8 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
     burn_in = 200
+    if args.steps <= burn_in:
+        parser.error(f"--steps must be more than the {burn_in} steps of burn-in, got {args.steps}")
     for name, kwargs in CONFIGS.items():
         system = LinearSystem(max_cycles=args.steps, **kwargs)
         bound = lqr_cost_per_step(system)
