@@ -132,10 +132,8 @@ def evaluate_episodes(
     if seeded and env.spec is not None:
         try:
             copies = [gym.make(env.spec) for _ in range(min(len(seeds), MAX_SIDE_BY_SIDE) - 1)]
-        except (ValueError, gym.error.Error):  # a wrapper that cannot be made again: one episode after another
-            for copy in copies:
-                copy.close()
-            copies = []
+        except (ValueError, gym.error.Error):  # a wrapper that cannot be made again (the first copy fails)
+            copies = []  # one episode after another
     envs = [env, *copies]
     pending = iter(enumerate(seeds))
     running: dict[int, _Running] = {}  # env position -> its episode

@@ -10,6 +10,7 @@ only when to communicate.
 
 from __future__ import annotations
 
+import abc
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -61,7 +62,34 @@ class RandomTrigger:
         return RandomTrigger(self.skip_prob, seed)
 
 
-class PeriodicTrigger:
+class _StatelessTrigger(abc.ABC):
+    """A trigger whose options follow from the observations alone: no state, no random draws."""
+
+    @abc.abstractmethod
+    def __call__(self, obs: dict[str, np.ndarray]) -> np.ndarray:
+        """Options for a batch of joint observations, (B, N).
+
+        :param obs: a batch of joint observations, arrays shaped (B, N, ...) by key
+        """
+
+    def fork(self, seed: int) -> _StatelessTrigger:
+        """A copy for a rollout worker: the trigger itself, which has no state.
+
+        :param seed: unused
+        :return: the trigger
+        """
+        return self
+
+    def broadcast_probability(self, obs: dict[str, np.ndarray]) -> np.ndarray:
+        """Every agent's probability of broadcasting in these observations, (B, N): its options.
+
+        :param obs: a batch of joint observations, as :meth:`__call__` reads them
+        :return: 1.0 where an agent broadcasts, else 0.0
+        """
+        return self(obs).astype(np.float64)
+
+
+class PeriodicTrigger(_StatelessTrigger):
     """Every agent broadcasts every ``period``-th step, counted per episode; all agents at the same steps.
 
     Stateless: an agent broadcasts when its age of information reaches ``period - 1``, i.e.
@@ -79,13 +107,6 @@ class PeriodicTrigger:
             raise ValueError(f"period must be an integer >= 1, got {period!r}.")
         self.period = int(period)
 
-    def fork(self, seed: int) -> PeriodicTrigger:
-        """A copy for a rollout worker: the trigger itself, which has no state.
-
-        :param seed: unused
-        """
-        return self
-
     def __call__(self, obs: dict[str, np.ndarray]) -> np.ndarray:
         """Options for a batch of joint observations, (B, N).
 
@@ -98,16 +119,8 @@ class PeriodicTrigger:
         # Ages are whole numbers of steps (float32 in the observation): compare with half a step of margin.
         return (silent > self.period - 0.5).astype(np.int64)
 
-    def broadcast_probability(self, obs: dict[str, np.ndarray]) -> np.ndarray:
-        """Every agent's probability of broadcasting in these observations, (B, N): its options (no state).
 
-        :param obs: a batch of joint observations, as :meth:`__call__` reads them
-        :return: 1.0 where an agent broadcasts, else 0.0
-        """
-        return self(obs).astype(np.float64)
-
-
-class SendOnDelta:
+class SendOnDelta(_StatelessTrigger):
     """Send-on-delta: an agent broadcasts when its trigger features moved more than ``delta`` since its last broadcast.
 
     Agent i broadcasts when ``||trigger_i - trigger_held_i|| > delta`` (strictly), where
@@ -146,21 +159,6 @@ class SendOnDelta:
         :return: options (B, N), int64: 1 (broadcast) where :meth:`distance` exceeds ``delta``, else 0
         """
         return (self.distance(obs) > self.delta).astype(np.int64)
-
-    def broadcast_probability(self, obs: dict[str, np.ndarray]) -> np.ndarray:
-        """Every agent's probability of broadcasting in these observations, (B, N): its options (no state).
-
-        :param obs: a batch of joint observations, as :meth:`__call__` reads them
-        :return: 1.0 where an agent broadcasts, else 0.0
-        """
-        return self(obs).astype(np.float64)
-
-    def fork(self, seed: int) -> SendOnDelta:
-        """A copy for a rollout worker: the trigger itself, which has no state.
-
-        :param seed: unused
-        """
-        return self
 
 
 # --------------------------------------------------------------------- evaluation of triggers

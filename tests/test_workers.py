@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import copy
 import os
+import threading
 from typing import Any
 
 import numpy as np
@@ -214,6 +215,7 @@ def test_overlapping_rollouts_are_sampled_before_the_update_and_weighted_by_the_
     model.learn(4 * 96, callback=callback)
     assert model.num_timesteps == 4 * 96 and model.last_rollout_in_workers and not model.has_pending_rollout
     assert th.get_num_threads() == threads
+    assert not any(thread.name.startswith("rollout") for thread in threading.enumerate())  # the waiter ended
     # The workers yield the cores to the learner's update (and stay so)
     learner = os.getpriority(os.PRIO_PROCESS, 0)
     workers = [os.getpriority(os.PRIO_PROCESS, process.pid) for process in model.get_env().processes]

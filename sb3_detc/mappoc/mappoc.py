@@ -833,11 +833,11 @@ class MAPPOC(OnPolicyAlgorithm):
             probability = getattr(trigger, "broadcast_probability", None)
 
             def state_values(obs: dict[str, np.ndarray], prices: np.ndarray) -> th.Tensor:
-                p = None if probability is None else th.as_tensor(probability(obs), dtype=th.float32)
+                p = None if probability is None else probability(obs)
                 return self.policy.state_values(
                     obs_as_tensor(obs, self.device),  # type: ignore[arg-type]
                     th.as_tensor(prices, device=self.device),
-                    None if p is None else p.to(self.device),
+                    None if p is None else th.as_tensor(p, dtype=th.float32, device=self.device),
                 )
 
             if truncated:

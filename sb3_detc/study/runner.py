@@ -24,7 +24,7 @@ from typing import Any
 
 import yaml
 
-from sb3_detc.study.spec import CONF_FOLDER, StudyError, StudySpec, load_study, same_study
+from sb3_detc.study.spec import CONF_FOLDER, StudyError, StudySpec, conf_copy, load_study, same_study
 from sb3_detc.study.trial import read_status, replace_atomically, run_trial, trial_folder
 
 __all__ = ["StudyProgress", "prepare_folder", "run_study"]
@@ -73,7 +73,7 @@ def prepare_folder(spec: StudySpec, directory: str | os.PathLike) -> Path:
         if not (algorithm.named_conf and algorithm.conf.is_file()):
             continue
         content = algorithm.conf.read_bytes()
-        kept = folder / CONF_FOLDER / f"{algorithm.label}{algorithm.conf.suffix}"
+        kept = conf_copy(folder / CONF_FOLDER, algorithm.label, algorithm.conf)
         if kept.is_file() and kept.read_bytes() != content:
             raise StudyError(
                 f"{algorithm.conf} changed since the trials of {folder} began (their copy: {kept}); "

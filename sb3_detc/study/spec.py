@@ -53,6 +53,7 @@ __all__ = [
     "StudyError",
     "StudySpec",
     "Trial",
+    "conf_copy",
     "load_folder_study",
     "load_study",
     "same_study",
@@ -253,7 +254,7 @@ def _algorithm(
         conf = Path(os.path.expanduser(str(settings["conf"])))
         if conf.suffix not in CONF_SUFFIXES:
             raise _fail(path, f"algorithm {label!r}: 'conf' must name a .yml, .yaml or .py file, got {conf}")
-        kept = None if conf_folder is None else conf_folder / f"{label}{conf.suffix}"
+        kept = None if conf_folder is None else conf_copy(conf_folder, label, conf)
         if kept is not None and kept.is_file():
             conf = kept
         elif not conf.is_absolute():  # also a folder made before it kept copies
@@ -324,6 +325,17 @@ def same_study(first: Any, second: Any) -> bool:
         return {**content, "algorithms": algorithms}
 
     return renamed(first) == renamed(second)
+
+
+def conf_copy(conf_folder: Path, label: str, conf: Path) -> Path:
+    """Where a study folder keeps its copy of the hyperparameter file an algorithm names.
+
+    :param conf_folder: the folder's :data:`CONF_FOLDER`
+    :param label: the algorithm's label
+    :param conf: the file the study file names
+    :return: ``<conf_folder>/<label><suffix of conf>``
+    """
+    return conf_folder / f"{label}{conf.suffix}"
 
 
 def load_folder_study(directory: str | os.PathLike) -> StudySpec:
