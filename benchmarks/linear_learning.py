@@ -20,19 +20,23 @@ With ``--from-zoo`` the settings and callbacks are those of the ``sb3_detc/Linea
 entry of ``sb3_detc/hyperparams/mappoc.yml`` (what ``python -m sb3_detc.train`` trains);
 without it, the script's own settings below (the one-stage run of benchmarks/README.md, section
 "Linear system: control and communication learned jointly").
+
+Rows are written to ``--out`` after every job; jobs already there are not rerun.
+
+    python benchmarks/linear_learning.py --critics afterstate --seeds 0 1 --timesteps 600000 --out rows.json
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import multiprocessing
 import time
 from pathlib import Path
 from typing import Any
 
 import gymnasium as gym
 import torch as th
+from resumable import NotRowsError, run_rows
 from rl_zoo3.utils import get_callback_list
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.env_util import make_vec_env
@@ -44,7 +48,7 @@ from sb3_detc.envs.linear import LinearSystem, lqr_episode_cost
 from sb3_detc.evaluation import evaluate_communication
 from sb3_detc.mappoc.critics import CRITICS
 from sb3_detc.triggers import RandomTrigger
-from sb3_detc.zoo import check_hyperparams_file
+from sb3_detc.zoo import ZOO_KEYS, check_hyperparams_file
 
 #: MAPPOC settings for the linear env (the paper's are for Multiwalker).
 HYPERPARAMS = {
@@ -61,8 +65,8 @@ HYPERPARAMS = {
 ENTROPY_SCHEDULE = {"initial": 0.1, "final": 0.001, "start": 100, "end": 200}
 EVAL_SEED = 10_000
 ENV_ID = "sb3_detc/LinearETC-v0"
-#: Keys of a zoo entry that are not MAPPOC arguments.
-ZOO_ONLY = ("n_timesteps", "policy", "n_envs", "env_kwargs", "callback")
+#: The keys of a zoo entry, besides MAPPOC's arguments, that the script reproduces (others are refused).
+REPRODUCED = frozenset({"n_timesteps", "policy", "n_envs", "env_kwargs", "callback"})
 
 
 def zoo_recipe() -> dict[str, Any]:
@@ -70,10 +74,14 @@ def zoo_recipe() -> dict[str, Any]:
 
     :return: ``settings`` (MAPPOC arguments, ``policy_kwargs`` as a dict), ``n_envs``,
         ``env_kwargs``, ``n_timesteps`` and ``callback`` (the entry's callback list)
+    :raises ValueError: if the entry uses rl-zoo3 settings the script does not reproduce (e.g. ``normalize``)
     """
     path = Path(sb3_detc.__file__).parent / "hyperparams" / "mappoc.yml"
     entry = dict(check_hyperparams_file(path, "mappoc", ENV_ID))
-    settings = {key: value for key, value in entry.items() if key not in ZOO_ONLY}
+    unknown = sorted((ZOO_KEYS - REPRODUCED) & entry.keys())
+    if unknown:
+        raise ValueError(f"the {ENV_ID} entry of {path} uses {unknown}, which this script does not reproduce")
+    settings = {key: value for key, value in entry.items() if key not in ZOO_KEYS | {"policy"}}
     if isinstance(settings.get("policy_kwargs"), str):  # rl-zoo3 writes them as "dict(...)"
         settings["policy_kwargs"] = eval(settings["policy_kwargs"])  # the package's own file
     return {
@@ -85,16 +93,17 @@ def zoo_recipe() -> dict[str, Any]:
     }
 
 
-def run(job: dict[str, Any]) -> dict[str, Any]:
-    """Train one model and evaluate it at equal communication; returns one table row.
+def build(job: dict[str, Any]) -> tuple[MAPPOC, dict[str, Any], list[BaseCallback]]:
+    """The model, env settings and callbacks of one job, untrained.
 
-    :param job: ``broadcast_cost``, ``seed``, ``timesteps``, ``eval_episodes``, ``changes`` (settings
-        to change) and either ``recipe`` (:func:`zoo_recipe`) or ``broadcast_advantage``,
-        ``critic`` and ``control_first`` (None for the broadcast entropy schedule, or the
-        arguments of :class:`~sb3_detc.callbacks.ControlFirstCallback` for two stages)
+    :param job: ``broadcast_cost``, ``seed``, ``changes`` (settings to change) and either ``recipe``
+        (:func:`zoo_recipe`) or ``broadcast_advantage``, ``critic`` and ``control_first`` (None for the
+        broadcast entropy schedule, or the arguments of :class:`~sb3_detc.callbacks.ControlFirstCallback`
+        for two stages)
+    :return: the model (on its training envs), the env keyword arguments and the callbacks
+    :raises ValueError: for settings MAPPOC or the callbacks refuse (TypeError for unknown ones)
     """
     broadcast_cost, seed, changes, recipe = job["broadcast_cost"], job["seed"], job["changes"], job.get("recipe")
-    th.set_num_threads(1)
     if recipe is not None:
         base, n_envs = recipe["settings"], recipe["n_envs"]
         env_kwargs = {**recipe["env_kwargs"], "broadcast_cost": broadcast_cost}
@@ -109,7 +118,19 @@ def run(job: dict[str, Any]) -> dict[str, Any]:
     env = make_vec_env(ENV_ID, n_envs=n_envs, seed=seed, env_kwargs=env_kwargs)
     policy_kwargs = {**base.get("policy_kwargs", {}), **changes.get("policy_kwargs", {})}
     settings = {**base, **changes, "policy_kwargs": policy_kwargs}
-    model = MAPPOC("MlpHybridPolicy", env, seed=seed, **settings)
+    return MAPPOC("MlpHybridPolicy", env, seed=seed, **settings), env_kwargs, callbacks
+
+
+def run(job: dict[str, Any]) -> dict[str, Any]:
+    """Train one model and evaluate it at equal communication; returns one table row.
+
+    :param job: the model's settings (:func:`build`), ``timesteps`` and ``eval_episodes``
+    :return: the settings, training seconds, savings and the costs (relative to the LQR bound) of the
+        learned trigger, random options at the same rate and periodic communication
+    """
+    th.set_num_threads(1)
+    model, env_kwargs, callbacks = build(job)
+    seed = job["seed"]
     start = time.perf_counter()
     model.learn(job["timesteps"], callback=callbacks)
     train_seconds = time.perf_counter() - start
@@ -126,12 +147,12 @@ def run(job: dict[str, Any]) -> dict[str, Any]:
     cost_random, _ = evaluate(fixed_trigger=RandomTrigger(savings, seed=seed))
     cost_periodic, _ = evaluate(fixed_trigger=RandomTrigger(0.0))
     return {
-        "broadcast_cost": broadcast_cost,
+        "broadcast_cost": job["broadcast_cost"],
         "seed": seed,
-        "recipe": "zoo entry" if recipe is not None else "script",
+        "recipe": "zoo entry" if job.get("recipe") is not None else "script",
         "broadcast_advantage": model.broadcast_advantage,
         "critic": model.policy.critic,
-        "changes": changes,
+        "changes": job["changes"],
         "control_first": job.get("control_first"),
         "timesteps": job["timesteps"],
         "train_seconds": round(train_seconds, 1),
@@ -163,8 +184,15 @@ def main() -> None:
     parser.add_argument("--timesteps", type=int, help="training steps (default: 300000, or the entry's)")
     parser.add_argument("--eval-episodes", type=int, default=60)
     parser.add_argument("--workers", type=int, default=2, help="parallel training processes")
-    parser.add_argument("--out", type=Path, default=Path("linear_learning.json"))
+    parser.add_argument(
+        "--out", type=Path, default=Path("linear_learning.json"), help="rows (JSON); jobs already in it are not rerun"
+    )
     args = parser.parse_args()
+    for name in ("eval_episodes", "workers", "timesteps"):
+        if getattr(args, name) is not None and getattr(args, name) < 1:
+            parser.error(f"--{name.replace('_', '-')} must be at least 1")
+    if not isinstance(args.set, dict) or not isinstance(args.control_first, dict | None):
+        parser.error("--set and --control-first take a JSON object")
     common = {"eval_episodes": args.eval_episodes, "changes": args.set}
     if args.from_zoo:
         if args.broadcast_advantages or args.critics or args.control_first is not None:
@@ -185,10 +213,15 @@ def main() -> None:
         for variant in variants
         for seed in args.seeds
     ]
-    with multiprocessing.get_context("spawn").Pool(args.workers) as pool:
-        rows = pool.map(run, jobs)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(rows, indent=1))
+    for variant in variants:  # refuse bad settings before anything trains
+        try:
+            build({**common, **variant, "broadcast_cost": args.broadcast_costs[0], "seed": args.seeds[0]})
+        except (TypeError, ValueError) as error:
+            parser.error(f"settings {variant or ''} refused: {error}")
+    try:
+        rows = run_rows(run, jobs, args.out, args.workers)
+    except NotRowsError as error:
+        parser.error(str(error))
     bound = lqr_episode_cost(LinearSystem())
     print(f"episode cost bound (optimal centralised LQR, periodic communication): {bound:.3f} per team")
     print(f"settings: {'the zoo entry of ' + ENV_ID if args.from_zoo else 'the script'}; changed: {args.set}")

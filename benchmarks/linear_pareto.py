@@ -13,6 +13,8 @@ physical bound 1.0), against the communication savings ``1 - broadcasts / agent-
 (a) and (b) use the same seeded episodes (episode i has seed ``seed + i``); the models'
 episodes start from ``seed`` and continue its generator. Writes a PNG and prints a
 markdown table.
+
+    python benchmarks/linear_pareto.py --models logs/pareto_models/*.zip --fixed-control --out pareto.png
 """
 
 from __future__ import annotations

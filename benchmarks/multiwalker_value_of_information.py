@@ -194,6 +194,7 @@ def estimate(values: dict[str, list[float]], metric: str, digits: int) -> str:
     :param values: one algorithm's results under one trigger (a row of :func:`summary`)
     :param metric: the metric
     :param digits: digits after the decimal point
+    :return: the text, e.g. ``507.6 [402.2, 613.0]``
     """
     return interval_text(*values[metric], digits)
 

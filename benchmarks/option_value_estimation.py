@@ -13,24 +13,34 @@ broadcast matters most (the 20 % of agent-steps with the largest change of the t
 features since the agent's last broadcast, as send-on-delta would rank them) and the rest.
 
 All values are in the learner's reward units (team-mean reward times ``reward_scale``),
-collected over all rollouts of a run; returns-to-go are cut at the end of each rollout and
-only steps with at least ``horizon`` steps of rollout ahead are used.
+collected over all rollouts of a run; returns-to-go are the learner's rewards without the
+bootstrap MAPPOC adds at truncations, cut at the end of each episode and of each rollout, and
+only steps with at least ``horizon`` steps of rollout ahead are used. The observed difference
+is the mean over rollouts of each rollout's difference, with the standard error over rollouts
+(the agents share the team reward and returns-to-go overlap, so agent-steps are not
+independent; rollouts follow each other in the same episodes, so even this interval is
+slightly too narrow).
+
+Rows are written to ``--out`` after every seed; seeds already there are not rerun.
+
+    python benchmarks/option_value_estimation.py --seeds 1 2 --out option_value_estimation.json
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import multiprocessing
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch as th
+from resumable import NotRowsError, run_rows
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.env_util import make_vec_env
 
 from sb3_detc import MAPPOC
-from sb3_detc.triggers import FixedControl
+from sb3_detc.triggers import FixedControl, SendOnDelta
 
 #: MAPPOC settings of ``benchmarks/linear_learning.py`` (lr 3e-4 to let the critic settle quickly).
 HYPERPARAMS = {
@@ -62,18 +72,23 @@ class OptionValueProbe(BaseCallback):
             name: {"broadcast": [], "silent": [], "critic": []} for name in ("large change", "rest")
         }
 
+        self._rewards: list[np.ndarray] = []
+
     def _on_step(self) -> bool:
+        # the learner's rewards of this step, before a truncation's bootstrap is added to them
+        self._rewards.append(np.array(self.locals["rewards"]))
         return True
 
     def _on_rollout_end(self) -> None:
         buffer = self.model.rollout_buffer
-        change = np.linalg.norm(buffer.observations["trigger"] - buffer.observations["trigger_held"], axis=-1)
+        change = SendOnDelta(0.0).distance(buffer.observations)
+        rewards, self._rewards = np.stack(self._rewards), []
         steps = buffer.buffer_size
-        returns = np.zeros_like(buffer.rewards)
-        running = np.zeros_like(buffer.rewards[0])
+        returns = np.zeros_like(rewards)
+        running = np.zeros_like(rewards[0])
         for t in reversed(range(steps)):
             alive = 1.0 - (buffer.episode_starts[t + 1] if t + 1 < steps else np.ones(buffer.n_envs))
-            running = buffer.rewards[t] + self.model.gamma * running * alive[:, None]
+            running = rewards[t] + self.model.gamma * running * alive[:, None]
             returns[t] = running
         keep = slice(0, steps - self.horizon)
         change, returns, broadcast = change[keep], returns[keep], buffer.broadcast[keep]
@@ -85,33 +100,47 @@ class OptionValueProbe(BaseCallback):
             self.samples[name]["critic"].append(q_diff[mask])
 
 
-def run(job: tuple[int, int, float, int, dict[str, Any]]) -> list[dict[str, float | int | str]]:
-    """Train the critic with one seed; returns one row per state class.
+def build(seed: int, changes: dict[str, Any]) -> MAPPOC:
+    """The untrained model of one seed, on its training envs.
 
-    :param job: seed, training timesteps, quantile and horizon (see :class:`OptionValueProbe`), and
-        MAPPOC settings that override :data:`HYPERPARAMS`
-    :return: per state class (``large change``, ``rest``): samples, the observed difference of returns
-        with its standard error, the critic's mean estimate and the standard deviation of the returns
+    :param seed: seed of the envs and the model
+    :param changes: MAPPOC settings that override :data:`HYPERPARAMS`
+    :return: the model
+    :raises ValueError: for settings MAPPOC refuses (TypeError for unknown ones)
     """
-    seed, timesteps, quantile, horizon, overrides = job
-    th.set_num_threads(1)
     env_kwargs = {"broadcast_cost": 0.03}
     env = make_vec_env("sb3_detc/LinearETC-v0", n_envs=2, seed=seed, env_kwargs=env_kwargs, wrapper_class=FixedControl)
-    model = MAPPOC("MlpHybridPolicy", env, seed=seed, **{**HYPERPARAMS, **overrides})
-    probe = OptionValueProbe(quantile, horizon)
-    model.learn(timesteps, callback=probe)
+    return MAPPOC("MlpHybridPolicy", env, seed=seed, **{**HYPERPARAMS, **changes})
+
+
+def run(job: dict[str, Any]) -> list[dict[str, float | int | str]]:
+    """Train the critic with one seed; returns one row per state class.
+
+    :param job: ``seed``, ``timesteps`` (of training), ``quantile`` and ``horizon`` (see
+        :class:`OptionValueProbe`), and ``changes`` (MAPPOC settings that override :data:`HYPERPARAMS`)
+    :return: per state class (``large change``, ``rest``): samples, the observed difference of returns
+        with its standard error over rollouts, the critic's mean estimate and the standard deviation
+        of the returns
+    """
+    seed = job["seed"]
+    th.set_num_threads(1)
+    model = build(seed, job["changes"])
+    probe = OptionValueProbe(job["quantile"], job["horizon"])
+    model.learn(job["timesteps"], callback=probe)
     rows = []
     for name, parts in probe.samples.items():
         broadcast, silent, critic = (np.concatenate(parts[key]) for key in ("broadcast", "silent", "critic"))
-        observed = broadcast.mean() - silent.mean()
-        stderr = np.sqrt(broadcast.var() / len(broadcast) + silent.var() / len(silent))
+        per_rollout = np.array(
+            [b.mean() - s.mean() for b, s in zip(parts["broadcast"], parts["silent"], strict=True) if len(b) and len(s)]
+        )
         rows.append(
             {
                 "seed": seed,
                 "states": name,
                 "samples": len(critic),
-                "observed": float(observed),
-                "observed_se": float(stderr),
+                "rollouts": len(per_rollout),
+                "observed": float(per_rollout.mean()),
+                "observed_se": float(per_rollout.std(ddof=1) / np.sqrt(len(per_rollout))),
                 "critic": float(critic.mean()),
                 "return_std": float(np.concatenate([broadcast, silent]).std()),
             }
@@ -128,19 +157,49 @@ def main() -> None:
     parser.add_argument("--horizon", type=int, default=60)
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--set", type=json.loads, default={}, help="MAPPOC settings to change (JSON)")
+    parser.add_argument(
+        "--out",
+        type=Path,
+        default=Path("option_value_estimation.json"),
+        help="rows (JSON); seeds already in it with the same settings are not rerun",
+    )
     args = parser.parse_args()
-    overrides = args.set
-    jobs = [(seed, args.timesteps, args.quantile, args.horizon, overrides) for seed in args.seeds]
-    with multiprocessing.get_context("spawn").Pool(args.workers) as pool:
-        results = pool.map(run, jobs)
+    for name in ("timesteps", "horizon", "workers"):
+        if getattr(args, name) < 1:
+            parser.error(f"--{name} must be at least 1")
+    if not 0 < args.quantile < 1:
+        parser.error("--quantile must lie between 0 and 1")
+    if not isinstance(args.set, dict):
+        parser.error("--set takes a JSON object")
+    try:
+        n_steps = build(args.seeds[0], args.set).n_steps
+    except (TypeError, ValueError) as error:
+        parser.error(f"settings refused: {error}")
+    if args.horizon >= n_steps:
+        parser.error(f"--horizon must be below the rollout's {n_steps} steps")
+    jobs = [
+        {
+            "seed": seed,
+            "timesteps": args.timesteps,
+            "quantile": args.quantile,
+            "horizon": args.horizon,
+            "changes": args.set,
+        }
+        for seed in args.seeds
+    ]
+    try:
+        rows = run_rows(run, jobs, args.out, args.workers)
+    except NotRowsError as error:
+        parser.error(str(error))
     print("Q(s, broadcast) - Q(s, silent) in the learner's reward units x 1e-4")
     print("(observed: randomised comparison of the returns that followed; critic: MAPPOC's estimate)")
     print()
-    print("| seed | states | samples | observed +- s.e. | critic's estimate | return std |")
-    print("|---|---|---:|---:|---:|---:|")
-    for row in (row for rows in results for row in rows):
+    print("| seed | states | samples | rollouts | observed +- s.e. | critic's estimate | return std |")
+    print("|---|---|---:|---:|---:|---:|---:|")
+    for row in rows:
         print(
-            f"| {row['seed']} | {row['states']} | {row['samples']} | {1e4 * row['observed']:+.1f} +- "
+            f"| {row['seed']} | {row['states']} | {row['samples']} | {row['rollouts']} | "
+            f"{1e4 * row['observed']:+.1f} +- "
             f"{1e4 * row['observed_se']:.1f} | {1e4 * row['critic']:+.1f} | {1e4 * row['return_std']:.0f} |"
         )
 

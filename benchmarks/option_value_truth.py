@@ -41,7 +41,8 @@ import sb3_detc  # noqa: F401  (registers the env ids)
 from sb3_detc import MAPPOC
 from sb3_detc.mappoc.critics import CRITICS
 from sb3_detc.renamed import renamed_keys
-from sb3_detc.triggers import FixedControl
+from sb3_detc.study.trial import replace_atomically
+from sb3_detc.triggers import FixedControl, SendOnDelta
 
 #: MAPPOC settings of the critics' training (those of ``trigger_learning.py``'s sparse variants).
 HYPERPARAMS: dict[str, Any] = {
@@ -58,6 +59,9 @@ HYPERPARAMS: dict[str, Any] = {
     "train_broadcast_policy": False,
 }
 
+#: The arguments that decide a run's samples and estimates (a run in ``--out`` with others is refused).
+SETTINGS = ("broadcast_prob", "gamma", "horizon", "steps", "every", "broadcast_cost", "seed", "timesteps")
+
 
 def branch_returns(
     env: gym.Env, broadcast: np.ndarray, agent: int, p: float, gamma: float, horizon: int, seed: int
@@ -71,6 +75,7 @@ def branch_returns(
     :param gamma: discount factor
     :param horizon: steps to follow (fewer at the end of the episode)
     :param seed: seed of the later random options, the same in both copies
+    :return: the discounted team-mean control return after a broadcast minus that after a silence
     """
     n = broadcast.shape[0]
     returns = []
@@ -91,13 +96,16 @@ def branch_returns(
     return returns[0] - returns[1]
 
 
-def critic_estimates(job: tuple[str, float, float, int, int, list[tuple[dict, np.ndarray, int]]]) -> np.ndarray:
+def critic_estimates(
+    job: tuple[str, float, float, int, int, list[tuple[dict, np.ndarray, int]]],
+) -> tuple[str, np.ndarray]:
     """Train one critic on random options and return its ``Q_j(s, 1) - Q_j(s, 0)`` on the samples.
 
     :param job: critic kind, broadcast probability, communication cost, timesteps, seed and
         the samples (observation before the decision, options of the step, deciding agent)
-    :return: the estimates in team-mean reward (samples,): without the communication cost for a critic
-        that adds it to its option values itself (``needs_price``), with it for one that learns it
+    :return: the critic kind and its estimates in team-mean reward (samples,): without the communication
+        cost for a critic that adds it to its option values itself (``needs_price``), with it for one that
+        learns it
     """
     critic, p, broadcast_cost, timesteps, seed, samples = job
     th.set_num_threads(1)
@@ -118,7 +126,7 @@ def critic_estimates(job: tuple[str, float, float, int, int, list[tuple[dict, np
         ).option_values
     gap = (q[..., 1] - q[..., 0]).numpy()[np.arange(len(agent)), agent]
     # back from the learner's units (reward normalisation) to team-mean reward
-    return gap * np.sqrt(model.reward_transform.return_rms.var[agent] + 1e-8) / model.reward_scale
+    return critic, gap * np.sqrt(model.reward_transform.return_rms.var[agent] + 1e-8) / model.reward_scale
 
 
 def main() -> None:
@@ -136,7 +144,13 @@ def main() -> None:
     parser.add_argument("--critics", nargs="*", default=[], choices=list(CRITICS))
     parser.add_argument("--timesteps", type=int, default=100_000, help="training steps of every critic")
     parser.add_argument("--workers", type=int, default=2, help="parallel training processes")
-    parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "option_value_truth.json")
+    parser.add_argument(
+        "--out",
+        type=Path,
+        default=Path(__file__).parent / "results" / "option_value_truth.json",
+        help="the run (JSON), written after the samples and after every critic; critics already in it are not "
+        "trained again, a run with other settings is refused",
+    )
     parser.add_argument("--tabulate", action="store_true", help="print the table of the run in --out, run nothing")
     args = parser.parse_args()
     if args.tabulate:
@@ -149,33 +163,83 @@ def main() -> None:
         n = FixedControl(gym.make("sb3_detc/LinearETC-v0")).unwrapped.n_agents
         print_table(np.asarray(samples), estimates, float(settings["broadcast_cost"]) / n, settings)
         return
-    rng = np.random.default_rng(args.seed)
+    for name in ("horizon", "steps", "every", "timesteps", "workers"):
+        if getattr(args, name) < 1:
+            parser.error(f"--{name} must be at least 1")
+    if not 0 < args.broadcast_prob < 1 or not 0 < args.gamma <= 1 or not args.broadcast_cost >= 0:
+        parser.error("--broadcast-prob must lie strictly between 0 and 1, --gamma in (0, 1], --broadcast-cost >= 0")
+    settings = {key: str(getattr(args, key)) for key in SETTINGS}
+    estimates = earlier_estimates(args.out, settings, parser)
     env = FixedControl(gym.make("sb3_detc/LinearETC-v0"))
     n = env.unwrapped.n_agents
+    samples, states = measure(env, args)
+    data = np.asarray(samples)
+
+    def write() -> None:
+        record = {"settings": settings, "samples": samples, "estimates": {c: e.tolist() for c, e in estimates.items()}}
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        replace_atomically(args.out, lambda path: path.write_text(json.dumps(record)))
+
+    write()
+    pending = [c for c in args.critics if c not in estimates]
+    jobs = [(c, args.broadcast_prob, args.broadcast_cost, args.timesteps, args.seed, states) for c in pending]
+    if jobs:
+        with multiprocessing.get_context("spawn").Pool(min(args.workers, len(jobs))) as pool:
+            for critic, estimate in pool.imap_unordered(critic_estimates, jobs):
+                estimates[critic] = estimate
+                write()
+                print(f"{critic} trained, written to {args.out}", flush=True)
+    shown = {c: estimates[c] for c in args.critics}
+    print_table(data, shown, args.broadcast_cost / n, settings)
+
+
+def earlier_estimates(out: Path, settings: dict[str, str], parser: argparse.ArgumentParser) -> dict[str, np.ndarray]:
+    """The critics' estimates of an earlier run with the same settings (none if ``out`` does not exist).
+
+    :param out: the JSON of a run
+    :param settings: this run's settings (:data:`SETTINGS`, as text)
+    :param parser: the command's parser, to refuse a file of another run
+    :return: critic -> its estimates on the samples
+    """
+    if not out.is_file():
+        return {}
+    try:
+        record = json.loads(out.read_text())
+        earlier = {key: value for key, value in renamed_keys(record["settings"]).items() if key in SETTINGS}
+        estimates = {c: np.asarray(e) for c, e in record["estimates"].items()}
+    except (UnicodeDecodeError, ValueError, KeyError, TypeError, AttributeError) as error:
+        parser.error(f"{out} is not the JSON of a run ({error!r}); give another --out")
+    if earlier != settings:
+        differ = sorted(key for key in SETTINGS if earlier.get(key) != settings[key])
+        parser.error(f"{out} holds a run with other settings ({', '.join(differ)}); give another --out")
+    return estimates
+
+
+def measure(env: gym.Env, args: argparse.Namespace) -> tuple[list[tuple[float, float, float]], list[tuple]]:
+    """The value of a broadcast at every ``--every``-th step of a long run with random options.
+
+    :param env: the fixed-control joint env
+    :param args: the command's arguments (``broadcast_prob``, ``gamma``, ``horizon``, ``steps``, ``every``, ``seed``)
+    :return: the samples (trigger change, age, value of a broadcast) and the states they were measured in
+        (observation, options of the step, deciding agent)
+    """
+    rng = np.random.default_rng(args.seed)
+    n = env.unwrapped.n_agents
     obs, _ = env.reset(seed=args.seed)
-    samples = []  # (trigger change, age, value of the broadcast)
-    states = []  # (observation, options, agent) of every sample
+    samples, states = [], []
     for step in range(args.steps):
         broadcast = (rng.random(n) < args.broadcast_prob).astype(np.int64)
         if step % args.every == 0:
             agent = int(rng.integers(n))
             seed = int(rng.integers(1 << 30))
             value = branch_returns(env, broadcast, agent, args.broadcast_prob, args.gamma, args.horizon, seed)
-            change = float(np.linalg.norm(obs["trigger"][agent] - obs["trigger_held"][agent]))
+            change = float(SendOnDelta(0.0).distance({key: obs[key][agent] for key in ("trigger", "trigger_held")}))
             samples.append((change, float(obs["age"][agent, 0]), value))
             states.append(({key: np.array(v) for key, v in obs.items()}, broadcast, agent))
         obs, _, terminated, truncated, _ = env.step({"broadcast": broadcast, "control": np.zeros((n, 1))})
         if terminated or truncated:
             obs, _ = env.reset()
-    data = np.asarray(samples)
-    jobs = [(c, args.broadcast_prob, args.broadcast_cost, args.timesteps, args.seed, states) for c in args.critics]
-    with multiprocessing.get_context("spawn").Pool(args.workers) as pool:
-        estimates = dict(zip(args.critics, pool.map(critic_estimates, jobs), strict=True))
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    record = {"settings": {k: str(v) for k, v in vars(args).items()}, "samples": samples}
-    record["estimates"] = {c: e.tolist() for c, e in estimates.items()}
-    args.out.write_text(json.dumps(record))
-    print_table(data, estimates, args.broadcast_cost / n, {k: str(v) for k, v in vars(args).items()})
+    return samples, states
 
 
 def print_table(data: np.ndarray, estimates: dict[str, np.ndarray], price: float, settings: dict[str, str]) -> None:

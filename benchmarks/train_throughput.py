@@ -42,6 +42,8 @@ trains one untimed iteration (warm-up: worker start, compilation), reported sepa
 Every measurement runs in a fresh Python process (SuperSuit is imported only by PPO's:
 its module ``__getattr__`` raises ``ImportError`` for unknown names, which breaks
 ``torch.compile``'s cache-key pickling once worker processes have run).
+
+    python benchmarks/train_throughput.py --only "MAPPOC, one-liner" "PPO + SuperSuit" --repeats 3 --iterations 4
 """
 
 from __future__ import annotations
@@ -351,6 +353,9 @@ def main() -> None:
     parser.add_argument("--one", choices=ALGORITHMS, help="measure only this algorithm, in this process (JSON)")
     parser.add_argument("--only", nargs="+", choices=ALGORITHMS, help="measure only these (default: all)")
     args = parser.parse_args()
+    for name in ("iterations", "ppo_iterations", "repeats"):
+        if getattr(args, name) < 1:
+            parser.error(f"--{name.replace('_', '-')} must be at least 1")
     if args.one is not None:
         print(json.dumps(measure_one(args.one, args.seed, args.iterations, args.ppo_iterations)))
         return
@@ -361,8 +366,11 @@ def main() -> None:
         for name in names:
             command = [sys.executable, __file__, "--one", name, "--seed", str(args.seed + repeat)]
             command += ["--iterations", str(args.iterations), "--ppo-iterations", str(args.ppo_iterations)]
-            output = subprocess.run(command, check=True, capture_output=True, text=True).stdout
-            results[name].append(json.loads(output.strip().splitlines()[-1]))
+            print(f"[repeat {repeat + 1} of {args.repeats}] {name}", file=sys.stderr, flush=True)
+            done = subprocess.run(command, stdout=subprocess.PIPE, text=True)  # its stderr (a traceback) shows
+            if done.returncode != 0:
+                sys.exit(f"measuring {name} failed (exit status {done.returncode}; its error is above): {command}")
+            results[name].append(json.loads(done.stdout.strip().splitlines()[-1]))
 
     cpu = next((line.split(":", 1)[1].strip() for line in open("/proc/cpuinfo") if "model name" in line), "?")
     threads = "1 torch thread in the learner (2 where named; the one-liner: torch's default)"

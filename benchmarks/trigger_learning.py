@@ -14,7 +14,8 @@ Variants (``--variants``):
 
 * ``paper``: greedy broadcast advantage ``Q(o) - max Q``, rewards scaled by 0.01, gamma 0.99,
   undecided initial policy over options (broadcast probability 0.5), broadcast entropy 0.1
-  until iteration 50, down to 0.001 at 150 (the settings of ``linear_learning.py``);
+  until iteration 50, down to 0.001 at 150 (``linear_learning.py``'s settings, its entropy
+  schedule 50 iterations earlier);
 * ``sparse``: greedy advantage, normalised rewards, gamma 0.95, initial broadcast
   probability 0.1, constant broadcast entropy coefficient 0.01;
 * ``sparse-return``: as ``sparse`` with the sampled broadcast advantage (lambda-return minus
@@ -24,13 +25,15 @@ Variants (``--variants``):
 * ``afterstate-normalised``: as ``afterstate`` with normalised broadcast advantages
   (``normalize_broadcast_advantage=True``) and broadcast entropy coefficient 0.03;
 * ``centred-normalised``: the same with the centred critic (``critic="centred"``).
+
+Rows are written to ``--out`` after every job; jobs already there are not rerun.
+
+    python benchmarks/trigger_learning.py --variants afterstate-normalised --seeds 0 1 --out trigger_learning.json
 """
 
 from __future__ import annotations
 
 import argparse
-import json
-import multiprocessing
 import time
 from pathlib import Path
 from typing import Any
@@ -38,13 +41,14 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 import torch as th
+from resumable import NotRowsError, run_rows
 from stable_baselines3.common.env_util import make_vec_env
 
 from sb3_detc import MAPPOC
 from sb3_detc.callbacks import BroadcastEntropySchedule
 from sb3_detc.envs.linear import LinearSystem, lqr_episode_cost
 from sb3_detc.evaluation import evaluate_communication
-from sb3_detc.triggers import FixedControl, RandomTrigger, lqr_on_held_states, sweep_send_on_delta
+from sb3_detc.triggers import FixedControl, RandomTrigger, TriggerPoint, lqr_on_held_states, sweep_send_on_delta
 
 BASE = {
     "n_steps": 512,
@@ -98,15 +102,32 @@ DELTAS = (0.0, 0.02, 0.05, 0.1, 0.2, 0.3, 0.5, 1.0, 2.0)
 EVAL_SEED = 10_000
 
 
-def run(job: tuple[str, int, float, int, int, Path | None]) -> dict[str, Any]:
+def cost_at_savings(curve: list[TriggerPoint], savings: float, bound: float) -> float | None:
+    """Send-on-delta's cost at given savings, interpolated linearly on its sweep.
+
+    :param curve: the sweep's points (:func:`~sb3_detc.triggers.sweep_send_on_delta`)
+    :param savings: the savings to read the cost at
+    :param bound: the cost the result is relative to
+    :return: the relative cost, or None if ``savings`` lies outside the savings the sweep reached
+    """
+    order = np.argsort([point.savings for point in curve])
+    reached = [curve[i].savings for i in order]
+    if not reached[0] <= savings <= reached[-1]:
+        return None
+    return float(np.interp(savings, reached, [curve[i].cost / bound for i in order]))
+
+
+def run(job: dict[str, Any]) -> dict[str, Any]:
     """Train one trigger and evaluate it against random skipping and send-on-delta; one table row.
 
-    :param job: variant (a key of :data:`VARIANTS`), seed, broadcast cost, training timesteps, evaluation
-        episodes, and the folder to save the model to (None: not kept)
+    :param job: ``variant`` (a key of :data:`VARIANTS`), ``seed``, ``broadcast_cost``, ``timesteps`` (of
+        training), ``eval_episodes`` and ``save_dir`` (the folder to save the model to; None: not kept)
     :return: the settings, training seconds, savings and the costs (relative to the LQR bound) of the
-        learned trigger, random skipping at the same rate and send-on-delta at the same savings
+        learned trigger, random skipping at the same rate and send-on-delta at the same savings (None
+        where the learned savings lie outside its sweep's)
     """
-    variant, seed, broadcast_cost, timesteps, episodes, save_dir = job
+    variant, seed, broadcast_cost = job["variant"], job["seed"], job["broadcast_cost"]
+    timesteps, episodes, save_dir = job["timesteps"], job["eval_episodes"], job["save_dir"]
     th.set_num_threads(1)
     settings, schedule = VARIANTS[variant]
     env_kwargs = {"broadcast_cost": broadcast_cost}
@@ -116,7 +137,7 @@ def run(job: tuple[str, int, float, int, int, Path | None]) -> dict[str, Any]:
     model.learn(timesteps, callback=BroadcastEntropySchedule(**schedule) if schedule else None)
     seconds = time.perf_counter() - start
     if save_dir is not None:
-        model.save(save_dir / f"{variant}_xi{broadcast_cost:g}_seed{seed}.zip")
+        model.save(Path(save_dir) / f"{variant}_xi{broadcast_cost:g}_seed{seed}.zip")
 
     eval_env = FixedControl(gym.make("sb3_detc/LinearETC-v0", **env_kwargs))
     bound = lqr_episode_cost(LinearSystem())
@@ -128,8 +149,7 @@ def run(job: tuple[str, int, float, int, int, Path | None]) -> dict[str, Any]:
     learned, savings = cost(deterministic_broadcast=False)
     random, _ = cost(fixed_trigger=RandomTrigger(savings, seed=seed))
     curve = sweep_send_on_delta(eval_env.env, lqr_on_held_states(eval_env), DELTAS, n_episodes=episodes, seed=EVAL_SEED)
-    order = np.argsort([p.savings for p in curve])
-    send_on_delta = float(np.interp(savings, [curve[i].savings for i in order], [curve[i].cost / bound for i in order]))
+    send_on_delta = cost_at_savings(curve, savings, bound)
     return {
         "variant": variant,
         "seed": seed,
@@ -139,7 +159,7 @@ def run(job: tuple[str, int, float, int, int, Path | None]) -> dict[str, Any]:
         "savings": round(savings, 3),
         "cost_learned": round(learned, 3),
         "cost_random_same_rate": round(random, 3),
-        "cost_send_on_delta_same_savings": round(send_on_delta, 3),
+        "cost_send_on_delta_same_savings": None if send_on_delta is None else round(send_on_delta, 3),
     }
 
 
@@ -152,21 +172,41 @@ def main() -> None:
     parser.add_argument("--timesteps", type=int, default=150_000)
     parser.add_argument("--eval-episodes", type=int, default=100)
     parser.add_argument("--workers", type=int, default=2, help="parallel training processes")
-    parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "trigger_learning.json")
+    parser.add_argument(
+        "--out",
+        type=Path,
+        default=Path(__file__).parent / "results" / "trigger_learning.json",
+        help="rows (JSON); jobs already in it are not rerun, rows of other jobs are kept",
+    )
     parser.add_argument("--save-dir", type=Path, default=None, help="folder for the trained models (default: not kept)")
     args = parser.parse_args()
+    for name in ("timesteps", "eval_episodes", "workers"):
+        if getattr(args, name) < 1:
+            parser.error(f"--{name.replace('_', '-')} must be at least 1")
+    for xi in args.broadcast_costs:
+        try:
+            gym.make("sb3_detc/LinearETC-v0", broadcast_cost=xi).close()
+        except ValueError as error:
+            parser.error(str(error))
     if args.save_dir is not None:
         args.save_dir.mkdir(parents=True, exist_ok=True)
     jobs = [
-        (v, seed, xi, args.timesteps, args.eval_episodes, args.save_dir)
+        {
+            "variant": v,
+            "seed": seed,
+            "broadcast_cost": xi,
+            "timesteps": args.timesteps,
+            "eval_episodes": args.eval_episodes,
+            "save_dir": None if args.save_dir is None else str(args.save_dir),
+        }
         for v in args.variants
         for xi in args.broadcast_costs
         for seed in args.seeds
     ]
-    with multiprocessing.get_context("spawn").Pool(args.workers) as pool:
-        rows = pool.map(run, jobs)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(rows, indent=1))
+    try:
+        rows = run_rows(run, jobs, args.out, args.workers)
+    except NotRowsError as error:
+        parser.error(str(error))
     print(f"{args.timesteps} steps per run, {args.eval_episodes} evaluation episodes")
     print()
     print(
@@ -175,10 +215,11 @@ def main() -> None:
     )
     print("|---|---|---|---:|---:|---:|---:|")
     for row in rows:
+        send_on_delta = row["cost_send_on_delta_same_savings"]
         print(
             f"| {row['variant']} | {row['broadcast_cost']} | {row['seed']} | {row['savings']:.3f} | "
-            f"{row['cost_learned']:.3f} | "
-            f"{row['cost_random_same_rate']:.3f} | {row['cost_send_on_delta_same_savings']:.3f} |"
+            f"{row['cost_learned']:.3f} | {row['cost_random_same_rate']:.3f} | "
+            f"{'outside the sweep' if send_on_delta is None else f'{send_on_delta:.3f}'} |"
         )
 
 

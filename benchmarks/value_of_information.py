@@ -8,6 +8,8 @@ team's steady-state quadratic cost per step (after a burn-in), relative to the L
 with periodic communication (:func:`sb3_detc.envs.linear.lqr_cost_per_step`). This is
 what motivated the default system: with Gaussian noise alone, communication hardly
 matters; with rare velocity kicks, *when* to communicate matters.
+
+    python benchmarks/value_of_information.py
 """
 
 from __future__ import annotations

@@ -33,9 +33,27 @@ def test_bad_input_is_a_usage_error(tmp_path: Path, arguments: list[str], messag
     [
         ("value_of_information.py", ["--steps", "100"], "--steps must be more than the 200 steps of burn-in"),
         ("linear_pareto.py", ["--episodes", "0"], "--episodes must be >= 1"),
+        ("linear_learning.py", ["--eval-episodes", "0"], "--eval-episodes must be at least 1"),
+        ("linear_learning.py", ["--broadcast-advantages", "best"], "broadcast_advantage must be 'greedy' or 'return'"),
+        ("linear_learning.py", ["--set", '{"n_epoch": 3}'], "unexpected keyword argument 'n_epoch'"),
+        ("trigger_learning.py", ["--broadcast-costs", "-1"], "broadcast_cost must be a finite number >= 0"),
+        ("option_value_estimation.py", ["--quantile", "1"], "--quantile must lie between 0 and 1"),
+        ("option_value_estimation.py", ["--horizon", "512"], "--horizon must be below the rollout's 512 steps"),
+        ("option_value_truth.py", ["--every", "0"], "--every must be at least 1"),
+        ("train_throughput.py", ["--repeats", "0"], "--repeats must be at least 1"),
     ],
 )
 def test_other_benchmarks_check_their_numbers_first(script: str, arguments: list[str], message: str) -> None:
     command = [sys.executable, str(ROOT / "benchmarks" / script), *arguments]
     done = subprocess.run(command, capture_output=True, text=True)
-    assert done.returncode == 2 and message in done.stderr
+    assert done.returncode == 2 and message in done.stderr and "Traceback" not in done.stderr
+
+
+@pytest.mark.parametrize("script", ["linear_learning.py", "trigger_learning.py", "option_value_estimation.py"])
+def test_sweeps_refuse_a_results_file_of_something_else(tmp_path: Path, script: str) -> None:
+    out = tmp_path / "results.json"
+    out.write_text('{"a": "run of another script"}')
+    command = [sys.executable, str(ROOT / "benchmarks" / script), "--timesteps", "1", "--out", str(out)]
+    done = subprocess.run(command, capture_output=True, text=True)
+    assert done.returncode == 2 and "not the JSON rows of an earlier run" in done.stderr
+    assert out.read_text() == '{"a": "run of another script"}'

@@ -41,3 +41,18 @@ def test_tabulate_reads_a_run_of_an_earlier_version(tmp_path: Path) -> None:
     assert "price of a broadcast in team-mean reward: 0.0100 (added back to the estimates of option_heads)" in printed
     done = subprocess.run([*command[:-1], str(tmp_path / "none.json")], capture_output=True, text=True)
     assert done.returncode == 2 and "--tabulate needs the JSON of an earlier run" in done.stderr
+
+
+def test_a_run_with_other_settings_in_out_is_refused_untouched(tmp_path: Path) -> None:
+    record = {
+        "settings": {"broadcast_prob": "0.5", "gamma": "0.95", "horizon": "60", "steps": "9000", "every": "3"},
+        "samples": [],
+        "estimates": {},
+    }
+    record["settings"].update(comm_cost="0.03", seed="0", timesteps="100000")  # an earlier version's name
+    out = tmp_path / "run.json"
+    out.write_text(json.dumps(record))
+    command = [sys.executable, str(SCRIPT), "--steps", "30", "--gamma", "0.9", "--out", str(out)]
+    done = subprocess.run(command, capture_output=True, text=True)
+    assert done.returncode == 2 and "holds a run with other settings (gamma, steps)" in done.stderr
+    assert json.loads(out.read_text()) == record

@@ -1,0 +1,96 @@
+"""Sweeps of independent training jobs that keep every finished row and go on where they stopped.
+
+The benchmark scripts that train one model per job (``linear_learning.py``,
+``trigger_learning.py``, ``option_value_estimation.py``) run their jobs through :func:`run_rows`:
+jobs run in parallel processes, every finished job's rows are written to the results file at
+once (atomically), and a job whose rows are already in the file is not run again. An
+interruption (Ctrl-C, a failing job) loses only the jobs that were running; the same
+command then runs only what is missing. A failing job stops the sweep with its traceback.
+"""
+
+from __future__ import annotations
+
+import json
+import multiprocessing
+from collections.abc import Callable
+from functools import partial
+from pathlib import Path
+from typing import Any
+
+from sb3_detc.study.trial import replace_atomically
+
+#: The key of a row that holds its job (as JSON).
+JOB = "job"
+
+Rows = list[dict[str, Any]]
+
+
+class NotRowsError(Exception):
+    """The results file holds something other than rows (a job's own errors pass as they are)."""
+
+
+def job_key(job: dict[str, Any]) -> str:
+    """The identity of a job: its JSON with sorted keys (values JSON cannot hold written as text).
+
+    :param job: the job's arguments
+    :return: the key written into every row of the job
+    """
+    return json.dumps(job, sort_keys=True, default=str)
+
+
+def read_rows(out: Path) -> Rows:
+    """The rows of an earlier sweep (none if ``out`` does not exist).
+
+    :param out: the JSON file of rows
+    :return: the rows, those of every job and command that wrote to the file
+    :raises NotRowsError: if the file is not a JSON list of objects
+    """
+    if not out.is_file():
+        return []
+    try:
+        rows = json.loads(out.read_text())
+    except (UnicodeDecodeError, json.JSONDecodeError) as error:
+        raise NotRowsError(f"{out}: not the JSON rows of an earlier run ({error}); give another --out") from None
+    if not isinstance(rows, list) or not all(isinstance(row, dict) for row in rows):
+        raise NotRowsError(f"{out}: not the JSON rows of an earlier run (not a list of objects); give another --out")
+    return rows
+
+
+def _keyed(run: Callable[[dict[str, Any]], dict[str, Any] | Rows], job: dict[str, Any]) -> tuple[str, Rows]:
+    """Run one job in a worker; its key and its rows."""
+    result = run(job)
+    return job_key(job), result if isinstance(result, list) else [result]
+
+
+def run_rows(
+    run: Callable[[dict[str, Any]], dict[str, Any] | Rows], jobs: list[dict[str, Any]], out: Path, workers: int
+) -> Rows:
+    """Run the jobs not yet in ``out`` in parallel, writing every job's rows as soon as it finishes.
+
+    Rows of ``out`` that belong to no job of this sweep (other settings, or rows without their
+    job, of an earlier version) are kept.
+
+    :param run: a module-level function (it is pickled to spawned processes) from a job to its row
+        or list of rows (JSON objects)
+    :param jobs: the jobs, JSON-like dicts; a job's key (:func:`job_key`) is written into its rows
+    :param out: the JSON file of rows, read at the start and rewritten after every job
+    :param workers: parallel processes (at least 1)
+    :return: the rows of the sweep's jobs, in the order of ``jobs``
+    :raises NotRowsError: if ``out`` holds something else (:func:`read_rows`)
+    :raises ValueError: if ``workers`` is below 1
+    """
+    if workers < 1:
+        raise ValueError(f"workers must be at least 1, got {workers}")
+    rows = read_rows(out)
+    keys = [job_key(job) for job in jobs]
+    done = {row.get(JOB) for row in rows}
+    pending = [job for job, key in zip(jobs, keys, strict=True) if key not in done]
+    print(f"{len(jobs) - len(pending)} of {len(jobs)} jobs already in {out}; running {len(pending)}", flush=True)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    if pending:
+        with multiprocessing.get_context("spawn").Pool(min(workers, len(pending))) as pool:
+            for number, (key, new) in enumerate(pool.imap_unordered(partial(_keyed, run), pending), start=1):
+                rows.extend({JOB: key, **row} for row in new)
+                replace_atomically(out, lambda path: path.write_text(json.dumps(rows, indent=1)))
+                print(f"job {number} of {len(pending)} done, rows written to {out}", flush=True)
+    return [row for key in keys for row in rows if row.get(JOB) == key]

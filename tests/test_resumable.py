@@ -1,0 +1,56 @@
+"""``benchmarks/resumable.py``: sweeps keep every finished job's rows and rerun only what is missing."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+from resumable import JOB, NotRowsError, job_key, run_rows  # noqa: E402  (benchmarks/ is not a package)
+
+
+def square(job: dict[str, Any]) -> dict[str, Any] | list[dict[str, Any]]:
+    """A job of the tests: leaves a mark per call, fails on a negative number, two rows for ``split``."""
+    marks = Path(job["marks"])
+    (marks / f"{job['x']}.{len(list(marks.iterdir()))}").touch()
+    if job["x"] < 0:
+        raise ArithmeticError(f"no square of {job['x']} here")
+    row = {"x": job["x"], "square": job["x"] ** 2}
+    return [row, {**row, "half": True}] if job.get("split") else row
+
+
+def test_jobs_in_the_file_are_not_rerun_and_other_rows_are_kept(tmp_path: Path) -> None:
+    out, marks = tmp_path / "rows.json", tmp_path / "marks"
+    marks.mkdir()
+    out.write_text(json.dumps([{"x": 9, "square": 81}]))  # a row of an earlier version, without its job
+    jobs = [{"x": x, "marks": str(marks)} for x in (1, 2)]
+    assert [row["square"] for row in run_rows(square, jobs, out, workers=2)] == [1, 4]
+    more = [*jobs, {"x": 3, "marks": str(marks), "split": True}]
+    rows = run_rows(square, more, out, workers=2)
+    assert [row["square"] for row in rows] == [1, 4, 9, 9] and rows[-1]["half"]
+    assert sorted(mark.name.split(".")[0] for mark in marks.iterdir()) == ["1", "2", "3"]  # every job ran once
+    kept = json.loads(out.read_text())
+    assert kept[0] == {"x": 9, "square": 81} and len(kept) == 5
+    assert [row[JOB] for row in kept[1:]].count(job_key(more[2])) == 2
+
+
+def test_a_failing_job_stops_the_sweep_with_its_error_and_keeps_what_finished(tmp_path: Path) -> None:
+    out, marks = tmp_path / "rows.json", tmp_path / "marks"
+    marks.mkdir()
+    jobs = [{"x": x, "marks": str(marks)} for x in (1, -1, 2)]
+    with pytest.raises(ArithmeticError, match="no square of -1"):
+        run_rows(square, jobs, out, workers=1)  # one worker: the jobs run in order
+    assert [row["x"] for row in json.loads(out.read_text())] == [1]
+
+
+@pytest.mark.parametrize("content", ["{not json", '{"rows": []}', "[1, 2]"])
+def test_a_file_of_something_else_is_refused_untouched(tmp_path: Path, content: str) -> None:
+    out = tmp_path / "rows.json"
+    out.write_text(content)
+    with pytest.raises(NotRowsError, match="give another --out"):
+        run_rows(square, [{"x": 1, "marks": str(tmp_path)}], out, workers=1)
+    assert out.read_text() == content
