@@ -36,7 +36,7 @@ from typing import Any
 
 import gymnasium as gym
 import torch as th
-from resumable import NotRowsError, run_rows
+from resumable import OutError, check_at_least_one, run_rows
 from rl_zoo3.utils import get_callback_list
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.env_util import make_vec_env
@@ -75,12 +75,17 @@ def zoo_recipe() -> dict[str, Any]:
     :return: ``settings`` (MAPPOC arguments, ``policy_kwargs`` as a dict), ``n_envs``,
         ``env_kwargs``, ``n_timesteps`` and ``callback`` (the entry's callback list)
     :raises ValueError: if the entry uses rl-zoo3 settings the script does not reproduce (e.g. ``normalize``)
+        or another policy than ``MlpHybridPolicy``
     """
     path = Path(sb3_detc.__file__).parent / "hyperparams" / "mappoc.yml"
     entry = dict(check_hyperparams_file(path, "mappoc", ENV_ID))
     unknown = sorted((ZOO_KEYS - REPRODUCED) & entry.keys())
     if unknown:
         raise ValueError(f"the {ENV_ID} entry of {path} uses {unknown}, which this script does not reproduce")
+    if entry["policy"] != "MlpHybridPolicy":
+        raise ValueError(
+            f"the {ENV_ID} entry of {path} names the policy {entry['policy']!r}; the script trains MlpHybridPolicy"
+        )
     settings = {key: value for key, value in entry.items() if key not in ZOO_KEYS | {"policy"}}
     if isinstance(settings.get("policy_kwargs"), str):  # rl-zoo3 writes them as "dict(...)"
         settings["policy_kwargs"] = eval(settings["policy_kwargs"])  # the package's own file
@@ -97,9 +102,9 @@ def build(job: dict[str, Any]) -> tuple[MAPPOC, dict[str, Any], list[BaseCallbac
     """The model, env settings and callbacks of one job, untrained.
 
     :param job: ``broadcast_cost``, ``seed``, ``changes`` (settings to change) and either ``recipe``
-        (:func:`zoo_recipe`) or ``broadcast_advantage``, ``critic`` and ``control_first`` (None for the
-        broadcast entropy schedule, or the arguments of :class:`~sb3_detc.callbacks.ControlFirstCallback`
-        for two stages)
+        (:func:`zoo_recipe`) or ``hyperparams`` (:data:`HYPERPARAMS`), ``broadcast_advantage``, ``critic``
+        and ``control_first`` (None for the broadcast entropy schedule ``entropy_schedule``, or the
+        arguments of :class:`~sb3_detc.callbacks.ControlFirstCallback` for two stages)
     :return: the model (on its training envs), the env keyword arguments and the callbacks
     :raises ValueError: for settings MAPPOC or the callbacks refuse (TypeError for unknown ones)
     """
@@ -109,11 +114,11 @@ def build(job: dict[str, Any]) -> tuple[MAPPOC, dict[str, Any], list[BaseCallbac
         env_kwargs = {**recipe["env_kwargs"], "broadcast_cost": broadcast_cost}
         callbacks: list[BaseCallback] = get_callback_list({"callback": recipe["callback"]})
     else:
-        base = {**HYPERPARAMS, "broadcast_advantage": job["broadcast_advantage"]}
-        base["policy_kwargs"] = {**HYPERPARAMS["policy_kwargs"], "critic": job["critic"]}
+        base = {**job["hyperparams"], "broadcast_advantage": job["broadcast_advantage"]}
+        base["policy_kwargs"] = {**job["hyperparams"]["policy_kwargs"], "critic": job["critic"]}
         n_envs, env_kwargs = 2, {"broadcast_cost": broadcast_cost}
         control_first = job["control_first"]
-        schedule = BroadcastEntropySchedule(**ENTROPY_SCHEDULE)
+        schedule = BroadcastEntropySchedule(**job["entropy_schedule"])
         callbacks = [schedule if control_first is None else ControlFirstCallback(**control_first)]
     env = make_vec_env(ENV_ID, n_envs=n_envs, seed=seed, env_kwargs=env_kwargs)
     policy_kwargs = {**base.get("policy_kwargs", {}), **changes.get("policy_kwargs", {})}
@@ -188,20 +193,23 @@ def main() -> None:
         "--out", type=Path, default=Path("linear_learning.json"), help="rows (JSON); jobs already in it are not rerun"
     )
     args = parser.parse_args()
-    for name in ("eval_episodes", "workers", "timesteps"):
-        if getattr(args, name) is not None and getattr(args, name) < 1:
-            parser.error(f"--{name.replace('_', '-')} must be at least 1")
+    check_at_least_one(parser, args, "eval_episodes", "workers", "timesteps")
     if not isinstance(args.set, dict) or not isinstance(args.control_first, dict | None):
         parser.error("--set and --control-first take a JSON object")
     common = {"eval_episodes": args.eval_episodes, "changes": args.set}
     if args.from_zoo:
         if args.broadcast_advantages or args.critics or args.control_first is not None:
             parser.error("--from-zoo takes the broadcast advantage, critic and stages from the entry (use --set)")
-        recipe = zoo_recipe()
+        try:
+            recipe = zoo_recipe()
+        except ValueError as error:
+            parser.error(str(error))
         common.update(recipe=recipe, timesteps=args.timesteps or recipe["n_timesteps"])
         variants = [{}]
     else:
-        common.update(timesteps=args.timesteps or 300_000, control_first=args.control_first)
+        common.update(timesteps=args.timesteps or 300_000, control_first=args.control_first, hyperparams=HYPERPARAMS)
+        if args.control_first is None:
+            common["entropy_schedule"] = ENTROPY_SCHEDULE
         variants = [
             {"broadcast_advantage": adv, "critic": critic}
             for adv in args.broadcast_advantages or ["greedy"]
@@ -214,13 +222,14 @@ def main() -> None:
         for seed in args.seeds
     ]
     for variant in variants:  # refuse bad settings before anything trains
-        try:
-            build({**common, **variant, "broadcast_cost": args.broadcast_costs[0], "seed": args.seeds[0]})
-        except (TypeError, ValueError) as error:
-            parser.error(f"settings {variant or ''} refused: {error}")
+        for xi in args.broadcast_costs:
+            try:
+                build({**common, **variant, "broadcast_cost": xi, "seed": args.seeds[0]})
+            except (TypeError, ValueError) as error:
+                parser.error(f"settings {variant or ''} at broadcast cost {xi} refused: {error}")
     try:
         rows = run_rows(run, jobs, args.out, args.workers)
-    except NotRowsError as error:
+    except OutError as error:
         parser.error(str(error))
     bound = lqr_episode_cost(LinearSystem())
     print(f"episode cost bound (optimal centralised LQR, periodic communication): {bound:.3f} per team")

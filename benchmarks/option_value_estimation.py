@@ -35,7 +35,7 @@ from typing import Any
 
 import numpy as np
 import torch as th
-from resumable import NotRowsError, run_rows
+from resumable import OutError, check_at_least_one, run_rows
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.env_util import make_vec_env
 
@@ -100,31 +100,31 @@ class OptionValueProbe(BaseCallback):
             self.samples[name]["critic"].append(q_diff[mask])
 
 
-def build(seed: int, changes: dict[str, Any]) -> MAPPOC:
+def build(seed: int, settings: dict[str, Any]) -> MAPPOC:
     """The untrained model of one seed, on its training envs.
 
     :param seed: seed of the envs and the model
-    :param changes: MAPPOC settings that override :data:`HYPERPARAMS`
+    :param settings: MAPPOC's settings (:data:`HYPERPARAMS` with the command's changes)
     :return: the model
     :raises ValueError: for settings MAPPOC refuses (TypeError for unknown ones)
     """
     env_kwargs = {"broadcast_cost": 0.03}
     env = make_vec_env("sb3_detc/LinearETC-v0", n_envs=2, seed=seed, env_kwargs=env_kwargs, wrapper_class=FixedControl)
-    return MAPPOC("MlpHybridPolicy", env, seed=seed, **{**HYPERPARAMS, **changes})
+    return MAPPOC("MlpHybridPolicy", env, seed=seed, **settings)
 
 
 def run(job: dict[str, Any]) -> list[dict[str, float | int | str]]:
     """Train the critic with one seed; returns one row per state class.
 
     :param job: ``seed``, ``timesteps`` (of training), ``quantile`` and ``horizon`` (see
-        :class:`OptionValueProbe`), and ``changes`` (MAPPOC settings that override :data:`HYPERPARAMS`)
+        :class:`OptionValueProbe`), and ``settings`` (MAPPOC's, :func:`build`)
     :return: per state class (``large change``, ``rest``): samples, the observed difference of returns
         with its standard error over rollouts, the critic's mean estimate and the standard deviation
         of the returns
     """
     seed = job["seed"]
     th.set_num_threads(1)
-    model = build(seed, job["changes"])
+    model = build(seed, job["settings"])
     probe = OptionValueProbe(job["quantile"], job["horizon"])
     model.learn(job["timesteps"], callback=probe)
     rows = []
@@ -164,32 +164,33 @@ def main() -> None:
         help="rows (JSON); seeds already in it with the same settings are not rerun",
     )
     args = parser.parse_args()
-    for name in ("timesteps", "horizon", "workers"):
-        if getattr(args, name) < 1:
-            parser.error(f"--{name} must be at least 1")
+    check_at_least_one(parser, args, "timesteps", "horizon", "workers")
     if not 0 < args.quantile < 1:
         parser.error("--quantile must lie between 0 and 1")
     if not isinstance(args.set, dict):
         parser.error("--set takes a JSON object")
+    settings = {**HYPERPARAMS, **args.set}
     try:
-        n_steps = build(args.seeds[0], args.set).n_steps
+        model = build(args.seeds[0], settings)
     except (TypeError, ValueError) as error:
         parser.error(f"settings refused: {error}")
-    if args.horizon >= n_steps:
-        parser.error(f"--horizon must be below the rollout's {n_steps} steps")
+    if args.horizon >= model.n_steps:
+        parser.error(f"--horizon must be below the rollout's {model.n_steps} steps")
+    if args.timesteps < 2 * model.n_steps * model.n_envs:
+        parser.error(f"--timesteps must give at least 2 rollouts ({2 * model.n_steps * model.n_envs} steps)")
     jobs = [
         {
             "seed": seed,
             "timesteps": args.timesteps,
             "quantile": args.quantile,
             "horizon": args.horizon,
-            "changes": args.set,
+            "settings": settings,
         }
         for seed in args.seeds
     ]
     try:
         rows = run_rows(run, jobs, args.out, args.workers)
-    except NotRowsError as error:
+    except OutError as error:
         parser.error(str(error))
     print("Q(s, broadcast) - Q(s, silent) in the learner's reward units x 1e-4")
     print("(observed: randomised comparison of the returns that followed; critic: MAPPOC's estimate)")

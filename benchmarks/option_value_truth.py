@@ -35,6 +35,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 import torch as th
+from resumable import check_at_least_one
 from stable_baselines3.common.env_util import make_vec_env
 
 import sb3_detc  # noqa: F401  (registers the env ids)
@@ -142,7 +143,9 @@ def main() -> None:
     parser.add_argument("--broadcast-cost", type=float, default=0.03, help="only to state the price of a broadcast")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--critics", nargs="*", default=[], choices=list(CRITICS))
-    parser.add_argument("--timesteps", type=int, default=100_000, help="training steps of every critic")
+    parser.add_argument(
+        "--timesteps", type=int, default=100_000, help="training steps of every critic (part of the run's settings)"
+    )
     parser.add_argument("--workers", type=int, default=2, help="parallel training processes")
     parser.add_argument(
         "--out",
@@ -163,9 +166,7 @@ def main() -> None:
         n = FixedControl(gym.make("sb3_detc/LinearETC-v0")).unwrapped.n_agents
         print_table(np.asarray(samples), estimates, float(settings["broadcast_cost"]) / n, settings)
         return
-    for name in ("horizon", "steps", "every", "timesteps", "workers"):
-        if getattr(args, name) < 1:
-            parser.error(f"--{name} must be at least 1")
+    check_at_least_one(parser, args, "horizon", "steps", "every", "timesteps", "workers")
     if not 0 < args.broadcast_prob < 1 or not 0 < args.gamma <= 1 or not args.broadcast_cost >= 0:
         parser.error("--broadcast-prob must lie strictly between 0 and 1, --gamma in (0, 1], --broadcast-cost >= 0")
     settings = {key: str(getattr(args, key)) for key in SETTINGS}
@@ -211,7 +212,7 @@ def earlier_estimates(out: Path, settings: dict[str, str], parser: argparse.Argu
         parser.error(f"{out} is not the JSON of a run ({error!r}); give another --out")
     if earlier != settings:
         differ = sorted(key for key in SETTINGS if earlier.get(key) != settings[key])
-        parser.error(f"{out} holds a run with other settings ({', '.join(differ)}); give another --out")
+        parser.error(f"{out} holds a run with other settings ({', '.join(differ)}); give its settings or another --out")
     return estimates
 
 

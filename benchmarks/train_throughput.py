@@ -59,6 +59,7 @@ from typing import Any
 import numpy as np
 import torch as th
 from pettingzoo.sisl import multiwalker_v9
+from resumable import check_at_least_one
 from stable_baselines3 import PPO
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.callbacks import BaseCallback
@@ -353,9 +354,7 @@ def main() -> None:
     parser.add_argument("--one", choices=ALGORITHMS, help="measure only this algorithm, in this process (JSON)")
     parser.add_argument("--only", nargs="+", choices=ALGORITHMS, help="measure only these (default: all)")
     args = parser.parse_args()
-    for name in ("iterations", "ppo_iterations", "repeats"):
-        if getattr(args, name) < 1:
-            parser.error(f"--{name.replace('_', '-')} must be at least 1")
+    check_at_least_one(parser, args, "iterations", "ppo_iterations", "repeats")
     if args.one is not None:
         print(json.dumps(measure_one(args.one, args.seed, args.iterations, args.ppo_iterations)))
         return

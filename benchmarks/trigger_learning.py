@@ -41,7 +41,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 import torch as th
-from resumable import NotRowsError, run_rows
+from resumable import OutError, check_at_least_one, run_rows
 from stable_baselines3.common.env_util import make_vec_env
 
 from sb3_detc import MAPPOC
@@ -120,8 +120,9 @@ def cost_at_savings(curve: list[TriggerPoint], savings: float, bound: float) -> 
 def run(job: dict[str, Any]) -> dict[str, Any]:
     """Train one trigger and evaluate it against random skipping and send-on-delta; one table row.
 
-    :param job: ``variant`` (a key of :data:`VARIANTS`), ``seed``, ``broadcast_cost``, ``timesteps`` (of
-        training), ``eval_episodes`` and ``save_dir`` (the folder to save the model to; None: not kept)
+    :param job: ``variant`` (a key of :data:`VARIANTS`) and ``settings`` (its value), ``seed``,
+        ``broadcast_cost``, ``timesteps`` (of training), ``eval_episodes`` and ``save_dir`` (the folder to
+        save the model to; None: not kept)
     :return: the settings, training seconds, savings and the costs (relative to the LQR bound) of the
         learned trigger, random skipping at the same rate and send-on-delta at the same savings (None
         where the learned savings lie outside its sweep's)
@@ -129,7 +130,7 @@ def run(job: dict[str, Any]) -> dict[str, Any]:
     variant, seed, broadcast_cost = job["variant"], job["seed"], job["broadcast_cost"]
     timesteps, episodes, save_dir = job["timesteps"], job["eval_episodes"], job["save_dir"]
     th.set_num_threads(1)
-    settings, schedule = VARIANTS[variant]
+    settings, schedule = job["settings"]
     env_kwargs = {"broadcast_cost": broadcast_cost}
     env = make_vec_env("sb3_detc/LinearETC-v0", n_envs=2, seed=seed, env_kwargs=env_kwargs, wrapper_class=FixedControl)
     model = MAPPOC("MlpHybridPolicy", env, seed=seed, **settings)
@@ -180,9 +181,7 @@ def main() -> None:
     )
     parser.add_argument("--save-dir", type=Path, default=None, help="folder for the trained models (default: not kept)")
     args = parser.parse_args()
-    for name in ("timesteps", "eval_episodes", "workers"):
-        if getattr(args, name) < 1:
-            parser.error(f"--{name.replace('_', '-')} must be at least 1")
+    check_at_least_one(parser, args, "timesteps", "eval_episodes", "workers")
     for xi in args.broadcast_costs:
         try:
             gym.make("sb3_detc/LinearETC-v0", broadcast_cost=xi).close()
@@ -197,7 +196,8 @@ def main() -> None:
             "broadcast_cost": xi,
             "timesteps": args.timesteps,
             "eval_episodes": args.eval_episodes,
-            "save_dir": None if args.save_dir is None else str(args.save_dir),
+            "save_dir": None if args.save_dir is None else str(args.save_dir.resolve()),
+            "settings": VARIANTS[v],  # a job of changed settings is a new job
         }
         for v in args.variants
         for xi in args.broadcast_costs
@@ -205,7 +205,7 @@ def main() -> None:
     ]
     try:
         rows = run_rows(run, jobs, args.out, args.workers)
-    except NotRowsError as error:
+    except OutError as error:
         parser.error(str(error))
     print(f"{args.timesteps} steps per run, {args.eval_episodes} evaluation episodes")
     print()

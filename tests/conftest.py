@@ -1,7 +1,13 @@
 """Shared test settings."""
 
+import sys
+from pathlib import Path
+
 import pytest
 import torch
+
+# The benchmark scripts import their sibling modules (``resumable``) as they do when run as scripts.
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 
 
 @pytest.fixture(autouse=True, scope="session")

@@ -34,6 +34,7 @@ def test_bad_input_is_a_usage_error(tmp_path: Path, arguments: list[str], messag
         ("value_of_information.py", ["--steps", "100"], "--steps must be more than the 200 steps of burn-in"),
         ("linear_pareto.py", ["--episodes", "0"], "--episodes must be >= 1"),
         ("linear_learning.py", ["--eval-episodes", "0"], "--eval-episodes must be at least 1"),
+        ("linear_learning.py", ["--broadcast-costs", "0.03", "-1"], "at broadcast cost -1.0 refused"),
         ("linear_learning.py", ["--broadcast-advantages", "best"], "broadcast_advantage must be 'greedy' or 'return'"),
         ("linear_learning.py", ["--set", '{"n_epoch": 3}'], "unexpected keyword argument 'n_epoch'"),
         ("trigger_learning.py", ["--broadcast-costs", "-1"], "broadcast_cost must be a finite number >= 0"),
@@ -53,7 +54,7 @@ def test_other_benchmarks_check_their_numbers_first(script: str, arguments: list
 def test_sweeps_refuse_a_results_file_of_something_else(tmp_path: Path, script: str) -> None:
     out = tmp_path / "results.json"
     out.write_text('{"a": "run of another script"}')
-    command = [sys.executable, str(ROOT / "benchmarks" / script), "--timesteps", "1", "--out", str(out)]
+    command = [sys.executable, str(ROOT / "benchmarks" / script), "--timesteps", "2048", "--out", str(out)]
     done = subprocess.run(command, capture_output=True, text=True)
     assert done.returncode == 2 and "not the JSON rows of an earlier run" in done.stderr
     assert out.read_text() == '{"a": "run of another script"}'

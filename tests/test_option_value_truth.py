@@ -56,3 +56,15 @@ def test_a_run_with_other_settings_in_out_is_refused_untouched(tmp_path: Path) -
     done = subprocess.run(command, capture_output=True, text=True)
     assert done.returncode == 2 and "holds a run with other settings (gamma, steps)" in done.stderr
     assert json.loads(out.read_text()) == record
+
+
+def test_a_critic_already_in_out_is_not_trained_again(tmp_path: Path) -> None:
+    out = tmp_path / "run.json"
+    command = [sys.executable, str(SCRIPT), "--steps", "30", "--timesteps", "1024", "--out", str(out)]
+    subprocess.run(command, check=True, capture_output=True, text=True)  # the samples only
+    record = json.loads(out.read_text())
+    record["estimates"] = {"afterstate": [0.5] * len(record["samples"])}  # as if trained
+    out.write_text(json.dumps(record))
+    printed = subprocess.run([*command, "--critics", "afterstate"], check=True, capture_output=True, text=True).stdout
+    assert "trained" not in printed and "| +0.5000 (0.0000) |" in printed
+    assert json.loads(out.read_text())["estimates"]["afterstate"] == [0.5] * len(record["samples"])

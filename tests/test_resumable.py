@@ -3,14 +3,11 @@
 from __future__ import annotations
 
 import json
-import sys
 from pathlib import Path
 from typing import Any
 
 import pytest
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-from resumable import JOB, NotRowsError, job_key, run_rows  # noqa: E402  (benchmarks/ is not a package)
+from resumable import JOB, OutError, job_key, run_rows  # benchmarks/, on the path in conftest.py
 
 
 def square(job: dict[str, Any]) -> dict[str, Any] | list[dict[str, Any]]:
@@ -51,6 +48,15 @@ def test_a_failing_job_stops_the_sweep_with_its_error_and_keeps_what_finished(tm
 def test_a_file_of_something_else_is_refused_untouched(tmp_path: Path, content: str) -> None:
     out = tmp_path / "rows.json"
     out.write_text(content)
-    with pytest.raises(NotRowsError, match="give another --out"):
+    with pytest.raises(OutError, match="give another --out"):
         run_rows(square, [{"x": 1, "marks": str(tmp_path)}], out, workers=1)
     assert out.read_text() == content
+
+
+def test_a_second_sweep_on_the_same_file_is_refused(tmp_path: Path) -> None:
+    from sb3_detc.study.trial import exclusive
+
+    out = tmp_path / "rows.json"
+    with exclusive(tmp_path / "rows.json.lock"), pytest.raises(OutError, match="another sweep is writing to"):
+        run_rows(square, [{"x": 1, "marks": str(tmp_path)}], out, workers=1)
+    assert not out.exists()

@@ -23,7 +23,14 @@ from sb3_detc.study.__main__ import main as study_main
 from sb3_detc.study.report import report_study, splice, summarise
 from sb3_detc.study.runner import prepare_folder
 from sb3_detc.study.spec import StudyError, load_folder_study, load_study
-from sb3_detc.study.trial import MODES, code_commit, drop_stale_segments, read_status, trial_folder
+from sb3_detc.study.trial import (
+    MODES,
+    code_commit,
+    drop_stale_segments,
+    read_status,
+    replace_atomically,
+    trial_folder,
+)
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -736,3 +743,18 @@ def test_generated_text_is_spliced_between_its_own_marks_and_again_in_the_same_p
         with pytest.raises(StudyError, match="cannot be read as a text page"):
             splice(unreadable, "table.py", "| a | b |\n")
     assert sorted(path.name for path in tmp_path.iterdir()) == ["README.md"]  # no scratch file left
+
+
+def test_a_file_replaced_atomically_is_whole_or_as_it_was(tmp_path):
+    target = tmp_path / "policy.pt"
+    target.write_text("old")
+
+    def fails_halfway(path: Path) -> None:
+        path.write_text("half of the new")
+        raise OSError("disk full")
+
+    with pytest.raises(OSError, match="disk full"):
+        replace_atomically(target, fails_halfway, "policy.tmp.pt")
+    assert target.read_text() == "old"  # readers never see the half
+    replace_atomically(target, lambda path: path.write_text("new"), "policy.tmp.pt")
+    assert target.read_text() == "new" and sorted(p.name for p in tmp_path.iterdir()) == ["policy.pt"]

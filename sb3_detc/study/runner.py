@@ -17,7 +17,6 @@ import socket
 import sys
 import threading
 import time
-import warnings
 from collections import deque
 from pathlib import Path
 from typing import Any
@@ -25,7 +24,7 @@ from typing import Any
 import yaml
 
 from sb3_detc.study.spec import CONF_FOLDER, StudyError, StudySpec, conf_copy, load_study, same_study
-from sb3_detc.study.trial import read_status, replace_atomically, run_trial, trial_folder
+from sb3_detc.study.trial import exclusive, read_status, replace_atomically, run_trial, trial_folder
 
 __all__ = ["StudyProgress", "prepare_folder", "run_study"]
 
@@ -400,31 +399,16 @@ def _only_run_in(folder: Path) -> contextlib.AbstractContextManager[Any]:
     """Hold the study folder's lock (``.lock``) while a run uses it: a second ``run`` on it is refused.
 
     Two runs on one folder would train the same trials twice and delete each other's segments and
-    stop file. The lock is the operating system's (``fcntl.flock``), released when the run ends,
-    however it ends; where ``fcntl`` is missing (Windows) or the file system has no locks,
-    nothing is locked (the latter with a warning).
+    stop file (:func:`~sb3_detc.study.trial.exclusive`).
 
     :param folder: the study folder
     :return: the context that holds the lock
     :raises StudyError: if another process holds it
     """
     try:
-        import fcntl
-    except ImportError:
-        return contextlib.nullcontext()
-    handle = open(folder / LOCK_FILE, "a")  # noqa: SIM115 (closed by the returned context)
-    try:
-        fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        return exclusive(folder / LOCK_FILE)
     except BlockingIOError:
-        handle.close()
         raise StudyError(f"another run of a study is using {folder}; wait for it or stop it (Ctrl-C)") from None
-    except OSError as error:  # e.g. a file system without locks: run, as where fcntl is missing
-        handle.close()
-        warnings.warn(
-            f"cannot lock {folder / LOCK_FILE} ({error}); make sure no other run uses the folder", stacklevel=3
-        )
-        return contextlib.nullcontext()
-    return contextlib.closing(handle)  # closing the file releases the lock
 
 
 def _run_locked(spec: StudySpec, folder: Path, address: str | None, stream: Any, cpus: int | None) -> dict[str, str]:

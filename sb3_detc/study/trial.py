@@ -20,6 +20,7 @@ A trial's folder (``<study dir>/trials/<label>/seed<seed>/``) holds plain files:
 from __future__ import annotations
 
 import argparse
+import contextlib
 import functools
 import json
 import math
@@ -29,6 +30,7 @@ import shutil
 import subprocess
 import time
 import traceback
+import warnings
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -59,6 +61,7 @@ __all__ = [
     "code_commit",
     "entry_fixed_trigger",
     "evaluate_policy_modes",
+    "exclusive",
     "machine_record",
     "merged_progress",
     "read_status",
@@ -109,6 +112,34 @@ def replace_atomically(path: Path, write: Callable[[Path], Any], scratch_name: s
     scratch = path.with_name(scratch_name) if scratch_name else path.with_suffix(".tmp")
     write(scratch)
     os.replace(scratch, path)
+
+
+def exclusive(lock: Path) -> contextlib.AbstractContextManager[Any]:
+    """Hold a lock file for as long as the returned context is open: a second holder is refused.
+
+    The lock is the operating system's (``fcntl.flock``), released when the context closes or the
+    process ends, however it ends; where ``fcntl`` is missing (Windows) or the file system has no
+    locks, nothing is locked (the latter with a warning).
+
+    :param lock: the lock file (created if missing, never deleted)
+    :return: the context that holds the lock
+    :raises BlockingIOError: if another process holds it
+    """
+    try:
+        import fcntl
+    except ImportError:
+        return contextlib.nullcontext()
+    handle = open(lock, "a")  # noqa: SIM115 (closed by the returned context)
+    try:
+        fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        handle.close()
+        raise
+    except OSError as error:  # e.g. a file system without locks: go on, as where fcntl is missing
+        handle.close()
+        warnings.warn(f"cannot lock {lock} ({error}); make sure no other process uses what it guards", stacklevel=3)
+        return contextlib.nullcontext()
+    return contextlib.closing(handle)  # closing the file releases the lock
 
 
 def _write_json(path: Path, content: dict[str, Any]) -> None:
