@@ -196,7 +196,7 @@ def main() -> None:
             "broadcast_cost": xi,
             "timesteps": args.timesteps,
             "eval_episodes": args.eval_episodes,
-            "save_dir": None if args.save_dir is None else str(args.save_dir.resolve()),
+            "save_dir": None if args.save_dir is None else str(args.save_dir),
             "settings": VARIANTS[v],  # a job of changed settings is a new job
         }
         for v in args.variants
