@@ -5,12 +5,16 @@ about 75 % savings, and there *when* matters: a message every 8th step keeps the
 random messages at the same rate do not (``benchmarks/README.md``, value of information). Can
 MAPPOC's policy over options learn such timing? For every finished seed of a study algorithm
 (default: ``random_skip_paper`` of ``multiwalker_paper``) the trial's final policy is loaded into
-MAPPOC built from the trial's own entry (rl-zoo3's experiment manager, as the study trains it);
-its control policy is frozen and only the policies over options and the critic learn
-(``set_trained_policies(control_policy=False, broadcast_policy=True)``), at the communication
-cost ``--broadcast-cost``, with rewards normalised afresh (as stage 2 of
-:class:`~sb3_detc.callbacks.ControlFirstCallback`; ``--no-normalize-reward`` keeps the entry's
-setting). The entry's callbacks (random skips, action noise schedule) are left out.
+MAPPOC built from the trial's own entry (rl-zoo3's experiment manager, as the study trains it;
+a policy built with other settings than the entry now gives is refused); its control policy is
+frozen. The critic first learns alone for ``--warm-up`` steps (it learned for random options,
+and the baseline trained without the communication cost), then the critic and the policies over
+options (``set_trained_policies(control_policy=False, broadcast_policy=True)``), at the
+communication cost ``--broadcast-cost`` (default: the entry's). ``--normalize-reward``
+normalises the learner's rewards with fresh statistics (as stage 2 of
+:class:`~sb3_detc.callbacks.ControlFirstCallback` with ``trigger_normalize_reward``); by default
+the entry's setting stays. The entry's callbacks (random skips, the action noise schedule, whose
+noise has ended by the end of training) are left out.
 
 The trained policy then runs the study's evaluation protocol on the study's seeded episodes
 (:func:`~sb3_detc.study.trial.evaluate_policy_modes`: learned options sampled from ``mu``,
@@ -21,16 +25,19 @@ trial's, unchanged, so the value of information sweep of the same study
 
 One job per seed, one after another (each trains with the entry's two rollout-worker
 processes); every finished seed's row is written to ``--out`` at once and a seed already there
-is not trained again (``resumable.py``). ``--save-dir`` keeps the trained policies (policy only).
+is not trained again (``resumable.py``; a job is its settings and the digest of the trial's
+policy). ``--save-dir`` keeps the trained policies (policy only; each row names its file).
 
     python benchmarks/multiwalker_trigger_for_controller.py benchmarks/studies/multiwalker_paper \\
-        --broadcast-cost 0.25 --out benchmarks/results/multiwalker_trigger_for_controller.json
+        --broadcast-cost 1.0 --out benchmarks/results/multiwalker_trigger_for_controller.json
 """
 
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
+import math
 import tempfile
 import time
 from pathlib import Path
@@ -39,19 +46,21 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 import torch as th
-from resumable import OutError, check_at_least_one, run_rows
+from resumable import OutError, check_at_least_one, job_key, run_rows
 from stable_baselines3.common.callbacks import BaseCallback
 
 from sb3_detc.evaluation import evaluate_episodes
 from sb3_detc.mappoc.policies import MlpHybridPolicy
 from sb3_detc.study.report import interval_estimates, interval_text
-from sb3_detc.study.spec import StudyError, load_folder_study
+from sb3_detc.study.spec import StudyError, Trial, load_folder_study
 from sb3_detc.study.trial import evaluate_policy_modes, read_status, replace_atomically, trial_folder
 from sb3_detc.triggers import PeriodicTrigger
 from sb3_detc.zoo import ExperimentManager
 
 #: Training steps of the policies over options (500 of the paper's iterations of 2048 steps).
 TIMESTEPS = 1_024_000
+#: Steps at the start in which only the critic learns (50 iterations).
+WARM_UP = 102_400
 
 
 class Progress(BaseCallback):
@@ -82,23 +91,56 @@ class Progress(BaseCallback):
             )
 
 
-def build(job: dict[str, Any], log_folder: Path) -> Any:
-    """MAPPOC of the trial's entry on its training envs, with the trial's final policy loaded and frozen.
+def finished_policy(folder: Path, trial: Trial) -> Path | None:
+    """The final policy of a finished trial.
 
-    :param job: ``folder`` (the study folder), ``algorithm`` (its label), ``seed``, ``broadcast_cost``,
-        ``timesteps``, ``changes`` (entry settings to change) and ``normalize_reward``
-    :param log_folder: where rl-zoo3's experiment manager may write
-    :return: the model, ready to learn its policies over options
-    :raises StudyError: if the trial is not finished
+    :param folder: the study folder
+    :param trial: the trial
+    :return: its ``policy.pt``, or None if the trial is not done
     """
-    spec = load_folder_study(Path(job["folder"]))
-    trial = next(t for t in spec.trials() if t.algorithm.label == job["algorithm"] and t.seed == job["seed"])
-    folder = trial_folder(job["folder"], trial)
-    if read_status(folder)["status"] != "done" or not (folder / "policy.pt").is_file():
-        raise StudyError(f"{trial.name} of {job['folder']} has not finished (no policy.pt)")
+    trial_dir = trial_folder(folder, trial)
+    done = read_status(trial_dir)["status"] == "done" and (trial_dir / "policy.pt").is_file()
+    return trial_dir / "policy.pt" if done else None
+
+
+def env_settings(entry: dict[str, Any], job: dict[str, Any]) -> dict[str, Any]:
+    """The env's keyword arguments of training and evaluation: the entry's, the job's changes, its cost.
+
+    :param entry: the trial's hyperparameter entry
+    :param job: ``changes`` (its ``env_kwargs``, if any) and ``broadcast_cost`` (None: the entry's)
+    :return: the keyword arguments
+    """
+    env_kwargs = {**(entry.get("env_kwargs") or {}), **job["changes"].get("env_kwargs", {})}
+    if job["broadcast_cost"] is not None:
+        env_kwargs["broadcast_cost"] = job["broadcast_cost"]
+    return env_kwargs
+
+
+def build(job: dict[str, Any], log_folder: Path) -> tuple[Any, dict[str, Any]]:
+    """MAPPOC of the trial's entry on its training envs, with the trial's final policy loaded and ``pi`` frozen.
+
+    The model is built as the study trains its trials (rl-zoo3's experiment manager, the entry with
+    the study's overrides), with the job's changes, the env settings of :func:`env_settings` and
+    none of the entry's callbacks (the baseline's random skips and action noise schedule, whose
+    noise has ended by the end of training).
+
+    :param job: ``folder`` (the study folder), ``algorithm`` (its label), ``seed``, ``broadcast_cost``
+        (None: the entry's), ``timesteps``, ``changes`` (entry settings to change) and ``normalize_reward``
+        (normalise the learner's rewards with fresh statistics)
+    :param log_folder: where rl-zoo3's experiment manager may write
+    :return: the model, options from ``mu``, only the critic learning; and the env's keyword arguments
+    :raises StudyError: if the trial has not finished, or its policy was built with other settings
+    """
+    folder = Path(job["folder"])
+    spec = load_folder_study(folder)
+    (trial,) = [t for t in spec.trials() if t.algorithm.label == job["algorithm"] and t.seed == job["seed"]]
+    path = finished_policy(folder, trial)
+    if path is None:
+        raise StudyError(f"{trial.name} of {folder} has not finished")
     algorithm = trial.algorithm
-    env_kwargs = {**(algorithm.entry.get("env_kwargs") or {}), "broadcast_cost": job["broadcast_cost"]}
-    hyperparams = {**algorithm.hyperparams, "env_kwargs": env_kwargs, "callback": [], **job["changes"]}
+    env_kwargs = env_settings(algorithm.entry, job)
+    changes = {key: value for key, value in job["changes"].items() if key != "env_kwargs"}
+    hyperparams = {**algorithm.hyperparams, **changes, "env_kwargs": env_kwargs, "callback": []}
     args = argparse.Namespace(algo=algorithm.algo, env=spec.env, seed=trial.seed, n_timesteps=job["timesteps"])
     manager = ExperimentManager(
         args,
@@ -116,49 +158,84 @@ def build(job: dict[str, Any], log_folder: Path) -> Any:
         device="cpu",
     )
     model, _ = manager.setup_experiment()
-    model.policy.load_state_dict(MlpHybridPolicy.load(str(folder / "policy.pt"), device="cpu").state_dict())
+    saved = MlpHybridPolicy.load(str(path), device="cpu")
+    differ = sorted(
+        key
+        for key, value in saved._get_constructor_parameters().items()
+        if key not in ("observation_space", "action_space", "lr_schedule")
+        and model.policy._get_constructor_parameters().get(key) != value
+    )
+    if differ:
+        model.env.close()
+        raise StudyError(f"{path} was built with other policy settings than the entry gives now: {differ}")
+    model.policy.load_state_dict(saved.state_dict())
     model.set_fixed_trigger(None)
-    model.set_trained_policies(control_policy=False, broadcast_policy=True)
+    model.set_trained_policies(control_policy=False, broadcast_policy=False)
     if job["normalize_reward"]:
         model.set_reward_normalization(True, fresh_statistics=True)
-    return model
+    return model, env_kwargs
+
+
+def nearest_period(savings: float) -> int | None:
+    """The period ``k`` of a message every ``k`` steps whose savings ``1 - 1/k`` lie closest to ``savings``.
+
+    :param savings: the savings to match, in [0, 1]
+    :return: the period (>= 1), or None for savings of 1 (never)
+    """
+    if savings >= 1:
+        return None
+    exact = 1 / (1 - savings)
+    return min({max(1, math.floor(exact)), math.ceil(exact)}, key=lambda k: abs(1 - 1 / k - savings))
 
 
 def run(job: dict[str, Any]) -> dict[str, Any]:
     """Train the policies over options for one seed's controller and evaluate them; one table row.
 
-    :param job: as :func:`build` takes it, and ``save_dir`` (where to keep the policy; None: not kept)
+    The critic learns alone first (``warm_up`` steps, options from the untrained ``mu``: it learned
+    for random options, and the baseline trained without the communication cost), then the critic
+    and ``mu`` together for the rest of ``timesteps``.
+
+    :param job: as :func:`build` takes it, ``warm_up`` (steps, part of ``timesteps``), ``policy``
+        (the trial's policy's digest: a retrained trial is a new job) and ``save_dir`` (where to keep
+        the trained policy; None: not kept)
     :return: the seed, the training seconds, the study protocol's metrics of the learned trigger
-        (:func:`~sb3_detc.study.trial.evaluate_policy_modes`) and the control return, package travel,
-        fall rate and savings of a message every ``k`` steps
+        (:func:`~sb3_detc.study.trial.evaluate_policy_modes`), the control return, package travel (None
+        where the env reports none), fall rate and savings of a message every ``k`` steps at the nearest
+        savings (None if the trigger never broadcasts), and the file of the saved policy
     """
     th.set_num_threads(1)
     spec = load_folder_study(Path(job["folder"]))
+    label = f"{job['algorithm']} seed {job['seed']}"
     with tempfile.TemporaryDirectory() as log_folder:
-        model = build(job, Path(log_folder))
+        model, env_kwargs = build(job, Path(log_folder))
         began = time.monotonic()
-        label = f"{job['algorithm']} seed {job['seed']}"
-        model.learn(job["timesteps"], callback=Progress(label))
+        try:
+            model.learn(job["warm_up"], callback=Progress(f"{label}, critic alone"))
+            model.set_trained_policies(control_policy=False, broadcast_policy=True)
+            rest = job["timesteps"] - job["warm_up"]
+            model.learn(rest, callback=Progress(label), reset_num_timesteps=False)
+        finally:
+            model.env.close()
         seconds = time.monotonic() - began
-        model.env.close()
-    policy = model.policy
+    policy, saved = model.policy, None
     if job["save_dir"] is not None:
-        path = Path(job["save_dir"]) / f"{job['algorithm']}_seed{job['seed']}_cost{job['broadcast_cost']:g}.pt"
+        digest = hashlib.sha256(job_key(job).encode()).hexdigest()[:10]
+        path = Path(job["save_dir"]) / f"{job['algorithm']}_seed{job['seed']}_{digest}.pt"
         path.parent.mkdir(parents=True, exist_ok=True)
         replace_atomically(path, lambda scratch: policy.save(str(scratch)), path.stem + ".tmp.pt")
-    env = gym.make(spec.env, broadcast_cost=job["broadcast_cost"])
+        saved = path.name
+    env = gym.make(spec.env, **env_kwargs)
     try:
         evaluation = evaluate_policy_modes(policy, env, spec.episodes, spec.eval_seed)
-        savings = evaluation["metrics"]["savings"]
-        period = max(1, round(1 / (1 - savings))) if savings < 1 else None
-        periodic = None
+        period, periodic = nearest_period(evaluation["metrics"]["savings"]), None
         if period is not None:
             seeds = [spec.eval_seed + k for k in range(spec.episodes)]
             episodes = evaluate_episodes(policy, env, seeds, deterministic=True, fixed_trigger=PeriodicTrigger(period))
+            travel = episodes.package_travel
             periodic = {
                 "period": period,
                 "control_return": float(np.mean(episodes.control_returns)),
-                "package_travel": float(np.nanmean(episodes.package_travel)),
+                "package_travel": None if np.isnan(travel).any() else float(np.mean(travel)),
                 "fall_rate": float(np.mean(episodes.failed)),
                 "savings": episodes.savings,
             }
@@ -167,11 +244,12 @@ def run(job: dict[str, Any]) -> dict[str, Any]:
     return {
         "algorithm": job["algorithm"],
         "seed": job["seed"],
-        "broadcast_cost": job["broadcast_cost"],
+        "env_kwargs": env_kwargs,
         "timesteps": job["timesteps"],
         "train_seconds": round(seconds, 1),
         "metrics": evaluation["metrics"],
         "periodic_nearest": periodic,
+        "saved": saved,
     }
 
 
@@ -219,31 +297,41 @@ def main() -> None:
     """Train and evaluate every seed one after another, write the rows and print the table."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("folder", type=Path, help="a study folder with finished trials")
-    parser.add_argument("--algorithm", default="random_skip_paper", help="the study algorithm whose controllers")
+    parser.add_argument("--algorithm", default="random_skip_paper", help="the study algorithm whose controllers to use")
     parser.add_argument("--seeds", type=int, nargs="+", help="(default: every finished seed of the algorithm)")
-    parser.add_argument("--broadcast-cost", type=float, default=0.25, help="communication cost per broadcast")
-    parser.add_argument("--timesteps", type=int, default=TIMESTEPS, help="training steps per seed")
+    parser.add_argument("--broadcast-cost", type=float, help="communication cost per broadcast (default: the entry's)")
+    parser.add_argument("--timesteps", type=int, default=TIMESTEPS, help="training steps per seed, warm-up included")
+    parser.add_argument("--warm-up", type=int, default=WARM_UP, help="first steps in which only the critic learns")
     parser.add_argument("--set", type=json.loads, default={}, help="entry settings to change (JSON), e.g. MAPPOC's")
-    parser.add_argument("--no-normalize-reward", action="store_true", help="keep the entry's reward normalisation")
-    parser.add_argument("--out", type=Path, default=Path("multiwalker_trigger_for_controller.json"))
+    parser.add_argument(
+        "--normalize-reward", action="store_true", help="normalise the learner's rewards, with fresh statistics"
+    )
+    parser.add_argument(
+        "--out",
+        type=Path,
+        default=Path("multiwalker_trigger_for_controller.json"),
+        help="rows (JSON); seeds already in it with the same settings are not trained again",
+    )
     parser.add_argument("--save-dir", type=Path, help="folder for the trained policies (default: not kept)")
     args = parser.parse_args()
     check_at_least_one(parser, args, "timesteps")
-    if not args.broadcast_cost >= 0 or not isinstance(args.set, dict):
-        parser.error("--broadcast-cost must be >= 0 and --set a JSON object")
+    if not 0 <= args.warm_up < args.timesteps:
+        parser.error("--warm-up must be >= 0 and below --timesteps")
+    if args.broadcast_cost is not None and not args.broadcast_cost >= 0:
+        parser.error("--broadcast-cost must be >= 0")
+    if not isinstance(args.set, dict) or not isinstance(args.set.get("env_kwargs", {}), dict) or "callback" in args.set:
+        parser.error("--set takes a JSON object of entry settings (env_kwargs an object; no callback)")
     try:
         spec = load_folder_study(args.folder)
     except StudyError as error:
         parser.error(str(error))
-    finished = {
-        t.seed
-        for t in spec.trials()
-        if t.algorithm.label == args.algorithm and (trial_folder(args.folder, t) / "policy.pt").is_file()
-    }
+    trials = {t.seed: t for t in spec.trials() if t.algorithm.label == args.algorithm}
+    policies = {seed: finished_policy(args.folder, t) for seed, t in trials.items()}
+    finished = {seed for seed, path in policies.items() if path is not None}
     if not finished:
-        labels = sorted({a.label for a in spec.algorithms})
-        parser.error(f"{args.folder} has no finished trial of {args.algorithm!r} (algorithms: {', '.join(labels)})")
-    seeds = args.seeds or sorted(finished)
+        labels = ", ".join(sorted(a.label for a in spec.algorithms))
+        parser.error(f"{args.folder} has no finished trial of {args.algorithm!r} (algorithms: {labels})")
+    seeds = sorted(set(args.seeds or finished))
     if set(seeds) - finished:
         parser.error(f"seeds {sorted(set(seeds) - finished)} of {args.algorithm} have not finished")
     job = {
@@ -251,18 +339,22 @@ def main() -> None:
         "algorithm": args.algorithm,
         "broadcast_cost": args.broadcast_cost,
         "timesteps": args.timesteps,
+        "warm_up": args.warm_up,
         "changes": args.set,
-        "normalize_reward": not args.no_normalize_reward,
+        "normalize_reward": args.normalize_reward,
         "save_dir": None if args.save_dir is None else str(args.save_dir),
     }
+    jobs = [
+        {**job, "seed": seed, "policy": hashlib.sha256(policies[seed].read_bytes()).hexdigest()[:16]} for seed in seeds
+    ]
     try:
-        rows = run_rows(run, [{**job, "seed": seed} for seed in seeds], args.out, workers=1)
+        rows = run_rows(run, jobs, args.out, workers=1)
     except OutError as error:
         parser.error(str(error))
     print(
-        f"{args.algorithm} of {args.folder}: policies over options trained for {args.timesteps} steps on the "
-        f"frozen controllers, broadcast cost {args.broadcast_cost}; {spec.episodes} evaluation episodes from seed "
-        f"{spec.eval_seed}"
+        f"{args.algorithm} of {args.folder}: policies over options trained for {args.timesteps} steps "
+        f"({args.warm_up} of them the critic alone) on the frozen controllers, env {rows[0]['env_kwargs']}; "
+        f"{spec.episodes} evaluation episodes from seed {spec.eval_seed}"
     )
     print()
     print_table(rows)
