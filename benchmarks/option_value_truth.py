@@ -29,6 +29,7 @@ import argparse
 import copy
 import json
 import multiprocessing
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 from typing import Any
 
@@ -185,8 +186,10 @@ def main() -> None:
     pending = [c for c in args.critics if c not in estimates]
     jobs = [(c, args.broadcast_prob, args.broadcast_cost, args.timesteps, args.seed, states) for c in pending]
     if jobs:
-        with multiprocessing.get_context("spawn").Pool(min(args.workers, len(jobs))) as pool:
-            for critic, estimate in pool.imap_unordered(critic_estimates, jobs):
+        context = multiprocessing.get_context("spawn")  # a killed worker raises BrokenProcessPool, never hangs
+        with ProcessPoolExecutor(min(args.workers, len(jobs)), mp_context=context) as pool:
+            for future in as_completed([pool.submit(critic_estimates, job) for job in jobs]):
+                critic, estimate = future.result()
                 estimates[critic] = estimate
                 write()
                 print(f"{critic} trained, written to {args.out}", flush=True)
