@@ -53,9 +53,14 @@ from sb3_detc.evaluation import evaluate_episodes
 from sb3_detc.mappoc.policies import MlpHybridPolicy
 from sb3_detc.study.report import interval_estimates, interval_text
 from sb3_detc.study.spec import StudyError, Trial, load_folder_study
-from sb3_detc.study.trial import evaluate_policy_modes, read_status, replace_atomically, trial_folder
+from sb3_detc.study.trial import (
+    evaluate_policy_modes,
+    read_status,
+    replace_atomically,
+    trial_folder,
+    trial_manager,
+)
 from sb3_detc.triggers import PeriodicTrigger
-from sb3_detc.zoo import ExperimentManager
 
 #: Training steps of the policies over options (500 of the paper's iterations of 2048 steps).
 TIMESTEPS = 1_024_000
@@ -141,23 +146,7 @@ def build(job: dict[str, Any], log_folder: Path) -> tuple[Any, dict[str, Any]]:
     env_kwargs = env_settings(algorithm.entry, job)
     changes = {key: value for key, value in job["changes"].items() if key != "env_kwargs"}
     hyperparams = {**algorithm.hyperparams, **changes, "env_kwargs": env_kwargs, "callback": []}
-    args = argparse.Namespace(algo=algorithm.algo, env=spec.env, seed=trial.seed, n_timesteps=job["timesteps"])
-    manager = ExperimentManager(
-        args,
-        algorithm.algo,
-        spec.env,
-        log_folder=str(log_folder),
-        n_timesteps=job["timesteps"],
-        eval_freq=-1,
-        save_freq=-1,
-        log_interval=-1,
-        hyperparams=hyperparams,
-        seed=trial.seed,
-        verbose=0,
-        config=str(algorithm.conf),
-        device="cpu",
-    )
-    model, _ = manager.setup_experiment()
+    model, _ = trial_manager(spec, trial, log_folder, job["timesteps"], hyperparams).setup_experiment()
     saved = MlpHybridPolicy.load(str(path), device="cpu")
     differ = sorted(
         key

@@ -8,8 +8,11 @@ import sys
 from pathlib import Path
 
 import torch as th
+from stable_baselines3.common.env_util import make_vec_env
 
+from sb3_detc import MAPPOC
 from sb3_detc.mappoc.policies import MlpHybridPolicy
+from sb3_detc.triggers import PeriodicTrigger
 
 ROOT = Path(__file__).resolve().parents[1]
 SCRIPT = ROOT / "benchmarks" / "multiwalker_trigger_for_controller.py"
@@ -54,3 +57,15 @@ def test_the_periodic_trigger_nearest_in_savings() -> None:
 
     assert [script.nearest_period(s) for s in (0.0, 0.3, 0.5, 0.84, 0.875, 0.9, 0.99)] == [1, 2, 2, 6, 8, 10, 100]
     assert script.nearest_period(1.0) is None
+
+
+def test_progress_reports_every_given_rollout_with_the_last_rollouts_savings(capsys) -> None:
+    import multiwalker_trigger_for_controller as script
+
+    env = make_vec_env("sb3_detc/LinearETC-v0", n_envs=1, env_kwargs={"n_agents": 2, "max_cycles": 20})
+    model = MAPPOC("MlpHybridPolicy", env, n_steps=8, batch_size=8, n_epochs=1, seed=0)
+    model.set_fixed_trigger(PeriodicTrigger(4))  # a message every 4th step: savings 0.75 in every rollout
+    model.learn(8 * 5, callback=script.Progress("tiny", every=2))
+    lines = capsys.readouterr().out.splitlines()
+    assert [line.split(",")[0] for line in lines] == ["tiny: 16 steps", "tiny: 32 steps"]
+    assert all("savings in the last rollout 0.750" in line for line in lines)

@@ -387,6 +387,49 @@ def entry_fixed_trigger(entry: dict[str, Any]) -> Any:
     return triggers[0] if triggers else None
 
 
+def trial_manager(
+    spec: StudySpec,
+    trial: Trial,
+    log_folder: Path,
+    timesteps: int,
+    hyperparams: dict[str, Any] | None = None,
+    trained_agent: str = "",
+) -> ExperimentManager:
+    """rl-zoo3's experiment manager that builds a trial's model as the study trains it.
+
+    The trial's entry (with the study's overrides), its seed, on the CPU, without rl-zoo3's own
+    evaluation, checkpoints and console log.
+
+    :param spec: the study
+    :param trial: the trial
+    :param log_folder: where the manager writes its logs
+    :param timesteps: the steps to train
+    :param hyperparams: the entry to build from (None: the trial's)
+    :param trained_agent: a saved model to continue from ("": a new model)
+    :return: the manager; ``setup_experiment()`` builds the model
+    """
+    algorithm = trial.algorithm
+    args = argparse.Namespace(
+        algo=algorithm.algo, env=spec.env, seed=trial.seed, n_timesteps=timesteps, study=str(spec.path)
+    )
+    return ExperimentManager(
+        args,
+        algorithm.algo,
+        spec.env,
+        log_folder=str(log_folder),
+        n_timesteps=timesteps,
+        eval_freq=-1,
+        save_freq=-1,
+        log_interval=-1,
+        hyperparams=dict(algorithm.hyperparams if hyperparams is None else hyperparams),
+        trained_agent=trained_agent,
+        seed=trial.seed,
+        verbose=0,
+        config=str(algorithm.conf),
+        device="cpu",
+    )
+
+
 def _train(spec: StudySpec, trial: Trial, folder: Path, on_progress: Callable[[int], None] | None) -> None:
     """Train a trial to its budget (from its checkpoint if it has one) and save ``policy.pt`` and ``progress.csv``.
 
@@ -409,24 +452,8 @@ def _train(spec: StudySpec, trial: Trial, folder: Path, on_progress: Callable[[i
         start = int(data["num_timesteps"])
     if start >= budget:
         raise RuntimeError(f"the checkpoint of {trial.name} is at {start} steps, not below the budget {budget}")
-    args = argparse.Namespace(
-        algo=algorithm.algo, env=spec.env, seed=trial.seed, n_timesteps=budget, study=str(spec.path)
-    )
-    manager = ExperimentManager(
-        args,
-        algorithm.algo,
-        spec.env,
-        log_folder=str(folder / "segments"),
-        n_timesteps=budget - start,
-        eval_freq=-1,
-        save_freq=-1,
-        log_interval=-1,
-        hyperparams=dict(algorithm.hyperparams),
-        trained_agent=str(checkpoint) if start else "",
-        seed=trial.seed,
-        verbose=0,
-        config=str(algorithm.conf),
-        device="cpu",
+    manager = trial_manager(
+        spec, trial, folder / "segments", budget - start, trained_agent=str(checkpoint) if start else ""
     )
     drop_stale_segments(folder, start)
     segment = folder / "segments" / str(start)
