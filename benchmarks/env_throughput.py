@@ -58,12 +58,18 @@ BLOCK = 512
 
 @dataclass
 class Measurement:
-    """One timed run of one env."""
+    """One timed run of one env.
+
+    :param steps: steps taken in the run
+    :param seconds: timed seconds of env work (steps and resets)
+    :param episodes: episodes that ended inside the run
+    :param episode_steps: steps of those episodes
+    """
 
     steps: int
     seconds: float
-    episodes: int  # episodes that ended inside the run
-    episode_steps: int  # steps of those episodes
+    episodes: int
+    episode_steps: int
 
     @property
     def rate(self) -> float:
@@ -73,7 +79,15 @@ class Measurement:
 
 @dataclass
 class Bench:
-    """An env under test: how to reset it, step it and build its actions from sampled arrays."""
+    """An env under test: how to reset it, step it and build its actions from sampled arrays.
+
+    :param name: the env's name in the output
+    :param env: the env itself
+    :param n_agents: number of agents N
+    :param control_low: lower bounds of one agent's control (m,)
+    :param control_high: upper bounds of one agent's control (m,)
+    :param runs: the measurements so far, in order
+    """
 
     name: str
     env: Any
@@ -182,7 +196,10 @@ class ParallelBench(Bench):
 
 
 def make_benches() -> list[Bench]:
-    """The three envs, in measurement order."""
+    """The three envs, in measurement order.
+
+    :return: the joint Gymnasium env, our PettingZoo view and the stock PettingZoo env, each as a :class:`Bench`
+    """
     joint = gymnasium.make("sb3_detc/MultiwalkerETC-v0")
     joint_control = joint.action_space["control"]
     ours = multiwalker_etc_v0.parallel_env()
@@ -248,7 +265,10 @@ def measure(bench: Bench, seconds: float, seed: int, rng: np.random.Generator) -
 
 
 def cpu_model() -> str:
-    """The CPU's model name from ``/proc/cpuinfo`` (else :func:`platform.processor`, else ``unknown CPU``)."""
+    """The CPU's model name from ``/proc/cpuinfo`` (else :func:`platform.processor`, else ``unknown CPU``).
+
+    :return: the model name
+    """
     try:
         with open("/proc/cpuinfo", encoding="utf-8") as f:
             for line in f:
@@ -260,7 +280,10 @@ def cpu_model() -> str:
 
 
 def machine_line() -> str:
-    """The machine in one line: CPU, logical CPUs, OS, Python and the versions of the env libraries."""
+    """The machine in one line: CPU, logical CPUs, OS, Python and the versions of the env libraries.
+
+    :return: the line (no newline)
+    """
     versions = (
         f"numpy {np.__version__}, gymnasium {gymnasium.__version__}, pettingzoo {pettingzoo.__version__}, "
         f"Box2D {getattr(Box2D, '__version__', '?')}"

@@ -1,11 +1,13 @@
 """Sweeps of independent training jobs that keep every finished row and go on where they stopped.
 
 The benchmark scripts that train one model per job (``linear_learning.py``,
-``trigger_learning.py``, ``option_value_estimation.py``) run their jobs through :func:`run_rows`:
-jobs run in parallel processes, every finished job's rows are written to the results file at
-once (atomically), and a job whose rows are already in the file is not run again. An
-interruption (Ctrl-C, a failing or killed job) loses only the jobs that were running; the same
-command then runs only what is missing. A failing job stops the sweep with its traceback. A job
+``trigger_learning.py``, ``option_value_estimation.py``, ``multiwalker_trigger_for_controller.py``)
+run their jobs through :func:`run_rows`: jobs run in parallel processes, every finished job's rows
+are written to the results file at once (atomically), and a job whose rows are already in the file
+is not run again. An interruption (Ctrl-C, a killed job) loses only the jobs that were running; the
+same command then runs only what is missing. A failing job stops the sweep with its traceback once
+the jobs running beside it have finished and written their rows; jobs not yet started do not start.
+A job
 is identified by everything it is given (:func:`job_key`): the scripts put the settings they
 train with into their jobs, so a changed setting is a new job.
 """
@@ -16,7 +18,7 @@ import argparse
 import json
 import multiprocessing
 from collections.abc import Callable
-from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from functools import partial
 from pathlib import Path
 from typing import Any
@@ -105,19 +107,42 @@ def run_rows(
             context = multiprocessing.get_context("spawn")
             with ProcessPoolExecutor(min(workers, len(pending)), mp_context=context) as pool:
                 running = {pool.submit(_keyed, run, job) for job in pending}
+                failure: BaseException | None = None
                 try:
                     while running:
                         finished, running = wait(running, return_when=FIRST_COMPLETED)
                         for future in finished:
-                            key, new = future.result()  # a job's error: raised here with its traceback
+                            if future.cancelled():
+                                continue
+                            if future.exception() is not None:
+                                error = future.exception()
+                                failure = failure or error
+                                running = _cancel_waiting(running)
+                                print(
+                                    f"a job failed ({type(error).__name__}: {error}); "
+                                    f"the {len(running)} running beside it finish first",
+                                    flush=True,
+                                )
+                                continue
+                            key, new = future.result()
                             rows.extend({JOB: key, **row} for row in new)
                             replace_atomically(out, partial(_write, rows))
                             left = len(running)
                             print(f"a job finished, rows written to {out}; {left} to go", flush=True)
                 finally:
-                    for future in running:  # a failure or Ctrl-C: do not start what has not started
-                        future.cancel()
+                    _cancel_waiting(running)  # Ctrl-C: do not start what has not started
+                if failure is not None:
+                    raise failure  # with the job's traceback, after the jobs that were running kept their rows
     return [row for key in keys for row in rows if row.get(JOB) == key]
+
+
+def _cancel_waiting(futures: set[Future[Any]]) -> set[Future[Any]]:
+    """Cancel the jobs that have not started.
+
+    :param futures: the jobs' futures
+    :return: those of the jobs that were running already
+    """
+    return {future for future in futures if not future.cancel()}
 
 
 def _write(rows: Rows, path: Path) -> None:

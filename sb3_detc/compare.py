@@ -119,6 +119,7 @@ def controls_fixed(env_id: str) -> bool:
     controls are the env's.
 
     :param env_id: environment id
+    :return: True if a :class:`~sb3_detc.triggers.FixedControl` wrapper is among the env's wrappers
     """
     env = gym.make(env_id)
     try:

@@ -58,6 +58,7 @@ class RandomTrigger:
         """An independent copy with its own seed (one per rollout worker, see :mod:`sb3_detc.mappoc.workers`).
 
         :param seed: seed of the copy's random generator
+        :return: a :class:`RandomTrigger` with the same ``skip_prob`` and a generator of its own
         """
         return RandomTrigger(self.skip_prob, seed)
 
@@ -303,6 +304,7 @@ class FixedControl(gym.Wrapper):
         """Reset the env and remember the observation for the control law.
 
         :param kwargs: passed to the env's ``reset`` (``seed``, ``options``)
+        :return: the env's first observation and info
         """
         self._obs, info = self.env.reset(**kwargs)
         return self._obs, info
@@ -311,6 +313,8 @@ class FixedControl(gym.Wrapper):
         """Step with the action's options and the control law's controls.
 
         :param action: joint action; its ``control`` entry is ignored
+        :return: the env's observation, reward, terminated, truncated and info of the step
+        :raises RuntimeError: if ``reset`` was not called first
         """
         if self._obs is None:
             raise RuntimeError("FixedControl: call reset() before step().")

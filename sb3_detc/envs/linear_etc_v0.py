@@ -23,6 +23,7 @@ def parallel_env(broadcast_cost: float = 0.01, trigger: str = "default", **kwarg
     :param trigger: features of the policy over options (see :class:`EventTriggeredNetwork`);
         the default is the own state (position error and velocity)
     :param kwargs: keyword arguments of :class:`~sb3_detc.envs.linear.LinearSystem`
+    :return: an :class:`EventTriggeredNetwork` around a :class:`~sb3_detc.envs.linear.LinearSystem`
     """
     return EventTriggeredNetwork(LinearSystem(**kwargs), broadcast_cost=broadcast_cost, trigger=trigger)
 

@@ -125,6 +125,8 @@ class EtcBipedalWalker(BipedalWalker):
 
         Hull angle, angular velocity, vx, vy, then per leg hip angle, hip speed, knee angle,
         knee speed, foot contact, then hull x, y.
+
+        :return: the 16 values, in this order
         """
         hull = self.hull
         vel, pos = hull.linearVelocity, hull.position
@@ -137,7 +139,10 @@ class EtcBipedalWalker(BipedalWalker):
         )  # fmt: skip
 
     def get_observation(self) -> list[float]:
-        """Return the stock observation's first 14 values (no LIDAR is cast)."""
+        """Return the stock observation's first 14 values (no LIDAR is cast).
+
+        :return: the own state's first 14 values (:meth:`raw_state`) with the stock normalisation
+        """
         return (np.array(self.raw_state()[:14]) * _OWN_SCALE + _OWN_OFFSET).tolist()
 
 
@@ -460,6 +465,8 @@ class MultiwalkerSystem(CommunicatingSystem):
 
         :param broadcast: the step's options (N,) to mark above the walkers (a green disc: broadcast,
             a grey ring: silent); None: no marks
+        :return: the frame, RGB (400, 600, 3) uint8, with the marks if ``broadcast`` is given; None without
+            render mode
         """
         if self.render_mode is None:
             return None

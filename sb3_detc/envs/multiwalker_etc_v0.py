@@ -18,6 +18,7 @@ def parallel_env(broadcast_cost: float = 0.25, trigger: str = "default", **kwarg
     :param trigger: features of the policy over options (see :class:`EventTriggeredNetwork`);
         the default is the package information (dx, dy, angle) now and at the last broadcast
     :param kwargs: keyword arguments of :class:`~sb3_detc.envs.multiwalker.MultiwalkerSystem`
+    :return: an :class:`EventTriggeredNetwork` around a :class:`~sb3_detc.envs.multiwalker.MultiwalkerSystem`
     """
     return EventTriggeredNetwork(MultiwalkerSystem(**kwargs), broadcast_cost=broadcast_cost, trigger=trigger)
 

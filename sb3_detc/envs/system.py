@@ -93,6 +93,7 @@ class CommunicatingSystem(ParallelEnv):
         """Array-level step with input checks, see :meth:`_step_arrays`.
 
         :param control: controls, shape (N, m)
+        :return: observation, per-agent rewards (N,), terminated, truncated, info (of :meth:`_step_arrays`)
         :raises RuntimeError: if no episode is running (call reset first)
         :raises ValueError: on a wrong shape or non-finite controls
         """
@@ -174,7 +175,10 @@ class CommunicatingSystem(ParallelEnv):
         )
 
     def state(self) -> np.ndarray:
-        """Global state: every agent's local state and message, flattened."""
+        """Global state: every agent's local state and message, flattened.
+
+        :return: the local states (N * n_local) then the messages (N * n_msg) of the latest observation, float32
+        """
         obs = self.last_obs
         return np.concatenate([obs.local.ravel(), obs.message.ravel()]).astype(np.float32)
 

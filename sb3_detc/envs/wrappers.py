@@ -302,7 +302,11 @@ class EventTriggeredNetwork(BaseParallelWrapper):
         return self.system.render()
 
     def state(self) -> np.ndarray:
-        """Global state of the system (for centralised critics)."""
+        """Global state of the system (for centralised critics).
+
+        :return: the system's :meth:`~sb3_detc.envs.system.CommunicatingSystem.state`: every agent's local
+            state and message, flattened, float32
+        """
         return self.system.state()
 
 
@@ -367,6 +371,8 @@ class JointEnv(gym.Env):
         """Advance all agents by one step.
 
         :param action: ``{"broadcast": (N,) in {0, 1}, "control": (N, m)}``
+        :return: joint observation, the mean of the agents' rewards (with the communication cost),
+            terminated, truncated, info (that of :meth:`EventTriggeredNetwork.step_joint` with ``agent_rewards`` (N,))
         """
         if not isinstance(action, dict) or set(action) != {"broadcast", "control"}:
             got = sorted(action) if isinstance(action, dict) else type(action).__name__
@@ -376,7 +382,10 @@ class JointEnv(gym.Env):
         return obs, float(rewards.mean()), terminated, truncated, info
 
     def render(self) -> np.ndarray | None:
-        """Render the physical system, the last step's broadcasts marked (:meth:`EventTriggeredNetwork.render`)."""
+        """Render the physical system, the last step's broadcasts marked (:meth:`EventTriggeredNetwork.render`).
+
+        :return: the system's frame (None without render mode)
+        """
         return self.network.render()
 
     def close(self) -> None:

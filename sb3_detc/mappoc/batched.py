@@ -100,16 +100,27 @@ class BatchedMLP(nn.Module):
 
 
 class NetSpec(NamedTuple):
-    """Shape of one per-agent network."""
+    """Shape of one per-agent network.
 
-    in_features: int  # input width, without the one-hot agent id of shared parameters
+    :param in_features: input width, without the one-hot agent id of shared parameters
+    :param out_features: output width
+    :param hidden: hidden layer sizes
+    :param gain: orthogonal-init gain of the output layer
+    """
+
+    in_features: int
     out_features: int
-    hidden: tuple[int, ...]  # hidden layer sizes
-    gain: float  # orthogonal-init gain of the output layer
+    hidden: tuple[int, ...]
+    gain: float
 
 
 class NetLocation(NamedTuple):
-    """Where a network lives: its groups ``start:stop`` of chain ``chain``."""
+    """Where a network lives: its groups ``start:stop`` of chain ``chain``.
+
+    :param chain: index of the chain (a :class:`BatchedMLP` of :class:`AgentBatchedNetworks`)
+    :param start: the network's first group in the chain
+    :param stop: one past its last group
+    """
 
     chain: int
     start: int
@@ -121,10 +132,16 @@ class ChainInput(NamedTuple):
 
     ``variants`` > 1 evaluates every network on several inputs per sample (the afterstate
     critic's two own options).
+
+    :param chain: index of the chain
+    :param nets: consecutive networks of the chain these inputs feed, in chain order
+    :param x: the inputs, shaped (groups, B, variants x agents per group, width), zero-padded to the chain's
+        input width; the groups of ``nets`` one after the other
+    :param variants: inputs per sample
     """
 
-    chain: int  # index of the chain
-    nets: tuple[str, ...]  # consecutive networks of the chain these inputs feed, in chain order
+    chain: int
+    nets: tuple[str, ...]
     x: th.Tensor
     variants: int = 1
 
@@ -200,6 +217,7 @@ class AgentBatchedNetworks(nn.ModuleList):
         """Where network ``net`` lives: its chain and its groups there.
 
         :param net: name of the network
+        :return: its :class:`NetLocation`
         """
         return self._locations[net]
 

@@ -12,19 +12,32 @@ from stable_baselines3.common.utils import get_device
 
 
 class HybridRolloutSamples(NamedTuple):
-    """A minibatch of hybrid transitions; B samples, N agents."""
+    """A minibatch of hybrid transitions; B samples, N agents.
 
-    observations: dict[str, th.Tensor]  # (B, N, ...) joint observations before the options
-    broadcast: th.Tensor  # (B, N) options taken
-    control: th.Tensor  # (B, N, m) controls taken (unclipped, with exploration noise)
-    old_log_prob_broadcast: th.Tensor  # (B, N)
-    old_log_prob_control: th.Tensor  # (B, N)
-    advantages: th.Tensor  # (B, N) GAE advantages
-    returns: th.Tensor  # (B, N) lambda-returns, targets of Q_i(s, o_taken)
-    broadcast_advantages: th.Tensor  # (B, N) lambda-return minus V_i(s) = sum_o mu_i(o) Q_i(s, o) at collection
-    broadcast_price: th.Tensor  # (B, N) the learner's reward lost by the own broadcast (afterstate critic)
-    behaviour_log_prob_broadcast: th.Tensor  # (B, N) under the policy that sampled the options
-    behaviour_log_prob_control: th.Tensor  # (B, N) under the policy that sampled the controls
+    :param observations: joint observations before the options, (B, N, ...) per key
+    :param broadcast: options taken (B, N)
+    :param control: controls taken (B, N, m), unclipped, with exploration noise
+    :param old_log_prob_broadcast: ``log mu_i(o_i)`` (B, N) under the policy whose update the rollout feeds
+    :param old_log_prob_control: ``log pi_i(u_i)`` (B, N) under the policy whose update the rollout feeds
+    :param advantages: GAE advantages (B, N)
+    :param returns: lambda-returns (B, N), targets of ``Q_i(s, o_taken)``
+    :param broadcast_advantages: lambda-return minus ``V_i(s) = sum_o mu_i(o) Q_i(s, o)`` at collection (B, N)
+    :param broadcast_price: the learner's reward lost by the own broadcast (B, N) (afterstate critic)
+    :param behaviour_log_prob_broadcast: ``log mu_i(o_i)`` (B, N) under the policy that sampled the options
+    :param behaviour_log_prob_control: ``log pi_i(u_i)`` (B, N) under the policy that sampled the controls
+    """
+
+    observations: dict[str, th.Tensor]
+    broadcast: th.Tensor
+    control: th.Tensor
+    old_log_prob_broadcast: th.Tensor
+    old_log_prob_control: th.Tensor
+    advantages: th.Tensor
+    returns: th.Tensor
+    broadcast_advantages: th.Tensor
+    broadcast_price: th.Tensor
+    behaviour_log_prob_broadcast: th.Tensor
+    behaviour_log_prob_control: th.Tensor
 
     def select(self, idx: th.Tensor) -> HybridRolloutSamples:
         """The samples ``idx`` of the batch axis.
@@ -219,6 +232,8 @@ class HybridRolloutBuffer:
 
         :param partial: also before the rollout is complete (steps not stored yet hold zeros or
             an earlier rollout's values: inputs of the right shapes, e.g. to compile the update)
+        :return: all ``buffer_size * n_envs`` samples, step by step (the envs of a step together), on the
+            buffer's device
         :raises RuntimeError: if the rollout is incomplete and ``partial`` is False
         """
         if not (self.full or partial):
@@ -253,6 +268,8 @@ class HybridRolloutBuffer:
         Select a minibatch of :meth:`tensors` with ``HybridRolloutSamples.select``.
 
         :param batch_size: samples per minibatch
+        :return: a generator of 1-D index tensors, together one random permutation of all
+            ``buffer_size * n_envs`` samples
         """
         total = self.buffer_size * self.n_envs
         order = th.randperm(total, device=self.device)

@@ -28,16 +28,26 @@ BROADCAST_ADVANTAGES = ("greedy", "return")
 
 
 class UpdateInputs(NamedTuple):
-    """What every gradient step of one update needs besides the minibatch's indices."""
+    """What every gradient step of one update needs besides the minibatch's indices.
 
-    inputs: list[ChainInput]  # stacked network inputs of the whole rollout (MlpHybridPolicy.training_inputs)
-    samples: HybridRolloutSamples  # the rollout's tensors (observations not needed)
-    p_broadcast: th.Tensor  # (B, N) probabilities of broadcasting with which the options were drawn
-    clip_pi: float | th.Tensor  # clip range of pi
-    clip_mu: float | th.Tensor  # clip range of mu
-    zeta: float | th.Tensor  # broadcast entropy coefficient
-    train_pi: bool  # whether pi's loss is part of the loss
-    train_mu: bool  # whether mu's loss and entropy bonus are part of the loss
+    :param inputs: stacked network inputs of the whole rollout (``MlpHybridPolicy.training_inputs``)
+    :param samples: the rollout's tensors (observations not needed)
+    :param p_broadcast: probabilities of broadcasting with which the options were drawn (B, N)
+    :param clip_pi: clip range of pi
+    :param clip_mu: clip range of mu
+    :param zeta: broadcast entropy coefficient
+    :param train_pi: whether pi's loss is part of the loss
+    :param train_mu: whether mu's loss and entropy bonus are part of the loss
+    """
+
+    inputs: list[ChainInput]
+    samples: HybridRolloutSamples
+    p_broadcast: th.Tensor
+    clip_pi: float | th.Tensor
+    clip_mu: float | th.Tensor
+    zeta: float | th.Tensor
+    train_pi: bool
+    train_mu: bool
 
 
 def clipped_surrogate_loss(
@@ -78,6 +88,7 @@ def broadcast_gap_scale(option_values: th.Tensor) -> th.Tensor:
     """Every agent's root mean square broadcast gap ``Q(1) - Q(0)`` over a batch, detached, (N,).
 
     :param option_values: ``Q_i(s, o)`` for both options, (B, N, 2)
+    :return: the scales (N,), each plus 1e-8 so that it is never zero
     """
     gap = option_values.detach()[..., 1] - option_values.detach()[..., 0]
     return gap.pow(2).mean(0).sqrt() + 1e-8
@@ -87,6 +98,7 @@ def unchanged(advantages: th.Tensor) -> th.Tensor:
     """Advantages as they are (:class:`MAPPOCLoss` without ``normalize_advantage``).
 
     :param advantages: advantages (B, N)
+    :return: ``advantages`` itself
     """
     return advantages
 
@@ -95,6 +107,8 @@ def standardized(advantages: th.Tensor) -> th.Tensor:
     """Advantages standardised per agent over the batch, (B, N) (unchanged for a batch of one).
 
     :param advantages: advantages (B, N)
+    :return: every agent's advantages minus their mean over the batch, divided by their standard deviation
+        (plus 1e-8), (B, N); ``advantages`` itself for a batch of one
     """
     if len(advantages) > 1:
         return (advantages - advantages.mean(0)) / (advantages.std(0) + 1e-8)

@@ -65,22 +65,35 @@ COMPILE_FROM_TIMESTEPS = 200_000
 
 
 class Rollout(NamedTuple):
-    """Steps of all envs as sampled, before the learner takes them in (T steps, n_envs envs)."""
+    """Steps of all envs as sampled, before the learner takes them in (T steps, n_envs envs).
 
-    observations: dict[str, np.ndarray]  # (T, n_envs, N, ...) before every step
-    broadcast: np.ndarray  # (T, n_envs, N) options
-    control: np.ndarray  # (T, n_envs, N, m) sampled controls (before clipping to the bounds)
-    dones: np.ndarray  # (T, n_envs) episode ends
-    infos: list[list[dict[str, Any]]]  # T lists of n_envs infos; at an episode end also "reset_info"
-    last_obs: dict[str, np.ndarray]  # (n_envs, N, ...) after the last step
+    :param observations: joint observations before every step, (T, n_envs, N, ...) per key
+    :param broadcast: options (T, n_envs, N)
+    :param control: sampled controls (T, n_envs, N, m), before clipping to the bounds
+    :param dones: episode ends (T, n_envs)
+    :param infos: T lists of n_envs infos; at an episode end also ``"reset_info"``
+    :param last_obs: joint observations after the last step, (n_envs, N, ...) per key
+    """
+
+    observations: dict[str, np.ndarray]
+    broadcast: np.ndarray
+    control: np.ndarray
+    dones: np.ndarray
+    infos: list[list[dict[str, Any]]]
+    last_obs: dict[str, np.ndarray]
 
 
 class PendingRollout(NamedTuple):
-    """A rollout that the rollout workers sample while the learner updates (``overlap_rollouts``)."""
+    """A rollout that the rollout workers sample while the learner updates (``overlap_rollouts``).
 
-    rollout: Future[Rollout]  # the workers' steps, once they are done
-    behaviour: dict[str, th.Tensor]  # the policy's parameters that sample it (a copy)
-    trigger: FixedTrigger | None  # the fixed trigger that takes its options (None: mu)
+    :param rollout: the workers' steps, once they are done
+    :param behaviour: the policy's parameters that sample it (a copy)
+    :param trigger: the fixed trigger that takes its options (None: mu)
+    """
+
+    rollout: Future[Rollout]
+    behaviour: dict[str, th.Tensor]
+    trigger: FixedTrigger | None
 
 
 def default_n_envs() -> int:
@@ -88,6 +101,8 @@ def default_n_envs() -> int:
 
     A power of two (the largest not above the cores), so that the paper's iteration of 2048
     steps divides evenly among the workers.
+
+    :return: the number of envs: 1, 2, 4 or 8
     """
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
     return 1 << (max(1, min(cores, 8)).bit_length() - 1)
@@ -106,6 +121,8 @@ def make_rollout_workers(env_id: str, n_envs: int, seed: int | None = None) -> V
     :param env_id: a registered joint env id, e.g. ``"sb3_detc/MultiwalkerETC-v0"``
     :param n_envs: number of envs (>= 1)
     :param seed: seed of the envs (None: random)
+    :return: a ``SubprocVecEnv`` of the envs when there are several and the worker processes could make them,
+        else a ``DummyVecEnv``
     """
     if n_envs > 1:
         try:
@@ -1046,6 +1063,7 @@ class MAPPOC(OnPolicyAlgorithm):
         :param print_system_info: print the system info of the saved model and the current one
         :param force_reset: force a reset of the environment before the next ``learn``
         :param kwargs: attributes to change on the loaded model
+        :return: the loaded model (with ``env`` attached, if given)
         :raises FileNotFoundError: if there is no file at ``path``
         :raises ValueError: if the environment has another number of agents than the model or
             normalises the network's observations (see :func:`check_observation_normalization`)
@@ -1078,7 +1096,10 @@ class MAPPOC(OnPolicyAlgorithm):
 
 
 def has_cxx_compiler() -> bool:
-    """Whether ``torch.compile`` finds a C++ compiler for CPU code."""
+    """Whether ``torch.compile`` finds a C++ compiler for CPU code.
+
+    :return: True if a compiler is found
+    """
     from torch._inductor import cpp_builder, exc
 
     try:
@@ -1107,6 +1128,7 @@ def has_rollout_workers(env: VecEnv) -> bool:
     the learner's process.
 
     :param env: the training env
+    :return: True if it is a ``DummyVecEnv`` or ``SubprocVecEnv`` whose envs have ``collect_rollout``
     """
     return isinstance(env, (DummyVecEnv, SubprocVecEnv)) and env.has_attr("collect_rollout")
 

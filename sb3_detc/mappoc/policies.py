@@ -69,22 +69,35 @@ def drawn_broadcast_probability(broadcast: th.Tensor, log_prob_broadcast: th.Ten
 
 
 class HybridAction(NamedTuple):
-    """One joint hybrid action of all agents with what training needs about it."""
+    """One joint hybrid action of all agents with what training needs about it.
 
-    broadcast: th.Tensor  # (B, N) options, int64
-    control: th.Tensor  # (B, N, m) controls (with any extra exploration noise, unclipped)
-    log_prob_broadcast: th.Tensor  # (B, N) log mu_i(o_i)
-    log_prob_control: th.Tensor  # (B, N) log pi_i(u_i)
-    option_values: th.Tensor  # (B, N, 2) Q_i(s, o) for both options
+    :param broadcast: options (B, N), int64
+    :param control: controls (B, N, m), with any extra exploration noise, unclipped
+    :param log_prob_broadcast: ``log mu_i(o_i)`` (B, N)
+    :param log_prob_control: ``log pi_i(u_i)`` (B, N)
+    :param option_values: ``Q_i(s, o)`` for both options (B, N, 2)
+    """
+
+    broadcast: th.Tensor
+    control: th.Tensor
+    log_prob_broadcast: th.Tensor
+    log_prob_control: th.Tensor
+    option_values: th.Tensor
 
 
 class HybridEvaluation(NamedTuple):
-    """Log-probabilities, broadcast entropy and option values of stored hybrid actions."""
+    """Log-probabilities, broadcast entropy and option values of stored hybrid actions.
 
-    log_prob_broadcast: th.Tensor  # (B, N)
-    entropy_broadcast: th.Tensor  # (B, N)
-    log_prob_control: th.Tensor  # (B, N)
-    option_values: th.Tensor  # (B, N, 2)
+    :param log_prob_broadcast: ``log mu_i(o_i)`` of the stored options under the current ``mu`` (B, N)
+    :param entropy_broadcast: entropy of every agent's current ``mu`` (B, N)
+    :param log_prob_control: ``log pi_i(u_i)`` of the stored controls under the current ``pi`` (B, N)
+    :param option_values: ``Q_i(s, o)`` for both options under the current critic (B, N, 2)
+    """
+
+    log_prob_broadcast: th.Tensor
+    entropy_broadcast: th.Tensor
+    log_prob_control: th.Tensor
+    option_values: th.Tensor
 
 
 def gaussian_log_prob(x: th.Tensor, mean: th.Tensor, log_std: th.Tensor) -> th.Tensor:
@@ -402,6 +415,9 @@ class MlpHybridPolicy(BasePolicy):
 
         :param obs: joint observations (B, N, ...) from before the options
         :param broadcast: stored options (B, N)
+        :return: the inputs of ``mu``, ``q`` and ``pi`` arranged for the batched chains, one
+            :class:`~sb3_detc.mappoc.batched.ChainInput` per run of networks (see
+            :meth:`~sb3_detc.mappoc.batched.AgentBatchedNetworks.stack`)
         """
         return self.chains.stack(
             {
@@ -547,6 +563,7 @@ class MlpHybridPolicy(BasePolicy):
         :param broadcast_price: cost of a broadcast in the learner's reward units (B, N), see :meth:`option_values`
         :param p_broadcast: probabilities of broadcasting with which ``broadcast`` was drawn (B, N),
             see :meth:`option_values` (None: those of the current ``mu``)
+        :return: log-probabilities, broadcast entropy and option values, as :class:`HybridEvaluation`
         """
         return self.evaluate_inputs(
             self.training_inputs(obs, broadcast), broadcast, control, broadcast_price, p_broadcast
@@ -568,6 +585,7 @@ class MlpHybridPolicy(BasePolicy):
         :param broadcast_price: cost of a broadcast in the learner's reward units (B, N), see :meth:`option_values`
         :param p_broadcast: probabilities of broadcasting with which ``broadcast`` was drawn (B, N),
             see :meth:`option_values` (None: those of the current ``mu``)
+        :return: log-probabilities, broadcast entropy and option values, as :class:`HybridEvaluation`
         """
         out = self.chains.evaluate(stacked)
         log_p = F.log_softmax(out["mu"], dim=-1)
@@ -738,6 +756,7 @@ class AgentController(nn.Module):
         :param trigger_held: own trigger features at the own last broadcast (n_trig,)
         :param deterministic: the most likely option instead of a sample if
             :attr:`deterministic_options` is True (else a sample either way)
+        :return: True to broadcast, False to stay silent
         """
         x = th.as_tensor(np.concatenate([trigger, trigger_held]), dtype=th.float32)
         logits = self.option_net(self._with_id(x))

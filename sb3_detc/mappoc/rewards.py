@@ -19,6 +19,7 @@ def agent_rewards(infos: list[dict[str, Any]]) -> np.ndarray:
     """The per-agent rewards in a list of infos (e.g. every env's of one step), (len(infos), N), checked to be finite.
 
     :param infos: infos, each with ``agent_rewards`` (N,)
+    :return: the rewards as float32, one row per info (len(infos), N)
     :raises ValueError: if an info lacks ``agent_rewards`` or a reward is not finite
     """
     try:
@@ -80,7 +81,11 @@ class RewardTransform:
         return np.clip(rewards / self.spread(), -10.0, 10.0).astype(np.float32)
 
     def spread(self) -> np.ndarray | float:
-        """What rewards are divided by when normalising: every agent's return standard deviation (1 before)."""
+        """What rewards are divided by when normalising: every agent's return standard deviation (1 before).
+
+        :return: ``sqrt(var + 1e-8)`` of every agent's discounted return (N,), or 1.0 when not normalising
+            or before the first step
+        """
         if not self.normalize or self.return_rms is None:
             return 1.0
         return np.sqrt(self.return_rms.var + 1e-8)
@@ -92,6 +97,7 @@ class RewardTransform:
         shared by the team, divided by the return spread; the clipping is ignored).
 
         :param broadcast_cost: communication cost of every env (n_envs,)
+        :return: the price of every agent's broadcast in every env, float32 (n_envs, N)
         """
         price = np.repeat(broadcast_cost[:, None] * self.scale, self.n_agents, axis=1)
         if self.team:

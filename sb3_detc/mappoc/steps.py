@@ -34,6 +34,7 @@ def fusable_adam(optimizer: th.optim.Optimizer) -> bool:
     AMSGrad, maximisation, or differentiable or tensor-valued hyperparameters.
 
     :param optimizer: the policy's optimizer
+    :return: True if the fused update can replace the optimizer's step
     """
     if type(optimizer) is not th.optim.Adam or len(optimizer.param_groups) != 1:
         return False

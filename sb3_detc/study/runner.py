@@ -190,7 +190,11 @@ class StudyProgress:
         return len(self.budgets) - len(self.running) - len(self.finished_names)
 
     def rate(self) -> float:
-        """Steps per second of all running trials together (NaN before two reports)."""
+        """Steps per second of all running trials together (NaN before two reports).
+
+        :return: the sum of every running trial's steps per second over its last :data:`RATE_WINDOW` seconds
+            of reports, or NaN if none advanced yet
+        """
         total = 0.0
         for name in self.running:
             samples = self.history.get(name)
@@ -199,7 +203,11 @@ class StudyProgress:
         return total if total > 0 else math.nan
 
     def seconds_left(self) -> float:
-        """Estimated seconds until every trial has trained (evaluation not counted)."""
+        """Estimated seconds until every trial has trained (evaluation not counted).
+
+        :return: the steps still to train divided by :meth:`rate`: 0.0 when none are left, NaN while the
+            rate is not known
+        """
         left = sum(
             max(0, budget - self.steps.get(name, 0))
             for name, budget in self.budgets.items()
@@ -208,7 +216,11 @@ class StudyProgress:
         return left / self.rate() if left > 0 else 0.0
 
     def line(self) -> str:
-        """The progress line."""
+        """The progress line.
+
+        :return: the line: trials done, running (each with its share of the budget trained), pending,
+            failed and stopped, and the time left
+        """
         running = ", ".join(
             # A budget below one iteration trains the whole iteration: 100 %, not more.
             f"{name} {100 * min(1.0, self.steps.get(name, 0) / self.budgets[name]):.0f} %"

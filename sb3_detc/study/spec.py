@@ -5,7 +5,7 @@ A study file is YAML::
     env: sb3_detc/MultiwalkerETC-v0      # registered environment id
     seeds: [0, 1, 2, 3, 4]               # default seeds of every algorithm
     n_timesteps: 6144000                 # optional: training budget (default: each entry's own)
-    checkpoint_interval: 204800          # environment steps between checkpoints
+    checkpoint_interval: 204800          # optional: environment steps between checkpoints (default: 100000)
     evaluation:                          # optional
       episodes: 50                       # seeded episodes per mode (the same for every trial)
       seed: 10000                        # seed of the first episode (episode k: seed + k)
@@ -24,7 +24,10 @@ The entry of ``env`` is taken from the package's hyperparameter file of the algo
 (``sb3_detc/hyperparams/<algo>.yml``) unless ``conf`` names another one. A trial uses as
 many cores as its entry's rollout workers (``n_envs`` with
 :class:`~sb3_detc.mappoc.workers.RolloutWorker` envs), otherwise one; its learner uses as many
-torch threads (the workers wait while it updates, and it waits while they collect).
+torch threads. Without MAPPOC's ``overlap_rollouts`` the workers wait while the learner updates,
+and it waits while they collect; with it (on in the Multiwalker entries of the package's
+hyperparameter files, e.g. ``sb3_detc/hyperparams/mappoc.yml``) the workers sample the next
+rollout during the update, at a lower scheduling priority, while the learner updates with one thread.
 """
 
 from __future__ import annotations
@@ -143,6 +146,8 @@ class StudySpec:
         """Every (algorithm, seed) trial: each algorithm's first seed (in the file's order), then the second ones, ...
 
         Run in this order, a study has comparable results of every algorithm early.
+
+        :return: the trials, in this order
         """
         trials = [
             (k, a, Trial(algorithm, seed))
@@ -239,7 +244,9 @@ def _algorithm(
     :raises StudyError: on the first problem of the algorithm's settings or of its entry
     """
     if not isinstance(label, str) or not label or "/" in label or label.startswith("."):
-        raise _fail(path, f"an algorithm label must be a non-empty name without '/', got {label!r}")
+        raise _fail(
+            path, f"an algorithm label must be a non-empty name without '/', not starting with '.', got {label!r}"
+        )
     if not isinstance(settings, dict):
         raise _fail(path, f"algorithm {label!r} needs a mapping with at least 'algo', got {settings!r}")
     _unknown(path, f"algorithm {label!r}", settings, ALGORITHM_KEYS)
@@ -311,6 +318,7 @@ def same_study(first: Any, second: Any) -> bool:
 
     :param first: a parsed study file
     :param second: another
+    :return: True if they are equal once the hyperparameter overrides of every algorithm carry the current names
     """
 
     def renamed(content: Any) -> Any:

@@ -404,7 +404,7 @@ def trial_manager(
     :param trial: the trial
     :param log_folder: where the manager writes its logs
     :param timesteps: the steps to train
-    :param hyperparams: the entry to build from (None: the trial's)
+    :param hyperparams: settings over the conf file's entry (None: the study's, ``trial.algorithm.hyperparams``)
     :param trained_agent: a saved model to continue from ("": a new model)
     :return: the manager; ``setup_experiment()`` builds the model
     """
