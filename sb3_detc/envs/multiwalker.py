@@ -138,13 +138,6 @@ class EtcBipedalWalker(BipedalWalker):
             pos.x, pos.y,
         )  # fmt: skip
 
-    def get_observation(self) -> list[float]:
-        """Return the stock observation's first 14 values (no LIDAR is cast).
-
-        :return: the own state's first 14 values (:meth:`raw_state`) with the stock normalisation
-        """
-        return (np.array(self.raw_state()[:14]) * _OWN_SCALE + _OWN_OFFSET).tolist()
-
 
 class EtcContactDetector(ContactDetector):
     """Stock contact rules with hash look-ups instead of Python loops over all walkers per contact.
