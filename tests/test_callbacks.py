@@ -252,20 +252,27 @@ def test_noise_schedules_in_a_callback_list_combine_by_their_maximum(decay_first
 
 
 # --------------------------------------------------------------------------- two stages
+def optimizer_rate(model: MAPPOC) -> float:
+    """The learning rate in the optimizer: the one that train() set for its last update."""
+    return model.policy.optimizer.param_groups[0]["lr"]
+
+
 class Stages(BaseCallback):
-    """Records per rollout the options' source, which levels train and the learning rate of the update."""
+    """Records per rollout the options' source, which levels train and the optimizer's learning rate at its start."""
 
     def __init__(self) -> None:
         super().__init__()
         self.rows: list[tuple[Any, bool, bool]] = []
-        self.learning_rates: list[float] = []
+        self.rates_at_start: list[float] = []  # of the update before the rollout (the first: the initial rate)
 
     def _on_rollout_start(self) -> None:
         model = self.model
         self.rows.append((model.fixed_trigger, model.train_broadcast_policy, model.train_control_policy))
+        self.rates_at_start.append(optimizer_rate(model))
 
-    def _on_rollout_end(self) -> None:
-        self.learning_rates.append(self.model.lr_schedule(self.model._current_progress_remaining))
+    def update_rates(self) -> list[float]:
+        """The learning rate of every update so far, after learn() returned: each rollout's is read at the next."""
+        return [*self.rates_at_start[1:], optimizer_rate(self.model)]
 
     def _on_step(self) -> bool:
         return True
@@ -291,8 +298,9 @@ def test_control_first_trains_pi_under_random_skips_then_mu_for_the_frozen_pi(un
         (False, True, False),
     ]
     assert isinstance(stages.trigger, RandomTrigger) and stages.trigger.skip_prob == 0.7
-    assert levels.learning_rates == [1e-3, 1e-3, 5e-4, 5e-4]
-    assert model.policy.optimizer.param_groups[0]["lr"] == 5e-4
+    assert levels.update_rates() == [1e-3, 1e-3, 5e-4, 5e-4]
+    # The logged rates agree (the update of an iteration is dumped with the next iteration).
+    assert [row["train/learning_rate"] for row in capture.rows[1:]] == levels.update_rates()[:-1]
     # Stage 1: random options at the rate asked for, mu unchanged, pi trained.
     broadcast = np.array([info["broadcast"] for step in record.infos for info in step])
     assert abs(broadcast.mean() - 0.3) < 4 * math.sqrt(0.3 * 0.7 / broadcast.size)
@@ -306,7 +314,7 @@ def test_control_first_without_a_learning_rate_keeps_the_models() -> None:
     model = make_model(n_steps=8)
     levels = Stages()
     model.learn(8 * 3, callback=[ControlFirstCallback(1), levels])
-    assert levels.learning_rates == [1e-3] * 3
+    assert levels.update_rates() == [1e-3] * 3
     assert [trigger is None for trigger, _, _ in levels.rows] == [False, True, True]
     assert model.normalize_reward is False
 
@@ -641,7 +649,6 @@ def test_comm_metrics_package_travel_and_fall_rate_in_multiwalker() -> None:
 def test_paper_setup_runs_end_to_end_on_multiwalker() -> None:
     """The README's usage: MAPPOC on Multiwalker with the curriculum and the metrics."""
     from stable_baselines3.common.callbacks import CallbackList
-    from stable_baselines3.common.logger import configure
 
     from sb3_detc import MAPPOC
     from sb3_detc.callbacks import CommMetricsCallback, CurriculumCallback
@@ -649,12 +656,21 @@ def test_paper_setup_runs_end_to_end_on_multiwalker() -> None:
 
     model = MAPPOC("MlpHybridPolicy", "sb3_detc/MultiwalkerETC-v0", n_steps=128, n_epochs=1, seed=0)
     assert model.n_envs == default_n_envs()  # the fast setting: rollout workers built from the id
-    model.set_logger(configure(None, []))
+    capture = capture_logger(model)
     model.learn(2 * 128 * model.n_envs, callback=CallbackList([CurriculumCallback(), CommMetricsCallback()]))
-    logged = model.logger.name_to_value
     assert model.action_noise_std == pytest.approx(0.25 * (1 - 1 / 900))  # phase I, iteration 1
-    assert 0.0 <= logged["comm/savings"] <= 1.0
-    assert logged["train/broadcast_ent_coef"] == pytest.approx(3.2)
+    assert len(capture.rows) == 2  # one dump per iteration, before its update
+    first, second = capture.rows
+    # The metrics of the second rollout count the broadcasts that its buffer holds (the update leaves them).
+    broadcast = model.rollout_buffer.broadcast  # (n_steps, n_envs, N)
+    assert broadcast.shape[-1] == 3 and 0 < broadcast.mean() < 1
+    for i in range(3):
+        assert second[f"comm/savings_agent_{i}"] == pytest.approx(1 - broadcast[..., i].mean()), i
+    assert second["comm/savings"] == pytest.approx(1 - broadcast.mean())
+    # The first update's broadcast rate (dumped with the second iteration) is one minus the first rollout's savings.
+    assert second["rollout/broadcast_rate"] == pytest.approx(1 - first["comm/savings"])
+    assert second["train/broadcast_ent_coef"] == pytest.approx(3.2)
+    assert model.logger.name_to_value["train/broadcast_ent_coef"] == pytest.approx(3.2)  # the second update's
 
 
 @pytest.mark.parametrize("workers", [False, True])
@@ -672,5 +688,6 @@ def test_package_travel_starts_from_each_episodes_own_reset(workers: bool) -> No
     capture = capture_logger(model)
     model.learn(80, callback=CommMetricsCallback())
     assert model.last_rollout_in_workers is workers
+    assert len(capture.rows) == 1  # one rollout of 2 x 40 steps
     assert all(row["comm/episodes"] >= 6 for row in capture.rows)
     assert all(abs(row["comm/package_travel"]) < 0.5 for row in capture.rows)

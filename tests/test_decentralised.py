@@ -1,6 +1,7 @@
 """Decentralised execution (per-agent controllers and inboxes) acts exactly like the joint policy."""
 
 import importlib.util
+import re
 from pathlib import Path
 
 import numpy as np
@@ -156,4 +157,12 @@ def test_example_runs(tmp_path, capsys) -> None:
     fresh_model(multiwalker_etc_v0, {}, share_parameters=False).save(tmp_path / "model.zip")
     example.main(["--model", str(tmp_path / "model.zip"), "--episodes", "1"])
     out = capsys.readouterr().out
-    assert "episode 0:" in out and "package travel" in out and "saved)" in out
+    number = r"(-?\d+(?:\.\d+)?)"
+    walkers = ", ".join(rf"walker_{i} {number} \(\d+% saved\)" for i in range(3))
+    line = re.search(rf"episode 0: (\d+) steps, return {number}, package travel {number} m \| {walkers}", out)
+    assert line is not None, out
+    steps, team_return, travel, *walker_returns = (float(value) for value in line.groups())
+    assert 0 < steps < 400  # the untrained walkers fall before the time limit of 400 steps
+    # The team return is the walkers' mean (each printed to 0.1).
+    assert team_return == pytest.approx(np.mean(walker_returns), abs=0.11)
+    assert abs(travel) < 10  # an untrained team carries the package a few metres at most

@@ -44,7 +44,15 @@ def test_side_by_side_matches_one_after_another(monkeypatch: pytest.MonkeyPatch,
 def test_sampled_options_side_by_side_are_recorded_per_episode(policy) -> None:
     episodes = evaluate_episodes(policy, gym.make(ENV_ID, **SETTINGS), [1, 2, 3], deterministic_broadcast=False)
     assert episodes.broadcasts.shape == (3, 2) and (episodes.lengths == SETTINGS["max_cycles"]).all()
-    assert 0.0 <= episodes.savings <= 1.0
+    broadcasts = episodes.broadcasts
+    assert np.array_equal(broadcasts, np.round(broadcasts)) and ((broadcasts >= 0) & (broadcasts <= 15)).all()
+    assert 0 < broadcasts.sum() < 3 * 2 * 15  # sampled options: some broadcasts, not at every step
+    # Savings: one minus the broadcasts per agent-step, over 3 episodes x 2 agents x 15 steps.
+    assert episodes.savings == pytest.approx(1 - broadcasts.sum() / 90, abs=1e-12)
+    # Known options: every third step, 5 broadcasts per agent and episode.
+    periodic = evaluate_episodes(policy, gym.make(ENV_ID, **SETTINGS), [1, 2, 3], fixed_trigger=PeriodicTrigger(3))
+    np.testing.assert_array_equal(periodic.broadcasts, np.full((3, 2), 5))
+    assert periodic.savings == pytest.approx(2 / 3, abs=1e-12)
 
 
 @pytest.mark.parametrize("deterministic_options", [False, True])

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import importlib
 import os
+import re
 import subprocess
 import sys
 from collections.abc import Iterator
@@ -145,9 +146,23 @@ def test_example_trains_evaluates_and_runs_decentralised(example: ModuleType, ca
     out = capsys.readouterr().out
     assert f"trained 1024 steps on {ENV_ID}" in out
     assert "| options | return | control return | savings |" in out
-    for row in ("| learned triggers |", "| random, same rate |", "| always broadcast | "):
-        assert row in out
-    assert "decentralised episode: return" in out and "broadcasts in 100 steps" in out
+    number = r"(-?\d+\.\d+)"
+    table = {
+        name: tuple(float(value) for value in values)
+        for name, *values in re.findall(rf"^\| ([a-z, ]+) \| {number} \| {number} \| {number} \|$", out, re.M)
+    }
+    assert list(table) == ["learned triggers", "random, same rate", "always broadcast"]
+    assert table["always broadcast"][2] == 0.0
+    for name, (episode_return, control_return, savings) in table.items():
+        # Per agent and episode of 100 steps, each broadcast costs 0.05: 5 (1 - savings) in all (printed rounded).
+        assert episode_return == pytest.approx(control_return - 5.0 * (1.0 - savings), abs=0.015), name
+    decentralised = re.search(
+        r"decentralised episode: return -?[\d.]+, (\d+) broadcasts in 100 steps \(per vessel: (.*)\)", out
+    )
+    assert decentralised is not None, out
+    per_vessel = [int(count) for count in decentralised[2].split(", ")]
+    assert len(per_vessel) == 4 and sum(per_vessel) == int(decentralised[1])
+    assert all(0 <= count <= 100 for count in per_vessel)  # at most one broadcast per vessel and step
 
 
 def test_example_id_trains_through_the_command_line(tmp_path: Path) -> None:

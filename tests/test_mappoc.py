@@ -13,6 +13,7 @@ import pytest
 import torch as th
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.env_util import make_vec_env
+from stable_baselines3.common.logger import Logger
 from stable_baselines3.common.utils import obs_as_tensor
 from stable_baselines3.common.vec_env import DummyVecEnv
 
@@ -606,10 +607,10 @@ class Recorder(BaseCallback):
 
 
 def test_truncated_episodes_bootstrap_the_terminal_value() -> None:
-    model = make_model(n_agents=2, n_envs=2, max_cycles=5, n_steps=12, gamma=0.9, reward_scale=0.5)
+    # Learning rate 0: the update after the rollout leaves the critic that valued its terminal states.
+    model = make_model(n_agents=2, n_envs=2, max_cycles=5, n_steps=12, gamma=0.9, reward_scale=0.5, learning_rate=0.0)
     recorder = Recorder()
-    _, callback = model._setup_learn(model.n_steps, recorder)
-    assert model.collect_rollouts(model.env, callback, model.rollout_buffer, model.n_steps)
+    model.learn(model.n_steps * model.n_envs, callback=recorder)  # exactly one rollout
     buffer = model.rollout_buffer
     assert len(recorder.infos) == model.n_steps
     truncations = 0
@@ -826,14 +827,40 @@ def test_fused_gradient_step_updates_like_backward_and_the_optimizer(
             th.testing.assert_close(fused_state[i][key], value, rtol=1e-5, atol=1e-7)
 
 
+class ScheduledValues(BaseCallback):
+    """At every rollout start, the scheduled values that the update before it logged."""
+
+    KEYS = ("train/broadcast_ent_coef", "train/clip_range")
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.values: dict[str, list[float]] = {key: [] for key in self.KEYS}
+
+    def _on_rollout_start(self) -> None:
+        logged = self.logger.name_to_value
+        for key in self.KEYS:
+            assert key in logged, key  # (name_to_value is a defaultdict: a missing key would read 0.0)
+            self.values[key].append(logged[key])
+
+    def _on_step(self) -> bool:
+        return True
+
+
 def test_fused_gradient_step_is_not_recompiled_when_schedules_change() -> None:
     # Scheduled scalars (zeta, clip ranges) enter the compiled step as tensors; were they compiled
-    # in, each new value would recompile it, and past the limit the eager fallback fails on a CPU.
+    # in, each new value would recompile it. Compiled once, the step must serve every later update.
     th._dynamo.reset()  # forget what other tests compiled: only this model's compilations count
     model = make_model(torch_compile=True, broadcast_ent_coef=lambda p: p, clip_range=lambda p: 0.1 + 0.1 * p)
-    with th._dynamo.config.patch(recompile_limit=1):
-        model.learn(16 * 6)
+    model.set_logger(Logger(None, []))  # kept by the next learn: its first rollout start sees the first update's values
+    model.learn(16)  # the first update compiles the step (at progress 0: zeta 0, clip range 0.1)
+    scheduled = ScheduledValues()
+    with th._dynamo.config.patch(error_on_recompile=True):
+        model.learn(16 * 5, callback=scheduled, reset_num_timesteps=False)  # progress 2/3, 1/2, 1/3, 1/6, 0
     assert model.num_timesteps == 96
+    zeta = [*scheduled.values["train/broadcast_ent_coef"], model.logger.name_to_value["train/broadcast_ent_coef"]]
+    clip = [*scheduled.values["train/clip_range"], model.logger.name_to_value["train/clip_range"]]
+    np.testing.assert_allclose(zeta, [0, 2 / 3, 1 / 2, 1 / 3, 1 / 6, 0], atol=1e-12)  # the values did change
+    np.testing.assert_allclose(clip, 0.1 + 0.1 * np.array(zeta), atol=1e-12)
 
 
 def test_fused_gradient_step_only_for_plain_adam_and_without_early_stopping() -> None:

@@ -65,11 +65,13 @@ def test_the_claims_of_two_seeds_follow_their_evaluations(tmp_path: Path) -> Non
     assert min(differences) < 0 < max(differences) and verdict == "no evidence: the interval contains zero"
     result, verdict = table["... with about 55 % savings, learned"]
     assert "at the end 0.692, 0.300" in result and verdict.endswith("learned in 1 of 2 seeds")
-    travel = [m["package_travel"] >= 0.5 * m["periodic_package_travel"] for m in paper]
-    assert table["MAPPOC learns to carry the package"][1].endswith(f"{sum(travel)} of 2 seeds carry")
-    share = sum(m["success"] for m in paper) / 2
-    holds = "yes" if paper_claims.ABOUT_HALF[0] <= share <= paper_claims.ABOUT_HALF[1] else "no"
-    assert table["about half of the runs succeed"][1] == f"{holds}: {100 * share:.0f} %"
+    # The committed evaluations of seeds 0 and 1: both carry the package (20.5 m and 28.1 m against the
+    # periodic trigger's 19.4 m and 26.3 m), neither succeeds.
+    assert [round(m["package_travel"], 1) for m in paper] == [20.5, 28.1]
+    assert [round(m["periodic_package_travel"], 1) for m in paper] == [19.4, 26.3]
+    assert [m["success"] for m in paper] == [0.0, 0.0]
+    assert table["MAPPOC learns to carry the package"][1].endswith("2 of 2 seeds carry")
+    assert table["about half of the runs succeed"][1] == "no: 0 %"
     assert "(beyond the paper) control_first saves more" in table
 
 

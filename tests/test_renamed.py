@@ -94,7 +94,28 @@ def test_a_policy_saved_under_earlier_names_loads(tmp_path) -> None:
         np.testing.assert_array_equal(a["control"], b["control"])
 
 
-@pytest.mark.parametrize("path", sorted(ROOT.glob("benchmarks/studies/*/trials/*/seed*/policy.pt")), ids=str)
+STUDY_POLICIES = sorted(ROOT.glob("benchmarks/studies/*/trials/*/seed*/policy.pt"))
+
+
+def test_the_committed_study_policies_are_found() -> None:
+    """The test below runs once per policy: an empty glob (files moved, pattern wrong) would skip it silently."""
+    found = {path.relative_to(ROOT / "benchmarks" / "studies").as_posix() for path in STUDY_POLICIES}
+    committed = {  # the policies committed when this test was written; finished seeds add more
+        f"{study}/trials/{algorithm}/seed{seed}/policy.pt"
+        for study, algorithms, n_seeds in [
+            ("linear", ("mappoc", "ppo_random_skip"), 5),
+            ("linear_lqr", ("mappoc", "ppo_random_skip"), 10),
+            ("linear_normalised", ("mappoc", "ppo_random_skip"), 5),
+            ("multiwalker_paper", ("mappoc_paper", "mappoc_paper_overlap", "random_skip_paper", "control_first"), 4),
+        ]
+        for algorithm in algorithms
+        for seed in range(n_seeds)
+    }
+    assert len(committed) == 56
+    assert sorted(committed - found) == []
+
+
+@pytest.mark.parametrize("path", STUDY_POLICIES, ids=str)
 def test_every_committed_study_policy_loads(path: Path) -> None:
     policy = MlpHybridPolicy.load(str(path), device="cpu")
     assert set(policy.action_space.spaces) == {"broadcast", "control"}

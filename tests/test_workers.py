@@ -12,6 +12,7 @@ import pytest
 import torch as th
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.env_util import make_vec_env
+from stable_baselines3.common.logger import KVWriter, Logger
 from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecNormalize
 
 import sb3_detc  # noqa: F401  (registers the env ids)
@@ -25,6 +26,25 @@ from sb3_detc.triggers import PeriodicTrigger, RandomTrigger
 ENV_ID = "sb3_detc/LinearETC-v0"
 #: Nearly deterministic policies: broadcast with probability 1 - 1e-6, control noise exp(-30).
 CERTAIN = {"net_arch": [16, 16], "broadcast_prob_init": 1 - 1e-6, "log_std_init": -30.0, "critic": "afterstate"}
+
+
+class Capture(KVWriter):
+    """Keeps every dump of the logger (one per iteration), as tests/test_callbacks.py does."""
+
+    def __init__(self) -> None:
+        self.rows: list[dict[str, Any]] = []
+
+    def write(self, key_values: dict[str, Any], key_excluded: dict[str, tuple[str, ...]], step: int = 0) -> None:
+        self.rows.append(dict(key_values))
+
+    def close(self) -> None:
+        pass
+
+
+def capture_logger(model: MAPPOC) -> Capture:
+    capture = Capture()
+    model.set_logger(Logger(None, [capture]))
+    return capture
 
 
 def always_broadcast(obs: dict[str, np.ndarray]) -> np.ndarray:
@@ -58,6 +78,7 @@ def test_worker_rollouts_fill_the_buffer_like_rollouts_in_the_learner(normalize_
     if periodic:  # a fixed trigger that the workers run themselves
         for model in models:
             model.set_fixed_trigger(PeriodicTrigger(3))
+    captures = [capture_logger(model) for model in models]
     for model in models:
         model.learn(192, callback=CommMetricsCallback())  # two rollouts; the second starts mid-episode
     plain, worker = (model.rollout_buffer for model in models)
@@ -72,9 +93,14 @@ def test_worker_rollouts_fill_the_buffer_like_rollouts_in_the_learner(normalize_
     a, b = models
     assert a.num_timesteps == b.num_timesteps == 192
     assert [info["r"] for info in a.ep_info_buffer] == pytest.approx([info["r"] for info in b.ep_info_buffer])
-    for key, value in a.logger.name_to_value.items():
-        if key.startswith("comm/"):
-            assert b.logger.name_to_value[key] == pytest.approx(value), key
+    plain_rows, worker_rows = (capture.rows for capture in captures)
+    assert len(plain_rows) == len(worker_rows) == 2  # one dump per rollout
+    for plain_row, worker_row in zip(plain_rows, worker_rows, strict=True):
+        comm = {key for key in plain_row if key.startswith("comm/")}
+        assert {"comm/savings", "comm/inter_event_time_mean", "comm/episodes"} <= comm  # the rollout's metrics
+        assert {key for key in worker_row if key.startswith("comm/")} == comm
+        for key in comm:
+            np.testing.assert_allclose(np.asarray(worker_row[key]), np.asarray(plain_row[key]), rtol=1e-6, err_msg=key)
     assert [model.last_rollout_in_workers for model in models] == [False, True]
     np.testing.assert_allclose(b._last_obs["local"], a._last_obs["local"], atol=1e-5)
 

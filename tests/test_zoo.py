@@ -241,7 +241,20 @@ def test_video_marks_broadcasts(tmp_path: Path) -> None:
         cwd=tmp_path,
     )
     assert recorded.returncode == 0, recorded.stderr
-    assert list(videos.glob("*.mp4"))
+    (video,) = videos.glob("*.mp4")
+    import imageio.v2 as imageio  # with imageio-ffmpeg: what moviepy, which writes the video, depends on
+
+    from sb3_detc.envs.multiwalker import BROADCAST_COLOR
+
+    def green_pixels(frame: np.ndarray) -> int:
+        """Pixels of the broadcast mark's green (up to the video's compression); the terrain's green is far from it."""
+        return int((np.abs(frame.astype(np.int16) - BROADCAST_COLOR).max(axis=-1) <= 30).sum())
+
+    with imageio.get_reader(video, format="ffmpeg") as reader:
+        marked = np.array([green_pixels(frame) for frame in reader])
+    assert len(marked) == 21  # the reset and 20 steps
+    assert marked[0] == 0  # the reset's frame: no options yet, only the silent rings
+    assert marked.max() > 50  # a disc above a walker that broadcast
 
 
 def test_rendered_frames_mark_who_broadcast() -> None:
