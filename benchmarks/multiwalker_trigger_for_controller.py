@@ -69,7 +69,7 @@ WARM_UP = 102_400
 
 
 class Progress(BaseCallback):
-    """Print the steps, the broadcast rate of the last rollout and the time every ``every`` rollouts.
+    """Print the steps, the savings of the last rollout and the time every ``every`` rollouts.
 
     :param label: what is trained, at the start of every line
     :param every: rollouts between two lines

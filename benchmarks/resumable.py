@@ -5,11 +5,10 @@ The benchmark scripts that train one model per job (``linear_learning.py``,
 run their jobs through :func:`run_rows`: jobs run in parallel processes, every finished job's rows
 are written to the results file at once (atomically), and a job whose rows are already in the file
 is not run again. An interruption (Ctrl-C, a killed job) loses only the jobs that were running; the
-same command then runs only what is missing. A failing job stops the sweep with its traceback once
-the jobs running beside it have finished and written their rows; jobs not yet started do not start.
-A job
-is identified by everything it is given (:func:`job_key`): the scripts put the settings they
-train with into their jobs, so a changed setting is a new job.
+same command then runs only what is missing. A failing job's traceback is printed at once; the
+jobs running beside it finish and write their rows, no other job starts, and the sweep then raises
+the job's error. A job is identified by everything it is given (:func:`job_key`): the scripts put
+the settings they train with into their jobs, so a changed setting is a new job.
 """
 
 from __future__ import annotations
@@ -17,8 +16,9 @@ from __future__ import annotations
 import argparse
 import json
 import multiprocessing
+import traceback
 from collections.abc import Callable
-from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from functools import partial
 from pathlib import Path
 from typing import Any
@@ -65,8 +65,28 @@ def read_rows(out: Path) -> Rows:
     return rows
 
 
-def _keyed(run: Callable[[dict[str, Any]], dict[str, Any] | Rows], job: dict[str, Any]) -> tuple[str, Rows]:
-    """Run one job in a worker; its key and its rows."""
+#: In a worker process: the sweep's event that tells the jobs queued to it not to start.
+_stop: Any = None
+
+
+def _remember_stop(stop: Any) -> None:
+    """Keep the sweep's stop event in a worker process (the pool's initializer).
+
+    :param stop: the event
+    """
+    global _stop
+    _stop = stop
+
+
+def _keyed(run: Callable[[dict[str, Any]], dict[str, Any] | Rows], job: dict[str, Any]) -> tuple[str, Rows | None]:
+    """Run one job in a worker unless the sweep has stopped.
+
+    :param run: the sweep's function from a job to its row or rows
+    :param job: the job
+    :return: the job's key and its rows (None: not run, the sweep stopped before it started)
+    """
+    if _stop is not None and _stop.is_set():
+        return job_key(job), None
     result = run(job)
     return job_key(job), result if isinstance(result, list) else [result]
 
@@ -89,6 +109,7 @@ def run_rows(
     :raises OutError: if ``out`` holds something else (:func:`read_rows`) or another sweep writes to it
     :raises ValueError: if ``workers`` is below 1
     :raises concurrent.futures.process.BrokenProcessPool: if a job's process was killed
+    :raises Exception: the first error a job raised, once the jobs running beside it have finished
     """
     if workers < 1:
         raise ValueError(f"workers must be at least 1, got {workers}")
@@ -101,48 +122,42 @@ def run_rows(
         rows = read_rows(out)
         keys = [job_key(job) for job in jobs]
         done = {row.get(JOB) for row in rows}
-        pending = [job for job, key in zip(jobs, keys, strict=True) if key not in done]
+        pending = list({key: job for job, key in zip(jobs, keys, strict=True) if key not in done}.values())
         print(f"{len(jobs) - len(pending)} of {len(jobs)} jobs already in {out}; running {len(pending)}", flush=True)
         if pending:
             context = multiprocessing.get_context("spawn")
-            with ProcessPoolExecutor(min(workers, len(pending)), mp_context=context) as pool:
+            stop = context.Event()
+            failure: BaseException | None = None
+            with ProcessPoolExecutor(
+                min(workers, len(pending)), mp_context=context, initializer=_remember_stop, initargs=(stop,)
+            ) as pool:
                 running = {pool.submit(_keyed, run, job) for job in pending}
-                failure: BaseException | None = None
                 try:
                     while running:
                         finished, running = wait(running, return_when=FIRST_COMPLETED)
                         for future in finished:
-                            if future.cancelled():
-                                continue
-                            if future.exception() is not None:
-                                error = future.exception()
-                                failure = failure or error
-                                running = _cancel_waiting(running)
-                                print(
-                                    f"a job failed ({type(error).__name__}: {error}); "
-                                    f"the {len(running)} running beside it finish first",
-                                    flush=True,
-                                )
+                            error = None if future.cancelled() else future.exception()
+                            if error is not None and failure is None:
+                                failure = error
+                                stop.set()
+                                traceback.print_exception(error)
+                                print("a job failed; the jobs running beside it finish first", flush=True)
+                            if future.cancelled() or error is not None:
                                 continue
                             key, new = future.result()
+                            if new is None:  # queued before the sweep stopped: not run
+                                continue
                             rows.extend({JOB: key, **row} for row in new)
                             replace_atomically(out, partial(_write, rows))
                             left = len(running)
                             print(f"a job finished, rows written to {out}; {left} to go", flush=True)
                 finally:
-                    _cancel_waiting(running)  # Ctrl-C: do not start what has not started
-                if failure is not None:
-                    raise failure  # with the job's traceback, after the jobs that were running kept their rows
+                    stop.set()  # a failure or Ctrl-C: what has not started does not start
+                    for future in running:
+                        future.cancel()
+            if failure is not None:
+                raise failure  # with the job's traceback, after the jobs that were running kept their rows
     return [row for key in keys for row in rows if row.get(JOB) == key]
-
-
-def _cancel_waiting(futures: set[Future[Any]]) -> set[Future[Any]]:
-    """Cancel the jobs that have not started.
-
-    :param futures: the jobs' futures
-    :return: those of the jobs that were running already
-    """
-    return {future for future in futures if not future.cancel()}
 
 
 def _write(rows: Rows, path: Path) -> None:

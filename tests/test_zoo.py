@@ -229,7 +229,7 @@ def test_video_marks_broadcasts(tmp_path: Path) -> None:
     logs = tmp_path / "logs"
     trained = cli(
         "sb3_detc.train",
-        *("--algo", "mappoc", "--env", MULTIWALKER, "-f", str(logs), "-n", "64", "--eval-freq", "-1"),
+        *("--algo", "mappoc", "--env", MULTIWALKER, "-f", str(logs), "-n", "64", "--eval-freq", "-1", "--seed", "0"),
         *("--num-threads", "1", "--verbose", "0", "-params", "n_steps:64", "n_epochs:1", "torch_compile:False"),
         cwd=tmp_path,
     )
