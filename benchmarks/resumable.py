@@ -105,7 +105,7 @@ def run_rows(
     :param jobs: the jobs, JSON-like dicts; a job's key (:func:`job_key`) is written into its rows
     :param out: the JSON file of rows, read at the start and rewritten after every job
     :param workers: parallel processes (at least 1)
-    :return: the rows of the sweep's jobs, in the order of ``jobs``
+    :return: the rows of the sweep's jobs, in the order of ``jobs`` (a job listed twice: once)
     :raises OutError: if ``out`` holds something else (:func:`read_rows`) or another sweep writes to it
     :raises ValueError: if ``workers`` is below 1
     :raises concurrent.futures.process.BrokenProcessPool: if a job's process was killed
@@ -122,8 +122,10 @@ def run_rows(
         rows = read_rows(out)
         keys = [job_key(job) for job in jobs]
         done = {row.get(JOB) for row in rows}
-        pending = list({key: job for job, key in zip(jobs, keys, strict=True) if key not in done}.values())
-        print(f"{len(jobs) - len(pending)} of {len(jobs)} jobs already in {out}; running {len(pending)}", flush=True)
+        unique = dict(zip(keys, jobs, strict=True))  # a job listed twice runs once
+        pending = [job for key, job in unique.items() if key not in done]
+        already = len(unique) - len(pending)
+        print(f"{already} of {len(unique)} jobs already in {out}; running {len(pending)}", flush=True)
         if pending:
             context = multiprocessing.get_context("spawn")
             stop = context.Event()
@@ -157,7 +159,7 @@ def run_rows(
                         future.cancel()
             if failure is not None:
                 raise failure  # with the job's traceback, after the jobs that were running kept their rows
-    return [row for key in keys for row in rows if row.get(JOB) == key]
+    return [row for key in unique for row in rows if row.get(JOB) == key]
 
 
 def _write(rows: Rows, path: Path) -> None:
