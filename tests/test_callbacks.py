@@ -10,9 +10,9 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import torch as th
+from logged import capture_logger  # tests/logged.py
 from stable_baselines3.common.callbacks import BaseCallback, CallbackList
 from stable_baselines3.common.env_util import make_vec_env
-from stable_baselines3.common.logger import KVWriter, Logger
 from stable_baselines3.common.vec_env import DummyVecEnv
 
 import sb3_detc  # noqa: F401  (registers the env ids)
@@ -41,25 +41,6 @@ TINY = {"net_arch": [16, 16]}
 
 
 # --------------------------------------------------------------------------- helpers
-class Capture(KVWriter):
-    """Keeps every dump of the logger (one per iteration with ``log_interval=1``)."""
-
-    def __init__(self) -> None:
-        self.rows: list[dict[str, Any]] = []
-
-    def write(self, key_values: dict[str, Any], key_excluded: dict[str, tuple[str, ...]], step: int = 0) -> None:
-        self.rows.append(dict(key_values))
-
-    def close(self) -> None:
-        pass
-
-
-def capture_logger(model: MAPPOC) -> Capture:
-    capture = Capture()
-    model.set_logger(Logger(None, [capture]))
-    return capture
-
-
 def make_model(
     n_agents: int = 2, n_envs: int = 1, max_cycles: int = 20, broadcast_cost: float = 0.01, **kwargs: Any
 ) -> MAPPOC:

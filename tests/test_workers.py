@@ -10,9 +10,9 @@ from typing import Any
 import numpy as np
 import pytest
 import torch as th
+from logged import capture_logger  # tests/logged.py
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.env_util import make_vec_env
-from stable_baselines3.common.logger import KVWriter, Logger
 from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecNormalize
 
 import sb3_detc  # noqa: F401  (registers the env ids)
@@ -26,25 +26,6 @@ from sb3_detc.triggers import PeriodicTrigger, RandomTrigger
 ENV_ID = "sb3_detc/LinearETC-v0"
 #: Nearly deterministic policies: broadcast with probability 1 - 1e-6, control noise exp(-30).
 CERTAIN = {"net_arch": [16, 16], "broadcast_prob_init": 1 - 1e-6, "log_std_init": -30.0, "critic": "afterstate"}
-
-
-class Capture(KVWriter):
-    """Keeps every dump of the logger (one per iteration), as tests/test_callbacks.py does."""
-
-    def __init__(self) -> None:
-        self.rows: list[dict[str, Any]] = []
-
-    def write(self, key_values: dict[str, Any], key_excluded: dict[str, tuple[str, ...]], step: int = 0) -> None:
-        self.rows.append(dict(key_values))
-
-    def close(self) -> None:
-        pass
-
-
-def capture_logger(model: MAPPOC) -> Capture:
-    capture = Capture()
-    model.set_logger(Logger(None, [capture]))
-    return capture
 
 
 def always_broadcast(obs: dict[str, np.ndarray]) -> np.ndarray:
