@@ -21,7 +21,7 @@ from sb3_detc.evaluation import evaluate_episodes
 from sb3_detc.mappoc.policies import MlpHybridPolicy
 from sb3_detc.study.__main__ import main as study_main
 from sb3_detc.study.report import report_study, splice, summarise
-from sb3_detc.study.runner import prepare_folder
+from sb3_detc.study.runner import prepare_folder, run_study
 from sb3_detc.study.spec import StudyError, load_folder_study, load_study
 from sb3_detc.study.trial import (
     MODES,
@@ -233,6 +233,22 @@ def test_an_address_that_does_not_answer_is_reported(tmp_path, capsys):
         )
     assert stop.value.code == 2
     assert "does not answer" in capsys.readouterr().err
+
+
+def test_a_local_ray_that_fails_to_start_keeps_its_error_and_frees_the_folder(tmp_path, monkeypatch):
+    """Not a bad input: the error itself reaches the caller (the command line prints its traceback)."""
+    ray = pytest.importorskip("ray")
+
+    def fail(**kwargs):
+        raise RuntimeError("no room for the object store")
+
+    monkeypatch.setattr(ray, "init", fail)
+    study, out = load_study(write_study(tmp_path, TINY)), tmp_path / "out"
+    with pytest.raises(RuntimeError, match="no room for the object store"):
+        run_study(study, out)
+    with pytest.raises(RuntimeError, match="no room for the object store"):  # the lock was let go
+        run_study(study, out)
+    assert not (out / ".stop").exists() and not any((out / "trials").glob("*/*/status.json"))
 
 
 # ----------------------------------------------------------------------------- running and reporting
