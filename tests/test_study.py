@@ -542,6 +542,51 @@ def test_ctrl_c_stops_a_study_with_a_checkpoint_at_the_last_rollout(tmp_path):
     assert not (out / ".stop").exists()
 
 
+def test_trials_read_the_study_from_the_folder_while_the_files_it_was_started_with_change(tmp_path):
+    # One core: the second trial starts after the study file is gone and its hyperparameter file is broken.
+    source = tmp_path / "source"
+    source.mkdir()
+    conf = source / "mine.yml"
+    conf.write_text((sb3_detc.zoo.HYPERPARAMS_DIR / "mappoc.yml").read_text())
+    study = {
+        **TINY,
+        "n_timesteps": 8192,
+        "checkpoint_interval": 4096,
+        "algorithms": {"mine": {"algo": "mappoc", "conf": "mine.yml"}},
+    }
+    path, out = write_study(source, study), tmp_path / "out"
+    process = subprocess.Popen(
+        [sys.executable, "-m", "sb3_detc.study", "run", str(path), "--dir", str(out), "--cpus", "1"],
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+    )
+    first, second = out / "trials" / "mine" / "seed0", out / "trials" / "mine" / "seed1"
+    try:
+        deadline = time.monotonic() + 300
+        while not (first / "segments" / "0" / "progress.csv").is_file():  # the first trial trains
+            assert process.poll() is None, process.communicate()
+            assert time.monotonic() < deadline, "no iteration within 5 minutes"
+            time.sleep(0.2)
+        assert read_status(second)["status"] == "pending"
+        path.unlink()
+        conf.write_text("not: [a hyperparameter file\n")
+        stdout, stderr = process.communicate(timeout=300)
+    finally:
+        if process.poll() is None:
+            os.killpg(process.pid, signal.SIGKILL)
+    assert process.returncode == 0, stdout + stderr
+    for trial in (first, second):
+        assert read_status(trial) | {"seconds": 0} == {
+            "status": "done",
+            "budget": 8192,
+            "timesteps": 8192,
+            "seconds": 0,
+        }
+
+
 def test_a_killed_study_resumes_from_its_checkpoints(tmp_path):
     # A short algorithm that finishes, and a long one that is killed after its first checkpoint.
     study = {

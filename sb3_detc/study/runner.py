@@ -23,7 +23,7 @@ from typing import Any
 
 import yaml
 
-from sb3_detc.study.spec import CONF_FOLDER, StudyError, StudySpec, conf_copy, load_study, same_study
+from sb3_detc.study.spec import CONF_FOLDER, StudyError, StudySpec, conf_copy, load_folder_study, same_study
 from sb3_detc.study.trial import exclusive, read_status, replace_atomically, run_trial, trial_folder
 
 __all__ = ["StudyProgress", "prepare_folder", "run_study"]
@@ -306,14 +306,18 @@ def _check_address(address: str, timeout: float = 10.0) -> None:
 def _trainable(config: dict[str, Any]) -> None:
     """One Ray Tune trial: run (or resume) a study trial and report its progress.
 
-    :param config: ``study`` (path of the study file), ``directory`` (the study folder) and ``trial``
-        (the trial's name, :attr:`Trial.name <sb3_detc.study.spec.Trial.name>`)
+    The study is read from the folder's copies of the study file and of its hyperparameter files:
+    what a trial trains does not change when those files change or vanish while the study runs,
+    and on a cluster the nodes need the study folder only.
+
+    :param config: ``directory`` (the study folder) and ``trial`` (the trial's name,
+        :attr:`Trial.name <sb3_detc.study.spec.Trial.name>`)
     :raises KeyboardInterrupt: if the trial is interrupted other than by a stop request (and whatever
         :func:`~sb3_detc.study.trial.run_trial` raises when the trial fails)
     """
     from ray import tune
 
-    spec = load_study(config["study"], Path(config["directory"]) / CONF_FOLDER)  # the folder's copies
+    spec = load_folder_study(config["directory"])
     trial = next(t for t in spec.trials() if t.name == config["trial"])
     budget = spec.budget(trial.algorithm)
     stop_file = Path(config["directory"]) / STOP_FILE
@@ -480,7 +484,6 @@ def _run_locked(spec: StudySpec, folder: Path, address: str | None, stream: Any,
         tuner = tune.Tuner(
             trainable,
             param_space={
-                "study": str(spec.path.resolve()),
                 "directory": str(folder),
                 "trial": tune.grid_search([t.name for t in todo]),
             },
