@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import importlib.util
 import json
 import os
@@ -68,6 +69,38 @@ def run_command(*args: str, timeout: float = 600) -> subprocess.CompletedProcess
         timeout=timeout,
         cwd=ROOT,
     )
+
+
+@contextlib.contextmanager
+def study_process(*args: str, output: int = subprocess.PIPE):
+    """The study command running in a process group of its own, killed at the end of the context if still running."""
+    process = subprocess.Popen(
+        [sys.executable, "-m", "sb3_detc.study", *args],
+        cwd=ROOT,
+        stdout=output,
+        stderr=output,
+        text=True,
+        start_new_session=True,
+    )
+    try:
+        yield process
+    finally:
+        if process.poll() is None:
+            os.killpg(process.pid, signal.SIGKILL)
+            process.wait()
+
+
+def wait_for(process: subprocess.Popen, ready, what: str, timeout: float = 300) -> float:
+    """Poll ``ready()`` until it is true; fail if the process ends first or after ``timeout`` seconds.
+
+    :return: the deadline (``time.monotonic()`` clock)
+    """
+    deadline = time.monotonic() + timeout
+    while not ready():
+        assert process.poll() is None, (f"the study ended before {what}", process.communicate())
+        assert time.monotonic() < deadline, f"no {what} within {timeout} s"
+        time.sleep(0.2)
+    return deadline
 
 
 # ----------------------------------------------------------------------------- study files
@@ -511,26 +544,11 @@ def test_ctrl_c_stops_a_study_with_a_checkpoint_at_the_last_rollout(tmp_path):
     study = {**TINY, "seeds": [0, 1], "n_timesteps": 10**6, "checkpoint_interval": 10**6}
     study["algorithms"] = {"learned": {"algo": "mappoc"}}
     path, out = write_study(tmp_path, study), tmp_path / "out"
-    process = subprocess.Popen(
-        [sys.executable, "-m", "sb3_detc.study", "run", str(path), "--dir", str(out), "--cpus", "1"],
-        cwd=ROOT,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        start_new_session=True,
-    )
     first, second = out / "trials" / "learned" / "seed0", out / "trials" / "learned" / "seed1"
-    try:
-        deadline = time.monotonic() + 300
-        while not (first / "segments" / "0" / "progress.csv").is_file():  # an iteration is trained
-            assert process.poll() is None, process.communicate()
-            assert time.monotonic() < deadline, "no iteration within 5 minutes"
-            time.sleep(0.2)
+    with study_process("run", str(path), "--dir", str(out), "--cpus", "1") as process:
+        wait_for(process, (first / "segments" / "0" / "progress.csv").is_file, "iteration")
         process.send_signal(signal.SIGINT)
         stdout, stderr = process.communicate(timeout=120)
-    finally:
-        if process.poll() is None:
-            os.killpg(process.pid, signal.SIGKILL)
     assert process.returncode == 1, stdout + stderr
     assert "[study] stopping" in stdout and "1 stopped" in stdout, stdout
     assert "0 running, 1 pending, 0 failed, 1 stopped" in stdout.splitlines()[-2], stdout  # Ray never started it
@@ -555,28 +573,13 @@ def test_trials_read_the_study_from_the_folder_while_the_files_it_was_started_wi
         "algorithms": {"mine": {"algo": "mappoc", "conf": "mine.yml"}},
     }
     path, out = write_study(source, study), tmp_path / "out"
-    process = subprocess.Popen(
-        [sys.executable, "-m", "sb3_detc.study", "run", str(path), "--dir", str(out), "--cpus", "1"],
-        cwd=ROOT,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        start_new_session=True,
-    )
     first, second = out / "trials" / "mine" / "seed0", out / "trials" / "mine" / "seed1"
-    try:
-        deadline = time.monotonic() + 300
-        while not (first / "segments" / "0" / "progress.csv").is_file():  # the first trial trains
-            assert process.poll() is None, process.communicate()
-            assert time.monotonic() < deadline, "no iteration within 5 minutes"
-            time.sleep(0.2)
+    with study_process("run", str(path), "--dir", str(out), "--cpus", "1") as process:
+        wait_for(process, (first / "segments" / "0" / "progress.csv").is_file, "iteration")
         assert read_status(second)["status"] == "pending"
         path.unlink()
         conf.write_text("not: [a hyperparameter file\n")
         stdout, stderr = process.communicate(timeout=300)
-    finally:
-        if process.poll() is None:
-            os.killpg(process.pid, signal.SIGKILL)
     assert process.returncode == 0, stdout + stderr
     for trial in (first, second):
         assert read_status(trial) | {"seconds": 0} == {
@@ -601,23 +604,14 @@ def test_a_killed_study_resumes_from_its_checkpoints(tmp_path):
     del study["n_timesteps"]
     path = write_study(tmp_path, study)
     out = tmp_path / "out"
-    process = subprocess.Popen(
-        [sys.executable, "-m", "sb3_detc.study", "run", str(path), "--dir", str(out)],
-        cwd=ROOT,
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
-        start_new_session=True,
-    )
     short, long = out / "trials" / "short" / "seed0", out / "trials" / "long" / "seed0"
-    try:
-        deadline = time.monotonic() + 300
-        while not (read_status(short)["status"] == "done" and (long / "checkpoint.json").is_file()):
-            assert process.poll() is None, "the study ended before it could be killed"
-            assert time.monotonic() < deadline, "no checkpoint within 5 minutes"
-            time.sleep(0.2)
-    finally:
-        os.killpg(process.pid, signal.SIGKILL)
-        process.wait()
+    with study_process("run", str(path), "--dir", str(out), output=subprocess.DEVNULL) as process:
+        deadline = wait_for(
+            process,
+            lambda: read_status(short)["status"] == "done" and (long / "checkpoint.json").is_file(),
+            "checkpoint",
+        )
+        # killed at the end of the context
     # Ray's trial worker has a process group of its own and ends when it notices that Ray is
     # gone: wait until the trial's files stop changing.
     stamps, quiet_since = None, time.monotonic()
