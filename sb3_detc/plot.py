@@ -33,6 +33,7 @@ from sb3_detc.zoo import InputError, run_cli  # noqa: E402
 
 __all__ = [
     "curriculum_phases",
+    "curve_label",
     "estimates_figure",
     "find_runs",
     "main",
@@ -180,6 +181,20 @@ def _save(fig: plt.Figure, out: str | Path) -> Path:
     return out
 
 
+def curve_label(label: str, lengths: Sequence[int]) -> str:
+    """The legend entry of a group of runs: its label, its number of runs and how many end before the longest.
+
+    :param label: the group's label
+    :param lengths: the logged iterations of each run
+    :return: e.g. ``"mappoc (5 runs, 1 ends earlier)"``
+    """
+    text = f"{label} ({len(lengths)} run{'s' * (len(lengths) != 1)}"
+    shorter = sum(length < max(lengths) for length in lengths)
+    if shorter:
+        text += f", {shorter} end{'s' * (shorter == 1)} earlier"
+    return text + ")"
+
+
 def plot_runs(
     groups: dict[str, Sequence[str | Path]],
     out: str | Path,
@@ -225,7 +240,7 @@ def plot_runs(
                 mean = np.nanmean(curves, axis=0)
                 low, high = np.nanmin(curves, axis=0), np.nanmax(curves, axis=0)
             drawn[list(panels).index((column, _))].append(mean)
-            (line,) = ax.plot(iterations, mean, label=f"{label} ({len(runs)} run{'s' * (len(runs) > 1)})")
+            (line,) = ax.plot(iterations, mean, label=curve_label(label, [len(p["iteration"]) for p in progress]))
             if len(runs) > 1:
                 ax.fill_between(iterations, low, high, color=line.get_color(), alpha=0.25, linewidth=0)
     for ax, (_, name), curves in zip(axes, panels, drawn, strict=True):

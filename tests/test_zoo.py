@@ -443,6 +443,13 @@ def test_smooth_averages_the_trailing_window_and_skips_nan() -> None:
     assert np.isnan(plot.smooth(np.array([np.nan, 1.0]), 1)[0])
 
 
+def test_a_curve_says_how_many_of_its_runs_end_before_the_longest() -> None:
+    assert plot.curve_label("mappoc", [3000]) == "mappoc (1 run)"
+    assert plot.curve_label("mappoc", [3000, 3000]) == "mappoc (2 runs)"
+    assert plot.curve_label("mappoc", [3000, 734, 3000]) == "mappoc (3 runs, 1 ends earlier)"
+    assert plot.curve_label("mappoc", [10, 734, 3000]) == "mappoc (3 runs, 2 end earlier)"
+
+
 def test_iterations_of_a_continued_run_count_on(tmp_path: Path) -> None:
     rows = ["time/iterations,time/total_timesteps,comm/savings"]
     rows += [f"{k},{(1000 + k) * 2048},0.5" for k in (1, 2, 3)]  # continued from 1000 iterations of 2048 steps
