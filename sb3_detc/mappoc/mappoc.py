@@ -237,7 +237,7 @@ class MAPPOC(OnPolicyAlgorithm):
         update's start (per agent and step). Without worker processes (or with a
         fixed trigger that cannot run in them) rollouts are sampled in turn, as without it. About
         1.12x the steps per second on Multiwalker with 2 cores, but there it learned worse over 5
-        seeds (study ``multiwalker_paper``, ``benchmarks/README.md``), so no entry turns it on
+        seeds (study ``multiwalker_paper``, ``benchmarks/README.md``), so no entry turns it on.
     :param n_envs: number of envs built from an env id (None: :func:`default_n_envs`, one
         per CPU core rounded down to a power of two, at most 8); only for an env id
     :param fixed_trigger: take the options from this trigger instead of ``mu`` (see
