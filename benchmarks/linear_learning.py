@@ -148,7 +148,7 @@ def run(job: dict[str, Any]) -> dict[str, Any]:
         )
         return -report.mean_control_return / bound, report.savings
 
-    cost_learned, savings = evaluate(deterministic_broadcast=False)
+    cost_learned, savings = evaluate(sample_options=True)
     cost_random, _ = evaluate(fixed_trigger=RandomTrigger(savings, seed=seed))
     cost_periodic, _ = evaluate(fixed_trigger=RandomTrigger(0.0))
     return {

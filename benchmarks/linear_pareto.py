@@ -62,7 +62,7 @@ def model_point(path: str, env: gymnasium.Env, n_episodes: int, seed: int) -> Tr
 
     model = MAPPOC.load(path, device="cpu")
     report = evaluate_communication(
-        model, env, n_eval_episodes=n_episodes, deterministic=True, deterministic_broadcast=False, seed=seed
+        model, env, n_eval_episodes=n_episodes, deterministic=True, sample_options=True, seed=seed
     )
     n_agents = env.unwrapped.n_agents
     # The report's returns are team means per agent: the team cost is N times minus them.

@@ -7,8 +7,7 @@ every ``k`` steps and send-on-delta (a walker broadcasts when the package, as it
 more than ``delta`` since its last broadcast). Its learned trigger comes from the trial's
 ``evaluation.json`` (the same episodes, options sampled from its policy over options); a trial
 that learned its options also runs with the most likely option of its policy over options
-(``mode of mu``: what ``predict(deterministic=True)`` does with the policy's
-``deterministic_options=True``). For
+(``mode of mu``: what ``predict(deterministic=True)`` does). For
 every algorithm of the study and every trigger: control return (without the communication
 cost), package travel, savings and fall rate, mean over seeds with a 95 % bootstrap interval
 (:func:`sb3_detc.study.report.interval_estimates`).
@@ -129,7 +128,7 @@ def sweep(folder: Path, out: Path, rates: list[float], periods: list[int], delta
         for name, trigger in todo.items():
             began = time.monotonic()
             episodes = evaluate_episodes(
-                policy, env, seeds, deterministic=True, deterministic_broadcast=name == MODE, fixed_trigger=trigger
+                policy, env, seeds, deterministic=True, sample_options=name != MODE, fixed_trigger=trigger
             )
             done[name] = row(episodes.control_returns, episodes.package_travel, episodes.failed, episodes.savings)
             write()

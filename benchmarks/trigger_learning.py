@@ -147,7 +147,7 @@ def run(job: dict[str, Any]) -> dict[str, Any]:
         report = evaluate_communication(model, eval_env, episodes, deterministic=True, seed=EVAL_SEED, **kwargs)
         return -report.mean_control_return * eval_env.unwrapped.n_agents / bound, report.savings
 
-    learned, savings = cost(deterministic_broadcast=False)
+    learned, savings = cost(sample_options=True)
     random, _ = cost(fixed_trigger=RandomTrigger(savings, seed=seed))
     curve = sweep_send_on_delta(eval_env.env, lqr_on_held_states(eval_env), DELTAS, n_episodes=episodes, seed=EVAL_SEED)
     send_on_delta = cost_at_savings(curve, savings, bound)

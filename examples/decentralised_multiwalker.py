@@ -86,8 +86,8 @@ def main(argv: Sequence[str] | None = None) -> None:
     parser.add_argument(
         "--stochastic",
         action="store_true",
-        help="sample the controls too (default: mean of pi; options are sampled from mu either way, "
-        "unless the policy has deterministic_options=True)",
+        help="sample the controls and the options (default: mean of pi, and the options as the policy's "
+        "sample_options says: sampled from mu for the paper's entries, else its most likely option)",
     )
     args = parser.parse_args(argv)
     th.set_num_threads(1)  # small networks: one thread is fastest, and the machine may be shared

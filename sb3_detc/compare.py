@@ -86,7 +86,7 @@ def evaluate_run(
             env,
             episodes,
             deterministic=True,
-            deterministic_broadcast=False,
+            sample_options=True,
             fixed_trigger=trigger,
             seed=EVAL_SEED,
         )

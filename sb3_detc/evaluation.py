@@ -88,7 +88,7 @@ def evaluate_episodes(
     env: gym.Env | str,
     seeds: Sequence[int | None],
     deterministic: bool = True,
-    deterministic_broadcast: bool | None = None,
+    sample_options: bool | None = None,
     fixed_trigger: FixedTrigger | None = None,
 ) -> Episodes:
     """Run a policy for whole episodes, one per seed, and record each.
@@ -108,22 +108,24 @@ def evaluate_episodes(
     :param policy: the policy (of a trained model, ``model.policy``, or loaded on its own)
     :param env: a joint env (not vectorised) or its registered id
     :param seeds: the seed of every episode's reset (None: continue the env's generator)
-    :param deterministic: mean of ``pi`` instead of samples, and the options as
-        ``deterministic_broadcast`` says
-    :param deterministic_broadcast: mode (True) or samples (False) of ``mu`` whatever
-        ``deterministic`` says (None: as :meth:`~sb3_detc.mappoc.policies.MlpHybridPolicy.predict`
-        does: the mode if ``deterministic`` and the policy's ``deterministic_options`` are True)
+    :param deterministic: mean of ``pi`` instead of samples, and the most likely options unless
+        ``sample_options`` says otherwise
+    :param sample_options: options sampled from ``mu`` (True) or its most likely ones (False)
+        whatever ``deterministic`` says (None: as the policy's ``sample_options`` says when
+        ``deterministic``, else sampled)
     :param fixed_trigger: options to use instead of ``mu``'s (e.g. a
         :class:`~sb3_detc.triggers.RandomTrigger`), with the policy's control policy
     :return: the episodes' results
     """
     if isinstance(env, str):
         with gym.make(env) as made:
-            return evaluate_episodes(policy, made, seeds, deterministic, deterministic_broadcast, fixed_trigger)
+            return evaluate_episodes(policy, made, seeds, deterministic, sample_options, fixed_trigger)
     if not isinstance(env.unwrapped, JointEnv):
         raise ValueError(f"evaluation needs a joint sb3_detc env, got {env}.")
     if len(seeds) < 1:
         raise ValueError("evaluation needs at least one episode.")
+    if sample_options is None:
+        sample_options = policy.sample_options or not deterministic
     policy.set_training_mode(False)
     low, high = env.action_space["control"].low, env.action_space["control"].high
     n_agents = env.action_space["broadcast"].shape[0]
@@ -162,7 +164,7 @@ def evaluate_episodes(
                         obs_as_tensor(batch, policy.device),
                         broadcast=forced,
                         deterministic=deterministic,
-                        deterministic_broadcast=deterministic_broadcast,
+                        sample_options=sample_options,
                     )
                 sampled, controls = sampled.cpu().numpy(), np.clip(controls.cpu().numpy(), low, high)
                 for row, slot in enumerate(slots):
@@ -200,7 +202,7 @@ def evaluate_communication(
     env: gym.Env | str,
     n_eval_episodes: int = 10,
     deterministic: bool = True,
-    deterministic_broadcast: bool | None = None,
+    sample_options: bool | None = None,
     fixed_trigger: FixedTrigger | None = None,
     seed: int | None = None,
 ) -> CommunicationReport:
@@ -209,11 +211,11 @@ def evaluate_communication(
     :param model: the trained model
     :param env: a joint env (not vectorised) or its registered id
     :param n_eval_episodes: number of episodes
-    :param deterministic: mean of ``pi`` instead of samples, and the options as
-        ``deterministic_broadcast`` says
-    :param deterministic_broadcast: mode (True) or samples (False) of ``mu`` whatever
-        ``deterministic`` says (None: as :meth:`~sb3_detc.mappoc.policies.MlpHybridPolicy.predict`
-        does: the mode if ``deterministic`` and the policy's ``deterministic_options`` are True)
+    :param deterministic: mean of ``pi`` instead of samples, and the most likely options unless
+        ``sample_options`` says otherwise
+    :param sample_options: options sampled from ``mu`` (True) or its most likely ones (False)
+        whatever ``deterministic`` says (None: as the policy's ``sample_options`` says when
+        ``deterministic``, else sampled)
     :param fixed_trigger: options to use instead of ``mu``'s (e.g. a
         :class:`~sb3_detc.triggers.RandomTrigger`), with the model's control policy
     :param seed: seed of the first episode; episode ``k`` is reset with ``seed + k``, so that
@@ -228,7 +230,7 @@ def evaluate_communication(
         env,
         [None if seed is None else seed + k for k in range(n_eval_episodes)],
         deterministic=deterministic,
-        deterministic_broadcast=deterministic_broadcast,
+        sample_options=sample_options,
         fixed_trigger=fixed_trigger,
     )
     agent_rate = episodes.broadcasts.sum(axis=0) / episodes.lengths.sum()

@@ -14,7 +14,7 @@ from typing import Any
 
 from gymnasium import spaces
 
-__all__ = ["RENAMED", "renamed_action_space", "renamed_column", "renamed_keys"]
+__all__ = ["NEGATED", "RENAMED", "renamed_action_space", "renamed_column", "renamed_keys"]
 
 #: Old name -> new name (saved attributes, hyperparameters, environment arguments).
 RENAMED: dict[str, str] = {
@@ -26,6 +26,10 @@ RENAMED: dict[str, str] = {
     "option_advantage_offset": "broadcast_advantage_offset",
     "train_option_policy": "train_broadcast_policy",
 }
+
+#: Old name of a switch -> new name of the opposite switch (the saved value is negated). A policy saved with
+#: ``deterministic_options=False`` sampled its options in every evaluation: ``sample_options=True`` now.
+NEGATED: dict[str, str] = {"deterministic_options": "sample_options"}
 
 #: The action key of the broadcast decision before and now.
 OLD_ACTION_KEY, ACTION_KEY = "comm", "broadcast"
@@ -45,13 +49,15 @@ def renamed_action_space(space: Any) -> Any:
 def renamed_keys(mapping: dict[str, Any]) -> dict[str, Any]:
     """A mapping with old names replaced by new ones (a new name given as well wins).
 
-    :param mapping: e.g. saved model data, hyperparameters or environment arguments
-    :return: a new dict
+    :param mapping: e.g. saved model data, policy arguments, hyperparameters or environment arguments
+    :return: a new dict; a switch of :data:`NEGATED` under its old name becomes the new switch, negated
     """
-    renamed = {key: value for key, value in mapping.items() if key not in RENAMED}
+    renamed = {key: value for key, value in mapping.items() if key not in RENAMED and key not in NEGATED}
     for old, value in mapping.items():
         if old in RENAMED:
             renamed.setdefault(RENAMED[old], value)
+        elif old in NEGATED:
+            renamed.setdefault(NEGATED[old], not value)
     return renamed
 
 

@@ -18,12 +18,12 @@ ENVS = {
 
 
 def fresh_model(module, kwargs: dict, share_parameters: bool) -> MAPPOC:
-    """A model whose deterministic options are the mode of mu, so that the joint and the decentralised options agree."""
+    """A model deployed with the mode of mu, so that the joint and the decentralised options agree."""
     return MAPPOC(
         "MlpHybridPolicy",
         module.joint_env(**kwargs),
         share_parameters=share_parameters,
-        policy_kwargs={"deterministic_options": True},
+        policy_kwargs={"sample_options": False},
         seed=3,
         device="cpu",
     )

@@ -42,7 +42,7 @@ def test_side_by_side_matches_one_after_another(monkeypatch: pytest.MonkeyPatch,
 
 
 def test_sampled_options_side_by_side_are_recorded_per_episode(policy) -> None:
-    episodes = evaluate_episodes(policy, gym.make(ENV_ID, **SETTINGS), [1, 2, 3], deterministic_broadcast=False)
+    episodes = evaluate_episodes(policy, gym.make(ENV_ID, **SETTINGS), [1, 2, 3], sample_options=True)
     assert episodes.broadcasts.shape == (3, 2) and (episodes.lengths == SETTINGS["max_cycles"]).all()
     broadcasts = episodes.broadcasts
     assert np.array_equal(broadcasts, np.round(broadcasts)) and ((broadcasts >= 0) & (broadcasts <= 15)).all()
@@ -55,19 +55,19 @@ def test_sampled_options_side_by_side_are_recorded_per_episode(policy) -> None:
     assert periodic.savings == pytest.approx(2 / 3, abs=1e-12)
 
 
-@pytest.mark.parametrize("deterministic_options", [False, True])
-def test_deterministic_episodes_take_options_as_the_policy_says(deterministic_options: bool) -> None:
-    """By default the options are sampled, as ``predict(deterministic=True)`` does; the mode where the policy says."""
+@pytest.mark.parametrize("sample_options", [False, True])
+def test_deterministic_episodes_take_options_as_the_policy_says(sample_options: bool) -> None:
+    """Deterministic episodes take the most likely options, or samples where the policy's ``sample_options`` says."""
     model = MAPPOC(
         "MlpHybridPolicy",
         gym.make(ENV_ID, **SETTINGS),
-        policy_kwargs={"net_arch": [8], "broadcast_prob_init": 0.5, "deterministic_options": deterministic_options},
+        policy_kwargs={"net_arch": [8], "broadcast_prob_init": 0.5, "sample_options": sample_options},
         seed=0,
     )
     runs = []
     for first in (1, 101):  # the first episode's seed seeds the draws: episodes 2 and 3 are the same
         runs.append(evaluate_episodes(model.policy, gym.make(ENV_ID, **SETTINGS), [first, 2, 3]).broadcasts[1:])
-    assert np.array_equal(runs[0], runs[1]) is deterministic_options
+    assert np.array_equal(runs[0], runs[1]) is not sample_options
 
 
 def test_seeded_episodes_draw_the_same_options_and_leave_the_global_generator() -> None:

@@ -44,9 +44,9 @@ def test_option_policy_learns_to_save_costly_communication(critic: str) -> None:
         "MlpHybridPolicy", env, seed=0, policy_kwargs=policy_kwargs, normalize_broadcast_advantage=True, **SETTINGS
     )
     eval_env = FixedControl(gym.make(ENV_ID, **env_kwargs))
-    before = evaluate_communication(model, eval_env, 4, deterministic_broadcast=False, seed=1)
+    before = evaluate_communication(model, eval_env, 4, sample_options=True, seed=1)
     model.learn(12_000)
-    after = evaluate_communication(model, eval_env, 4, deterministic_broadcast=False, seed=1)
+    after = evaluate_communication(model, eval_env, 4, sample_options=True, seed=1)
     assert 0.4 < before.savings < 0.6  # undecided at the start
     assert after.savings > 0.8
     assert after.mean_return > before.mean_return

@@ -98,22 +98,22 @@ def assert_padding_is_zero(policy: MlpHybridPolicy) -> None:
 
 
 # ------------------------------------------------------------------ 1. shapes, sharing
-@pytest.mark.parametrize("deterministic_options", [False, True])
+@pytest.mark.parametrize("policy_samples", [False, True])
 @pytest.mark.parametrize("critic", CRITICS)
 @pytest.mark.parametrize(
     "modes",
     [
         {},
         {"deterministic": True},
-        {"deterministic": True, "deterministic_broadcast": False},
-        {"deterministic_broadcast": True},
+        {"deterministic": True, "sample_options": True},
+        {"sample_options": False},
     ],
 )
 def test_sample_actions_draws_what_forward_draws_in_every_mode(
-    critic: str, modes: dict[str, bool], deterministic_options: bool
+    critic: str, modes: dict[str, bool], policy_samples: bool
 ) -> None:
     env = linear_etc_v0.joint_env(n_agents=3, max_cycles=50)
-    policy = make_policy(env, critic=critic, deterministic_options=deterministic_options)
+    policy = make_policy(env, critic=critic, sample_options=policy_samples)
     obs = joint_obs_batch(env, steps=64)
     with th.no_grad():
         th.manual_seed(5)
@@ -124,11 +124,9 @@ def test_sample_actions_draws_what_forward_draws_in_every_mode(
         again, _ = policy.sample_actions(obs, **modes)
     assert th.equal(broadcast, action.broadcast)
     th.testing.assert_close(control, action.control)
-    # Not given: the mode only if deterministic and the policy's deterministic_options
-    deterministic_broadcast = modes.get(
-        "deterministic_broadcast", modes.get("deterministic", False) and deterministic_options
-    )
-    assert th.equal(again, broadcast) == deterministic_broadcast  # modes repeat, 64 x 3 samples do not
+    # Not given: the mode if deterministic, whatever the policy's setting (it is the evaluation protocol's)
+    sampled = modes.get("sample_options", not modes.get("deterministic", False))
+    assert th.equal(again, broadcast) != sampled  # modes repeat, 64 x 3 samples do not
 
 
 @pytest.mark.parametrize("critic", CRITICS)
@@ -184,7 +182,7 @@ def test_predict_and_tiny_learn(n_agents: int, share: bool) -> None:
     assert np.any(np.abs(controls) == np.float32(u_max))  # clipping happened
 
     single = {key: value[1] for key, value in obs.items()}
-    model.policy.deterministic_options = True  # the mode of mu: the same options for a single and a batched call
+    # deterministic: the mode of mu, the same options for a single and a batched call
     action, _ = model.predict(single, deterministic=True)
     assert isinstance(action, dict)
     assert action["broadcast"].shape == (n_agents,) and action["control"].shape == (n_agents, 1)
@@ -671,28 +669,32 @@ def test_save_load_round_trip(tmp_path) -> None:
     assert all(th.equal(saved[k], v) for k, v in parameters(without_env).items())
 
 
-@pytest.mark.parametrize("deterministic_options", [False, True])
-def test_deterministic_predict_takes_options_as_the_policy_says(tmp_path, deterministic_options: bool) -> None:
-    model = make_model(
-        n_agents=3, policy_kwargs={"broadcast_prob_init": 0.5, "deterministic_options": deterministic_options}
-    )
+@pytest.mark.parametrize("sample_options", [False, True])
+def test_deterministic_predict_takes_the_most_likely_options_whatever_the_setting(
+    tmp_path, sample_options: bool
+) -> None:
+    model = make_model(n_agents=3, policy_kwargs={"broadcast_prob_init": 0.5, "sample_options": sample_options})
     path = tmp_path / "policy.pt"
     model.policy.save(str(path))
     policy = MlpHybridPolicy.load(str(path), device="cpu")
-    assert policy.deterministic_options is deterministic_options
+    assert policy.sample_options is sample_options  # saved with the policy
     env = linear_etc_v0.joint_env(n_agents=3, max_cycles=20)
     obs = {key: v.numpy() for key, v in joint_obs_batch(env, steps=6).items()}
     with th.no_grad():
         obs_tensor = obs_as_tensor(obs, policy.device)
-        mode = policy(obs_tensor, deterministic=True, deterministic_broadcast=True).broadcast.numpy()
+        mode = policy(obs_tensor, deterministic=True).broadcast.numpy()
+        logits_mode = policy.sample_actions(obs_tensor, sample_options=False)[0].numpy()
+    assert (mode == logits_mode).all()
     drawn = np.array([[a["broadcast"] for a in policy.predict(obs, deterministic=True)[0]] for _ in range(20)])
-    if deterministic_options:
-        assert (drawn == mode).all()  # the most likely options, every time
-    else:  # mu near 50 %: sampled options, different from call to call
-        assert 0.2 < drawn.mean() < 0.8 and (drawn != mode).any() and (drawn != drawn[0]).any()
+    assert (drawn == mode).all()  # the most likely options, every time
+    sampled = np.array([[a["broadcast"] for a in policy.predict(obs, deterministic=False)[0]] for _ in range(20)])
+    assert 0.2 < sampled.mean() < 0.8 and (sampled != mode).any()  # mu near 50 %: samples differ from the mode
     controller = policy.agent_controller(0)
+    assert controller.sample_options is sample_options
     decided = [controller.decide(obs["trigger"][0, 0], obs["trigger_held"][0, 0]) for _ in range(40)]
-    assert len(set(decided)) == (1 if deterministic_options else 2)
+    assert len(set(decided)) == 1
+    drawn_alone = [controller.decide(obs["trigger"][0, 0], obs["trigger_held"][0, 0], False) for _ in range(40)]
+    assert len(set(drawn_alone)) == 2
 
 
 @pytest.mark.parametrize("critic", CRITICS)
@@ -772,7 +774,7 @@ def test_compiled_sampling_and_loss_match_eager(tmp_path) -> None:
     obs = {key: th.as_tensor(value) for key, value in model.get_env().reset().items()}
     price = th.full((2, 3), 0.1)
     with th.no_grad():
-        modes = {"deterministic": True, "deterministic_broadcast": True}
+        modes = {"deterministic": True, "sample_options": False}
         compiled = th.compile(model.policy.forward)(obs, **modes, broadcast_price=price)
         eager = model.policy(obs, **modes, broadcast_price=price)
     for got, expected in zip(compiled, eager, strict=True):

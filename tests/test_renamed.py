@@ -80,11 +80,12 @@ def test_a_policy_saved_under_earlier_names_loads(tmp_path) -> None:
     policy.save(str(tmp_path / "policy.pt"))
     saved = th.load(tmp_path / "policy.pt", weights_only=False)
     saved["data"]["action_space"] = old_action_space(saved["data"]["action_space"])
-    del saved["data"]["deterministic_options"]  # an argument that earlier versions did not have
+    del saved["data"]["sample_options"]  # saved as the switch of the opposite meaning
+    saved["data"]["deterministic_options"] = False  # "deterministic predictions sample the options"
     th.save(saved, tmp_path / "old.pt")
     loaded = MlpHybridPolicy.load(str(tmp_path / "old.pt"))
     assert loaded.action_space == policy.action_space
-    assert loaded.deterministic_options is False
+    assert loaded.sample_options is True  # evaluated with sampled options, as it was
     obs = env.reset()
     th.manual_seed(1)
     expected = policy.predict(obs, deterministic=True)[0]

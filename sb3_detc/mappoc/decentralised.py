@@ -96,6 +96,7 @@ def run_decentralised_step(
     parallel_obs: Mapping[str, Mapping[str, np.ndarray]],
     messages: np.ndarray,
     deterministic: bool = True,
+    sample_options: bool | None = None,
 ) -> dict[str, dict[str, Any]]:
     """One team step of decentralised execution: decide, exchange broadcasts, act.
 
@@ -109,8 +110,11 @@ def run_decentralised_step(
     :param parallel_obs: per-agent PettingZoo observations (only ``local``, ``trigger`` and
         ``trigger_held`` are read: the neighbour information comes from the inboxes)
     :param messages: every agent's current message from its own sensors, shape (N, n_msg)
-    :param deterministic: mean controls instead of samples, and the most likely options if the
-        controllers' ``deterministic_options`` is True (see :meth:`AgentController.decide`)
+    :param deterministic: mean controls instead of samples, and the most likely options unless
+        ``sample_options`` says otherwise
+    :param sample_options: options sampled (True) or the most likely ones (False) whatever
+        ``deterministic`` says (None: as every controller's ``sample_options`` says when
+        ``deterministic``, else sampled)
     :return: ``{agent: {"broadcast": 0 or 1, "control": (m,)}}``, what the PettingZoo env's ``step`` takes
     """
     agents = list(parallel_obs)
@@ -126,8 +130,9 @@ def run_decentralised_step(
             )
     # (a) every agent decides from its own trigger features
     sent = [
-        int(c.decide(parallel_obs[a]["trigger"], parallel_obs[a]["trigger_held"], deterministic=deterministic))
+        int(c.decide(parallel_obs[a]["trigger"], parallel_obs[a]["trigger_held"], not samples))
         for c, a in zip(controllers, agents, strict=True)
+        for samples in [(c.sample_options or not deterministic) if sample_options is None else sample_options]
     ]
     # (b) the broadcasts go out; every agent files them in its own table
     radio: Radio = {i: np.asarray(messages[i]) for i in range(len(agents)) if sent[i]}

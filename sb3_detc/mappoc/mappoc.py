@@ -404,6 +404,7 @@ class MAPPOC(OnPolicyAlgorithm):
         self.n_agents, self.n_control = check_joint_spaces(self.observation_space, self.action_space)
         self._setup_lr_schedule()
         self.set_random_seed(self.seed)
+        self.policy_kwargs = renamed_keys(self.policy_kwargs)  # also a model saved under earlier names
         self.policy = self.policy_class(  # type: ignore[assignment]
             self.observation_space, self.action_space, self.lr_schedule, **self.policy_kwargs
         )

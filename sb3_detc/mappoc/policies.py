@@ -38,7 +38,7 @@ from sb3_detc.envs.wrappers import JOINT_KEYS
 from sb3_detc.mappoc.batched import AgentBatchedNetworks, ChainInput, NetSpec
 from sb3_detc.mappoc.critics import CRITICS, OptionCritic
 from sb3_detc.network import advance_timer, hold, others_ages, others_index, relative_to_receivers, relative_views
-from sb3_detc.renamed import renamed_action_space
+from sb3_detc.renamed import renamed_action_space, renamed_keys
 
 #: Order of the networks inside the batched chains: ``mu`` (and a critic that reads the state
 #: before the options) do not depend on this step's options and run before the options are
@@ -141,13 +141,15 @@ class MlpHybridPolicy(BasePolicy):
         options, centred on the probabilities the options were drawn with); see the classes of
         :mod:`sb3_detc.mappoc.critics`. The critic object is :attr:`option_critic`
     :param ortho_init: orthogonal initialisation (otherwise PyTorch's default init)
-    :param deterministic_options: what :meth:`predict` with ``deterministic=True`` and the
-        agents' controllers (:meth:`agent_controller`) do with the policy over options: sample
-        the options (False, default: the trigger as it was trained, as every evaluation of the
-        package runs it) or take the most likely option (True). The controls are the mean
-        either way. A policy over options that an entropy bonus keeps stochastic (the paper's
-        ends near 50 %) has a mode that is another trigger, one it was never trained with:
-        on Multiwalker the paper's policies fall in nearly every episode with it
+    :param sample_options: how this policy's trigger is meant to run when it is deployed: options
+        sampled from the policy over options (True) or its most likely option (False, default).
+        Saved with the policy; the package's evaluation protocol (:mod:`sb3_detc.evaluation`) runs
+        the "learned" mode this way and the most likely option as a mode of its own.
+        :meth:`predict` with ``deterministic=True`` takes the most likely option whatever this says
+        (SB3's contract: the same action every call). A policy over options that an entropy
+        bonus keeps stochastic (the paper's ends near 50 %) has a mode that is another trigger,
+        one it was never trained with: on Multiwalker the paper's policies fall in nearly every
+        episode with it, so the paper's entries set ``sample_options=True``
     :param use_sde: not supported, must be False (present for SB3 compatibility)
     :param optimizer_class: optimizer class
     :param optimizer_kwargs: optimizer keyword arguments, excluding the learning rate
@@ -170,7 +172,7 @@ class MlpHybridPolicy(BasePolicy):
         broadcast_prob_init: float = 0.5,
         critic: str = "option_heads",
         ortho_init: bool = True,
-        deterministic_options: bool = False,
+        sample_options: bool = False,
         use_sde: bool = False,
         optimizer_class: type[th.optim.Optimizer] = th.optim.Adam,
         optimizer_kwargs: dict[str, Any] | None = None,
@@ -211,7 +213,7 @@ class MlpHybridPolicy(BasePolicy):
         self.critic = critic
         self.option_critic: OptionCritic = CRITICS[critic]()
         self.ortho_init = ortho_init
-        self.deterministic_options = deterministic_options
+        self.sample_options = bool(sample_options)
 
         n_local = observation_space["local"].shape[1]
         n_msg = observation_space["message"].shape[1]
@@ -278,7 +280,7 @@ class MlpHybridPolicy(BasePolicy):
         """
         device = get_device(device)
         saved = th.load(path, map_location=device, weights_only=False)  # the spaces are pickled gymnasium objects
-        data = {**saved["data"], "action_space": renamed_action_space(saved["data"]["action_space"])}
+        data = renamed_keys({**saved["data"], "action_space": renamed_action_space(saved["data"]["action_space"])})
         policy = cls(**data)
         policy.load_state_dict(saved["state_dict"])
         return policy.to(device)
@@ -295,7 +297,7 @@ class MlpHybridPolicy(BasePolicy):
             broadcast_prob_init=self.broadcast_prob_init,
             critic=self.critic,
             ortho_init=self.ortho_init,
-            deterministic_options=self.deterministic_options,
+            sample_options=self.sample_options,
             optimizer_class=self.optimizer_class,
             optimizer_kwargs=self.optimizer_kwargs,
         )
@@ -434,25 +436,25 @@ class MlpHybridPolicy(BasePolicy):
         deterministic: bool = False,
         broadcast: th.Tensor | None = None,
         action_noise_std: float = 0.0,
-        deterministic_broadcast: bool | None = None,
+        sample_options: bool | None = None,
         broadcast_price: th.Tensor | None = None,
     ) -> HybridAction:
         """Sample all options, deliver the broadcasts, then sample all controls (same-step delivery).
 
         :param obs: joint observation (B, N, ...)
-        :param deterministic: mean of ``pi`` instead of samples, and the options as
-            ``deterministic_broadcast`` says
+        :param deterministic: mean of ``pi`` instead of samples, and the most likely options
+            unless ``sample_options`` says otherwise
         :param broadcast: broadcast decisions to use instead of sampling them from ``mu`` (e.g. a baseline's)
         :param action_noise_std: standard deviation of extra Gaussian exploration noise added
             to the sampled controls (curriculum); log-probabilities refer to the noisy controls
-        :param deterministic_broadcast: mode (True) or sample (False) of ``mu`` regardless of
-            ``deterministic`` (None: the mode if ``deterministic`` and :attr:`deterministic_options`)
+        :param sample_options: options sampled from ``mu`` (True) or its mode (False) whatever
+            ``deterministic`` says (None: the mode if ``deterministic``, else a sample)
         :param broadcast_price: cost of a broadcast in the learner's reward units (B, N), see
             :meth:`option_values`
         :return: the hybrid action with its log-probabilities and the option values
         """
         out, broadcast, control = self._sample(
-            obs, deterministic, broadcast, action_noise_std, deterministic_broadcast, True
+            obs, deterministic, broadcast, action_noise_std, sample_options, True
         )
         log_std = self.log_std.expand(self.n_agents, -1)
         log_prob_broadcast = F.log_softmax(out["mu"], dim=-1).gather(-1, broadcast[..., None])[..., 0]
@@ -470,7 +472,7 @@ class MlpHybridPolicy(BasePolicy):
         action_noise_std: float = 0.0,
         broadcast: th.Tensor | None = None,
         deterministic: bool = False,
-        deterministic_broadcast: bool | None = None,
+        sample_options: bool | None = None,
     ) -> tuple[th.Tensor, th.Tensor]:
         """The options and controls :meth:`forward` samples, without evaluating the critic.
 
@@ -481,14 +483,14 @@ class MlpHybridPolicy(BasePolicy):
         :param obs: joint observation (B, N, ...)
         :param action_noise_std: extra Gaussian noise on the controls (see :meth:`forward`)
         :param broadcast: broadcast decisions to use instead of sampling them (a fixed trigger)
-        :param deterministic: mean of ``pi`` instead of samples, and the options as
-            ``deterministic_broadcast`` says
-        :param deterministic_broadcast: mode (True) or sample (False) of ``mu`` regardless of
-            ``deterministic`` (None: the mode if ``deterministic`` and :attr:`deterministic_options`)
+        :param deterministic: mean of ``pi`` instead of samples, and the most likely options
+            unless ``sample_options`` says otherwise
+        :param sample_options: options sampled from ``mu`` (True) or its mode (False) whatever
+            ``deterministic`` says (None: the mode if ``deterministic``, else a sample)
         :return: options (B, N) and controls (B, N, m)
         """
         _, broadcast, control = self._sample(
-            obs, deterministic, broadcast, action_noise_std, deterministic_broadcast, False
+            obs, deterministic, broadcast, action_noise_std, sample_options, False
         )
         return broadcast, control
 
@@ -498,7 +500,7 @@ class MlpHybridPolicy(BasePolicy):
         deterministic: bool,
         broadcast: th.Tensor | None,
         action_noise_std: float,
-        deterministic_broadcast: bool | None,
+        sample_options: bool | None,
         with_critic: bool,
     ) -> tuple[dict[str, th.Tensor], th.Tensor, th.Tensor]:
         """Options, then the broadcasts delivered, then controls; with the networks' outputs.
@@ -507,8 +509,8 @@ class MlpHybridPolicy(BasePolicy):
         :param deterministic: mean of ``pi`` instead of samples
         :param broadcast: broadcast decisions to use instead of sampling them (None: sample)
         :param action_noise_std: extra Gaussian noise on the controls
-        :param deterministic_broadcast: mode (True) or sample (False) of ``mu`` (None: the mode if
-            ``deterministic`` and :attr:`deterministic_options`)
+        :param sample_options: a sample (True) or the mode (False) of ``mu`` (None: the mode if
+            ``deterministic``, else a sample)
         :param with_critic: whether to evaluate the critic too (output ``q``)
         :return: the outputs of ``mu``, ``pi`` (and ``q``), the options, the controls
         """
@@ -517,10 +519,10 @@ class MlpHybridPolicy(BasePolicy):
         if with_critic and not critic.reads_afterstate:
             before["q"] = critic.features(self, obs, None)
         out = self.chains.run(before)
-        if deterministic_broadcast is None:
-            deterministic_broadcast = deterministic and self.deterministic_options
+        if sample_options is None:
+            sample_options = not deterministic
         if broadcast is None:
-            broadcast = self._sample_options(out["mu"], deterministic_broadcast)
+            broadcast = self._sample_options(out["mu"], not sample_options)
         broadcast = broadcast.long()
         after = {"pi": self.control_features(obs, broadcast)}
         if with_critic and critic.reads_afterstate:
@@ -632,7 +634,7 @@ class MlpHybridPolicy(BasePolicy):
         """Options and controls side by side, (B, N, 1 + m); :meth:`predict` returns them as a Dict.
 
         :param observation: joint observation (B, N, ...)
-        :param deterministic: mean controls; the options as :attr:`deterministic_options` says
+        :param deterministic: mean controls and the most likely options (else samples of both)
         """
         broadcast, control = self.sample_actions(observation, deterministic=deterministic)  # the critic is not needed
         return th.cat([broadcast[..., None].to(control.dtype), control], dim=-1)
@@ -649,8 +651,8 @@ class MlpHybridPolicy(BasePolicy):
         :param observation: one joint observation or a batch of them (from a VecEnv)
         :param state: unused (no recurrent state), returned as is
         :param episode_start: unused
-        :param deterministic: mean of ``pi``, and the mode of ``mu`` if the policy's
-            ``deterministic_options`` is True (else options sampled from ``mu``)
+        :param deterministic: mean of ``pi`` and the most likely options (the mode of ``mu``), the
+            same every call; else samples of both
         :return: ``{"broadcast": (N,), "control": (N, m)}`` for one observation, or a list of
             such dicts, one per environment, for a batch (what a VecEnv's ``step`` takes);
             controls are clipped to the action bounds
@@ -690,7 +692,7 @@ class MlpHybridPolicy(BasePolicy):
             agent_id=self.agent_id[agent].clone() if self.share_parameters else None,
             control_low=self.control_low[agent].clone(),
             control_high=self.control_high[agent].clone(),
-            deterministic_options=self.deterministic_options,
+            sample_options=self.sample_options,
         )
 
 
@@ -711,8 +713,9 @@ class AgentController(nn.Module):
     :param agent_id: one-hot id input for shared-parameter policies, else None
     :param control_low: lower control bounds (m,)
     :param control_high: upper control bounds (m,)
-    :param deterministic_options: whether :meth:`decide` with ``deterministic=True`` takes the
-        most likely option (True) or samples it (False), as the policy's ``deterministic_options``
+    :param sample_options: how the trigger is meant to run when deployed, copied from the
+        policy's ``sample_options`` (read by whoever runs the controller, e.g.
+        :func:`~sb3_detc.mappoc.decentralised.run_decentralised_step`)
     """
 
     def __init__(
@@ -726,10 +729,10 @@ class AgentController(nn.Module):
         agent_id: th.Tensor | None,
         control_low: th.Tensor,
         control_high: th.Tensor,
-        deterministic_options: bool = False,
+        sample_options: bool = False,
     ) -> None:
         super().__init__()
-        self.deterministic_options = deterministic_options
+        self.sample_options = sample_options
         self.option_net = option_net
         self.control_net = control_net
         self.agent = agent
@@ -754,13 +757,12 @@ class AgentController(nn.Module):
 
         :param trigger: own trigger features now (n_trig,)
         :param trigger_held: own trigger features at the own last broadcast (n_trig,)
-        :param deterministic: the most likely option instead of a sample if
-            :attr:`deterministic_options` is True (else a sample either way)
+        :param deterministic: the most likely option instead of a sample
         :return: True to broadcast, False to stay silent
         """
         x = th.as_tensor(np.concatenate([trigger, trigger_held]), dtype=th.float32)
         logits = self.option_net(self._with_id(x))
-        if deterministic and self.deterministic_options:
+        if deterministic:
             return bool(logits.argmax() == 1)
         return bool(th.distributions.Categorical(logits=logits).sample() == 1)
 
