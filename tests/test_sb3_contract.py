@@ -90,7 +90,12 @@ def test_deterministic_predictions_repeat_and_survive_save_and_load(tmp_path, sa
     assert_same(deterministic_actions(model, batches), expected)
     # mu near 50 %: every step has agents whose options a sample would flip
     sampled = [model.predict(obs, deterministic=False)[0] for obs in batches]
-    assert any(not np.array_equal(a["broadcast"], e[i, :, 0]) for s, e in zip(sampled, expected) for i, a in enumerate(s))
+    flipped = [
+        not np.array_equal(action["broadcast"], modes[env, :, 0])
+        for actions, modes in zip(sampled, expected, strict=True)
+        for env, action in enumerate(actions)
+    ]
+    assert any(flipped)
 
     model.save(tmp_path / "model.zip")
     loaded = MAPPOC.load(tmp_path / "model.zip", device="cpu")

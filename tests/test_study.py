@@ -421,9 +421,7 @@ def test_the_value_of_information_sweep_runs_fixed_triggers_and_the_mode_of_lear
         assert ("mode of mu" in rows) == (trial.algorithm.label == "learned")
         if "mode of mu" in rows:
             policy = MlpHybridPolicy.load(str(trial_folder(out, trial) / "policy.pt"), device="cpu")
-            episodes = evaluate_episodes(
-                policy, gym.make(spec.env), seeds, deterministic=True, sample_options=False
-            )
+            episodes = evaluate_episodes(policy, gym.make(spec.env), seeds, deterministic=True, sample_options=False)
             assert rows["mode of mu"]["savings"] == pytest.approx(episodes.savings)
             assert rows["mode of mu"]["control_return"] == pytest.approx(np.mean(episodes.control_returns))
     assert "### learned" in printed and "| mode of mu | 2 |" in printed

@@ -453,9 +453,7 @@ class MlpHybridPolicy(BasePolicy):
             :meth:`option_values`
         :return: the hybrid action with its log-probabilities and the option values
         """
-        out, broadcast, control = self._sample(
-            obs, deterministic, broadcast, action_noise_std, sample_options, True
-        )
+        out, broadcast, control = self._sample(obs, deterministic, broadcast, action_noise_std, sample_options, True)
         log_std = self.log_std.expand(self.n_agents, -1)
         log_prob_broadcast = F.log_softmax(out["mu"], dim=-1).gather(-1, broadcast[..., None])[..., 0]
         return HybridAction(
@@ -489,9 +487,7 @@ class MlpHybridPolicy(BasePolicy):
             ``deterministic`` says (None: the mode if ``deterministic``, else a sample)
         :return: options (B, N) and controls (B, N, m)
         """
-        _, broadcast, control = self._sample(
-            obs, deterministic, broadcast, action_noise_std, sample_options, False
-        )
+        _, broadcast, control = self._sample(obs, deterministic, broadcast, action_noise_std, sample_options, False)
         return broadcast, control
 
     def _sample(

@@ -341,9 +341,7 @@ def evaluate_policy_modes(
     seeds = [seed + k for k in range(episodes)]
     if own_trigger is not None and hasattr(own_trigger, "fork"):
         own_trigger = own_trigger.fork(seed)
-    learned = evaluate_episodes(
-        policy, env, seeds, deterministic=True, sample_options=True, fixed_trigger=own_trigger
-    )
+    learned = evaluate_episodes(policy, env, seeds, deterministic=True, sample_options=True, fixed_trigger=own_trigger)
     results = {"learned": learned}
     for mode, skip in (("random_same_rate", learned.savings), ("periodic", 0.0), ("never", 1.0)):
         trigger = RandomTrigger(float(np.clip(skip, 0.0, 1.0)), seed=seed)
