@@ -9,8 +9,9 @@ processes (``SubprocVecEnv``) each:
   iterations; its warm-up is everything from the constructor to the end of the first
   iteration (worker start, compilation), with its parts in the JSON of ``--one``: the start
   (constructor and set-up), the first rollout (the workers compile their sampling) and the
-  first update (the learner compiles its gradient step); and the same with
-  ``overlap_rollouts=True`` (the workers sample the next rollout during every update);
+  first update (the learner compiles its gradient step); with ``--baseline DIR`` also the
+  one-liner of the package in another source tree (e.g. a git worktree of an earlier commit),
+  alternating with this one's, to measure what a change costs;
 * **MAPPOC** on ``sb3_detc/MultiwalkerETC-v0`` with the paper's hyperparameters: 2048
   environment steps per iteration (2 envs x 1024), minibatch 32, 10 epochs, three agents
   with their own networks (policy over options, control policy and option-value critic,
@@ -50,10 +51,12 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import platform
 import subprocess
 import sys
 import time
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -141,21 +144,18 @@ class IterationTimer(BaseCallback):
         return len(self.starts) <= self.stop_at
 
 
-def measure_one_liner(name: str, seed: int, iterations: int, overlap_rollouts: bool = False) -> dict[str, Any]:
+def measure_one_liner(name: str, seed: int, iterations: int) -> dict[str, Any]:
     """The documented one-liner with the paper's budget, timed over ``iterations`` iterations after the first.
 
-    With ``overlap_rollouts`` the workers sample every rollout after the first during the update before it.
-
-    :param name: the row's name (:data:`ONE_LINER` or :data:`ONE_LINER_OVERLAP`)
+    :param name: the row's name (:data:`ONE_LINER`)
     :param seed: the model's seed
     :param iterations: timed iterations, after the first (the warm-up)
-    :param overlap_rollouts: MAPPOC's ``overlap_rollouts``
     :return: the warm-up and its parts in seconds, timed env steps, seconds, env steps/s, rollout and
         update seconds, epochs and ms per minibatch gradient step, the number of envs and the class
         of the gradient step (compiled or not)
     """
     start = time.perf_counter()
-    model = MAPPOC("MlpHybridPolicy", "sb3_detc/MultiwalkerETC-v0", seed=seed, overlap_rollouts=overlap_rollouts)
+    model = MAPPOC("MlpHybridPolicy", "sb3_detc/MultiwalkerETC-v0", seed=seed)
     timer = IterationTimer(stop_at=iterations + 1)
     model.learn(PAPER_TIMESTEPS, callback=timer)
     model.get_env().close()
@@ -297,7 +297,8 @@ def matmul_floor(name: str, seed: int, repeats: int = 500) -> dict[str, Any]:
 
 
 ONE_LINER = "MAPPOC, one-liner"
-ONE_LINER_OVERLAP = "MAPPOC, one-liner, overlapping rollouts"
+#: The one-liner of the package in the source tree given with ``--baseline``.
+BASELINE = "MAPPOC, one-liner, baseline"
 #: The paper's budget: 3000 iterations of 2048 environment steps.
 PAPER_TIMESTEPS = 6_144_000
 MAPPOC_VARIANTS = {  # name -> (torch_compile, envs)
@@ -315,7 +316,7 @@ MATMUL_FLOOR = "MAPPOC gradient step, matrix products only"
 PPO_EQUAL = "PPO + SuperSuit, equal gradient steps"
 #: PPO + SuperSuit variants: name -> with MAPPOC's samples and gradient steps per update
 PPO_VARIANTS = {"PPO + SuperSuit": False, "PPO + SuperSuit, 2 threads": False, PPO_EQUAL: True}
-ALGORITHMS = (ONE_LINER, ONE_LINER_OVERLAP, *MAPPOC_VARIANTS, *PPO_VARIANTS, *ENV_ONLY, MATMUL_FLOOR)
+ALGORITHMS = (ONE_LINER, *MAPPOC_VARIANTS, *PPO_VARIANTS, *ENV_ONLY, MATMUL_FLOOR)
 
 
 def measure_one(name: str, seed: int, iterations: int, ppo_iterations: int) -> dict[str, Any]:
@@ -328,8 +329,8 @@ def measure_one(name: str, seed: int, iterations: int, ppo_iterations: int) -> d
     :param ppo_iterations: timed iterations of the PPO recipe (4096 env steps each)
     :return: the measurement (:func:`measure_one_liner`, :func:`measure`, :func:`env_only` or :func:`matmul_floor`)
     """
-    if name in (ONE_LINER, ONE_LINER_OVERLAP):  # as a user runs it: PyTorch's default threads
-        return measure_one_liner(name, seed, iterations, overlap_rollouts=name == ONE_LINER_OVERLAP)
+    if name == ONE_LINER:  # as a user runs it: PyTorch's default threads
+        return measure_one_liner(name, seed, iterations)
     th.set_num_threads(2 if name in TWO_THREADS else 1)  # PPO: its faster setting on 2 cores
     if name in ENV_ONLY:
         return env_only(name, ENV_ONLY[name], 1024 * iterations, seed)
@@ -353,23 +354,42 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--one", choices=ALGORITHMS, help="measure only this algorithm, in this process (JSON)")
     parser.add_argument("--only", nargs="+", choices=ALGORITHMS, help="measure only these (default: all)")
+    parser.add_argument(
+        "--baseline",
+        type=Path,
+        help="also measure the one-liner with the package of this source tree (e.g. a git worktree of an earlier "
+        "commit), right after this tree's in every repeat",
+    )
     args = parser.parse_args()
     check_at_least_one(parser, args, "iterations", "ppo_iterations", "repeats")
+    if args.baseline is not None and not (args.baseline / "sb3_detc" / "__init__.py").is_file():
+        parser.error(f"--baseline {args.baseline} is not a source tree of the package (no sb3_detc/__init__.py).")
     if args.one is not None:
         print(json.dumps(measure_one(args.one, args.seed, args.iterations, args.ppo_iterations)))
         return
 
     names = [name for name in ALGORITHMS if args.only is None or name in args.only]
-    results: dict[str, list[dict[str, Any]]] = {name: [] for name in names}
+    runs = [(name, None) for name in names]
+    if args.baseline is not None and ONE_LINER in names:
+        runs.insert(names.index(ONE_LINER) + 1, (BASELINE, args.baseline.resolve()))
+    results: dict[str, list[dict[str, Any]]] = {name: [] for name, _ in runs}
     for repeat in range(args.repeats):
-        for name in names:
-            command = [sys.executable, __file__, "--one", name, "--seed", str(args.seed + repeat)]
+        for name, tree in runs:
+            command = [
+                sys.executable,
+                __file__,
+                "--one",
+                ONE_LINER if tree else name,
+                "--seed",
+                str(args.seed + repeat),
+            ]
             command += ["--iterations", str(args.iterations), "--ppo-iterations", str(args.ppo_iterations)]
+            environment = dict(os.environ, PYTHONPATH=str(tree)) if tree else None  # the other tree's package
             print(f"[repeat {repeat + 1} of {args.repeats}] {name}", file=sys.stderr, flush=True)
-            done = subprocess.run(command, stdout=subprocess.PIPE, text=True)  # its stderr (a traceback) shows
+            done = subprocess.run(command, stdout=subprocess.PIPE, text=True, env=environment)  # stderr shows
             if done.returncode != 0:
                 sys.exit(f"measuring {name} failed (exit status {done.returncode}; its error is above): {command}")
-            results[name].append(json.loads(done.stdout.strip().splitlines()[-1]))
+            results[name].append({**json.loads(done.stdout.strip().splitlines()[-1]), "name": name})
 
     cpu = next((line.split(":", 1)[1].strip() for line in open("/proc/cpuinfo") if "model name" in line), "?")
     threads = "1 torch thread in the learner (2 where named; the one-liner: torch's default)"
@@ -399,10 +419,15 @@ def main() -> None:
     print()
     print("median env steps/s: " + ", ".join(f"{name} {value:.0f}" for name, value in medians.items()))
     for reference in (name for name in PPO_VARIANTS if name in results):
-        for name in (name for name in (ONE_LINER, ONE_LINER_OVERLAP, *MAPPOC_VARIANTS) if name in results):
+        for name in (name for name in (ONE_LINER, *MAPPOC_VARIANTS) if name in results):
             pairs = zip(results[name], results[reference], strict=True)
             per_repeat = ", ".join(f"{a['steps_per_s'] / b['steps_per_s']:.2f}" for a, b in pairs)
             print(f"ratio {name} / {reference}: {medians[name] / medians[reference]:.2f} (per repeat: {per_repeat})")
+    if BASELINE in results and ONE_LINER in results:
+        pairs = zip(results[ONE_LINER], results[BASELINE], strict=True)
+        per_repeat = ", ".join(f"{a['steps_per_s'] / b['steps_per_s']:.3f}" for a, b in pairs)
+        ratio = medians[ONE_LINER] / medians[BASELINE]
+        print(f"ratio {ONE_LINER} / baseline ({args.baseline}): {ratio:.3f} (per repeat: {per_repeat})")
     if MATMUL_FLOOR not in results or "PPO + SuperSuit" not in results:
         return
     floor = min(results[MATMUL_FLOOR], key=lambda run: run["ms_per_gradient_step"])

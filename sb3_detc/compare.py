@@ -37,7 +37,7 @@ from rl_zoo3.utils import get_saved_hyperparams
 
 from sb3_detc.evaluation import CommunicationReport, evaluate_communication
 from sb3_detc.mappoc import MAPPOC
-from sb3_detc.mappoc.mappoc import FixedTrigger
+from sb3_detc.mappoc.sampling import FixedTrigger
 from sb3_detc.study.report import interval_text, report_study, summarise
 from sb3_detc.study.runner import prepare_folder, run_study
 from sb3_detc.study.spec import load_study

@@ -12,8 +12,9 @@ import torch as th
 from stable_baselines3.common.utils import obs_as_tensor
 
 from sb3_detc.envs.wrappers import JointEnv
-from sb3_detc.mappoc.mappoc import MAPPOC, FixedTrigger
+from sb3_detc.mappoc.mappoc import MAPPOC
 from sb3_detc.mappoc.policies import MlpHybridPolicy
+from sb3_detc.mappoc.sampling import FixedTrigger
 
 
 @dataclass

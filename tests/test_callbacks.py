@@ -633,7 +633,7 @@ def test_paper_setup_runs_end_to_end_on_multiwalker() -> None:
 
     from sb3_detc import MAPPOC
     from sb3_detc.callbacks import CommMetricsCallback, CurriculumCallback
-    from sb3_detc.mappoc.mappoc import default_n_envs
+    from sb3_detc.mappoc.workers import default_n_envs
 
     model = MAPPOC("MlpHybridPolicy", "sb3_detc/MultiwalkerETC-v0", n_steps=128, n_epochs=1, seed=0)
     assert model.n_envs == default_n_envs()  # the fast setting: rollout workers built from the id

@@ -15,15 +15,11 @@ from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
 
 import sb3_detc  # noqa: F401  (registers the env ids)
 from sb3_detc.mappoc import MAPPOC
-from sb3_detc.mappoc.mappoc import (
-    COMPILE_FROM_TIMESTEPS,
-    PAPER_ITERATION,
-    default_n_envs,
-    has_cxx_compiler,
-    has_rollout_workers,
-)
+from sb3_detc.mappoc.mappoc import PAPER_ITERATION
 from sb3_detc.mappoc.rewards import RewardTransform
-from sb3_detc.mappoc.steps import FusedGradientStep, GradientStep
+from sb3_detc.mappoc.sampling import has_rollout_workers
+from sb3_detc.mappoc.steps import COMPILE_FROM_TIMESTEPS, FusedGradientStep, GradientStep, has_cxx_compiler
+from sb3_detc.mappoc.workers import default_n_envs
 from sb3_detc.triggers import RandomTrigger
 
 ENV_ID = "sb3_detc/LinearETC-v0"

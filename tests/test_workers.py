@@ -2,9 +2,6 @@
 
 from __future__ import annotations
 
-import copy
-import os
-import threading
 from typing import Any
 
 import numpy as np
@@ -18,8 +15,7 @@ from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecNorm
 import sb3_detc  # noqa: F401  (registers the env ids)
 from sb3_detc.callbacks import CommMetricsCallback
 from sb3_detc.mappoc import MAPPOC
-from sb3_detc.mappoc.mappoc import WORKER_NICENESS, has_rollout_workers
-from sb3_detc.mappoc.policies import drawn_broadcast_probability
+from sb3_detc.mappoc.sampling import has_rollout_workers
 from sb3_detc.mappoc.workers import RolloutWorker, check_finite
 from sb3_detc.triggers import PeriodicTrigger, RandomTrigger
 
@@ -181,164 +177,3 @@ def test_worker_processes_sample_while_the_learner_compiles_its_step() -> None:
     assert in_processes == [False, False] and in_learner == [True, False]
     for key, value in expected.items():
         th.testing.assert_close(trained[key], value, rtol=0, atol=0)
-
-
-class Snapshots(BaseCallback):
-    """At every rollout's end: the policy's parameters (which the next overlapping rollout samples with), the buffer."""
-
-    def __init__(self) -> None:
-        super().__init__()
-        self.states: list[dict[str, th.Tensor]] = []
-        self.samples: list[Any] = []
-        self.option_values: list[th.Tensor] = []
-        self.sampler_kl: list[tuple[float | None, float | None]] = []
-
-    def _on_rollout_end(self) -> None:
-        self.states.append({key: value.clone() for key, value in self.model.policy.state_dict().items()})
-        buffer = self.model.rollout_buffer
-        self.samples.append(buffer.tensors())
-        self.option_values.append(th.as_tensor(buffer.option_values.reshape(-1, *buffer.option_values.shape[2:])))
-        logged = self.model.logger.name_to_value
-        self.sampler_kl.append((logged.get("rollout/sampler_kl_pi"), logged.get("rollout/sampler_kl_mu")))
-
-    def _on_step(self) -> bool:
-        return True
-
-
-@pytest.mark.parametrize("critic", ["option_heads", "centred"])
-def test_overlapping_rollouts_are_sampled_before_the_update_and_weighted_by_the_policy_that_sampled_them(
-    critic: str,
-) -> None:
-    """With overlap_rollouts, rollout k is sampled with the parameters of rollout k - 1's end (before its update).
-
-    Its old log-probabilities are those of the policy at the update's start, its behaviour
-    log-probabilities those of the parameters that sampled it; the first rollout is sampled in turn.
-    A critic that reads the probabilities with which the options were drawn gets the sampler's.
-    """
-    kwargs = {"overlap_rollouts": True, "learning_rate": 3e-3, "policy_kwargs": {"critic": critic}}
-    model = make(True, vec_env_cls=SubprocVecEnv, **kwargs)
-    threads = th.get_num_threads()
-    callback = Snapshots()
-    model.learn(4 * 96, callback=callback)
-    assert model.num_timesteps == 4 * 96 and model.last_rollout_in_workers and not model.has_pending_rollout
-    assert th.get_num_threads() == threads
-    assert not any(thread.name.startswith("rollout") for thread in threading.enumerate())  # the waiter ended
-    # The workers yield the cores to the learner's update (and stay so)
-    learner = os.getpriority(os.PRIO_PROCESS, 0)
-    workers = [os.getpriority(os.PRIO_PROCESS, process.pid) for process in model.get_env().processes]
-    assert workers == [min(learner + WORKER_NICENESS, 19)] * 2
-    model.get_env().close()
-    spare = copy.deepcopy(model.policy)
-
-    def evaluated(state: dict[str, th.Tensor], data: Any, drawn: th.Tensor | None = None) -> Any:
-        spare.load_state_dict(state)
-        with th.no_grad():
-            return spare.evaluate_actions(data.observations, data.broadcast, data.control, data.broadcast_price, drawn)
-
-    for k, data in enumerate(callback.samples):
-        sampling = evaluated(callback.states[max(k - 1, 0)], data)
-        drawn = drawn_broadcast_probability(data.broadcast, sampling.log_prob_broadcast)
-        current = evaluated(callback.states[k], data, drawn)
-        th.testing.assert_close(callback.option_values[k], current.option_values)
-        th.testing.assert_close(data.old_log_prob_control, current.log_prob_control)
-        th.testing.assert_close(data.old_log_prob_broadcast, current.log_prob_broadcast)
-        th.testing.assert_close(data.behaviour_log_prob_control, sampling.log_prob_control)
-        th.testing.assert_close(data.behaviour_log_prob_broadcast, sampling.log_prob_broadcast)
-        moved = not th.allclose(data.behaviour_log_prob_control, data.old_log_prob_control)
-        assert moved == (k > 0), k  # the first rollout is the update's own; the others lag one update behind
-        # the logged lag: KL from the sampler to the update's start, estimated on the samples
-        expected = [None, None]
-        if k > 0:
-            for i, (now, then) in enumerate(
-                [
-                    (current.log_prob_control, sampling.log_prob_control),
-                    (current.log_prob_broadcast, sampling.log_prob_broadcast),
-                ]
-            ):
-                expected[i] = pytest.approx(float((th.exp(now - then) - 1 - (now - then)).mean()), rel=1e-4)
-            assert callback.sampler_kl[k][0] > 0
-        assert list(callback.sampler_kl[k]) == expected, k
-
-
-class TriggerOffAtSecondRollout(BaseCallback):
-    """Sets the fixed trigger off at the second rollout's start; keeps mu's parameters at every rollout's end."""
-
-    def __init__(self) -> None:
-        super().__init__()
-        self.rollouts = 0
-        self.mu: list[list[th.Tensor]] = []
-
-    def _on_rollout_start(self) -> None:
-        self.rollouts += 1
-        if self.rollouts == 2:
-            self.model.set_fixed_trigger(None)
-
-    def _on_rollout_end(self) -> None:
-        self.mu.append([view.clone() for view in self.model.policy.net_parameters("mu")])
-
-    def _on_step(self) -> bool:
-        return True
-
-
-def test_an_overlapping_rollout_drawn_by_a_fixed_trigger_does_not_train_mu() -> None:
-    """The rollout sampled during the last update under a trigger keeps mu untrained, though the trigger is off now."""
-    model = make(
-        True,
-        vec_env_cls=SubprocVecEnv,
-        overlap_rollouts=True,
-        learning_rate=3e-3,
-        fixed_trigger=RandomTrigger(0.5, seed=1),
-        policy_kwargs={"net_arch": [16, 16]},
-    )
-    callback = TriggerOffAtSecondRollout()
-    model.learn(4 * 96, callback=callback)
-    model.get_env().close()
-    ends = callback.mu
-    unchanged = [all(th.equal(a, b) for a, b in zip(*pair, strict=True)) for pair in zip(ends, ends[1:], strict=False)]
-    # updates 1 and 2 on the trigger's options (the second sampled before the trigger went off), update 3 on mu's
-    assert unchanged == [True, True, False]
-
-
-def test_an_error_in_an_overlapping_update_keeps_the_sampled_rollout_for_the_next_learn(tmp_path) -> None:
-    model = make(True, vec_env_cls=SubprocVecEnv, overlap_rollouts=True, policy_kwargs={"net_arch": [16, 16]})
-    threads = th.get_num_threads()
-
-    def failing_update() -> None:
-        raise RuntimeError("the update failed")
-
-    model.train = failing_update  # type: ignore[method-assign]
-    with pytest.raises(RuntimeError, match="the update failed"):
-        model.learn(3 * 96)
-    assert model.num_timesteps == 96 and model.has_pending_rollout and th.get_num_threads() == threads
-    del model.train
-    model.save(tmp_path / "model.zip")  # without the rollout
-    model.learn(96, reset_num_timesteps=False)  # takes the rollout sampled during the failed update
-    assert model.num_timesteps == 2 * 96 and not model.has_pending_rollout
-    assert MAPPOC.load(tmp_path / "model.zip").overlap_rollouts
-    model.train = failing_update  # type: ignore[method-assign]
-    with pytest.raises(RuntimeError):
-        model.learn(3 * 96, reset_num_timesteps=False)
-    assert model.has_pending_rollout
-    del model.train
-    model.learn(96)  # resets the envs: the rollout kept is dropped
-    assert model.num_timesteps == 96 and not model.has_pending_rollout
-    model.get_env().close()
-
-
-def test_overlap_needs_worker_processes_and_otherwise_changes_nothing() -> None:
-    """With the rollout workers in the learner's process the rollouts are sampled in turn, as without overlap."""
-    trained = []
-    for overlap in (False, True):
-        model = make(True, overlap_rollouts=overlap, policy_kwargs={"net_arch": [16, 16]})
-        model.learn(3 * 96)
-        assert not model.has_pending_rollout
-        buffer = model.rollout_buffer
-        np.testing.assert_array_equal(buffer.behaviour_log_prob_control, buffer.log_prob_control)
-        trained.append(model.policy.state_dict())
-    for key, value in trained[0].items():
-        th.testing.assert_close(trained[1][key], value, rtol=0, atol=0)
-
-
-def test_overlap_rollouts_must_be_a_bool() -> None:
-    with pytest.raises(ValueError, match="overlap_rollouts must be True or False"):
-        make(True, overlap_rollouts="yes")

@@ -125,14 +125,6 @@ def test_multiwalker_entry_has_the_paper_settings() -> None:
     assert entry["env_wrapper"] == "sb3_detc.mappoc.workers.RolloutWorker"  # fast setting
 
 
-@pytest.mark.parametrize("algo", ["mappoc", "ppo_random_skip"])
-@pytest.mark.parametrize("env_id", ENVS)
-def test_no_entry_overlaps_rollouts(algo: str, env_id: str) -> None:
-    """Overlapping rollouts learned worse on Multiwalker over 5 seeds (study multiwalker_paper)."""
-    entry = zoo.check_hyperparams_file(zoo.HYPERPARAMS_DIR / f"{algo}.yml", algo, env_id)
-    assert not entry.get("overlap_rollouts", False)
-
-
 def test_linear_entry_trains_control_first_then_the_trigger_within_the_budget() -> None:
     entry = zoo.check_hyperparams_file(zoo.HYPERPARAMS_DIR / "mappoc.yml", "mappoc", LINEAR)
     (stages,) = [c for c in get_callback_list(entry) if isinstance(c, ControlFirstCallback)]

@@ -17,14 +17,12 @@ class HybridRolloutSamples(NamedTuple):
     :param observations: joint observations before the options, (B, N, ...) per key
     :param broadcast: options taken (B, N)
     :param control: controls taken (B, N, m), unclipped, with exploration noise
-    :param old_log_prob_broadcast: ``log mu_i(o_i)`` (B, N) under the policy whose update the rollout feeds
-    :param old_log_prob_control: ``log pi_i(u_i)`` (B, N) under the policy whose update the rollout feeds
+    :param old_log_prob_broadcast: ``log mu_i(o_i)`` (B, N) under the policy that sampled the options
+    :param old_log_prob_control: ``log pi_i(u_i)`` (B, N) under the policy that sampled the controls
     :param advantages: GAE advantages (B, N)
     :param returns: lambda-returns (B, N), targets of ``Q_i(s, o_taken)``
     :param broadcast_advantages: lambda-return minus ``V_i(s) = sum_o mu_i(o) Q_i(s, o)`` at collection (B, N)
     :param broadcast_price: the learner's reward lost by the own broadcast (B, N) (afterstate critic)
-    :param behaviour_log_prob_broadcast: ``log mu_i(o_i)`` (B, N) under the policy that sampled the options
-    :param behaviour_log_prob_control: ``log pi_i(u_i)`` (B, N) under the policy that sampled the controls
     """
 
     observations: dict[str, th.Tensor]
@@ -36,8 +34,6 @@ class HybridRolloutSamples(NamedTuple):
     returns: th.Tensor
     broadcast_advantages: th.Tensor
     broadcast_price: th.Tensor
-    behaviour_log_prob_broadcast: th.Tensor
-    behaviour_log_prob_control: th.Tensor
 
     def select(self, idx: th.Tensor) -> HybridRolloutSamples:
         """The samples ``idx`` of the batch axis.
@@ -60,10 +56,8 @@ class HybridRolloutBuffer:
     critic's regression targets. ``broadcast_advantages`` are the lambda-returns minus the
     state value ``V(s) = sum_o mu(o | s) Q(s, o)`` at collection time (a sampled advantage
     of the taken option, for :class:`~sb3_detc.mappoc.mappoc.MAPPOC` with
-    ``broadcast_advantage="return"``). The log-probabilities are those of the policy whose update
-    the rollout feeds; the behaviour log-probabilities those of the policy that sampled it (the
-    same, unless the rollout was sampled during the previous update, see ``overlap_rollouts`` of
-    :class:`~sb3_detc.mappoc.mappoc.MAPPOC`).
+    ``broadcast_advantage="return"``). The log-probabilities are those of the policy that sampled
+    the rollout.
 
     :param buffer_size: steps per environment and rollout
     :param observation_space: joint observation space (Dict of (N, ...) boxes)
@@ -111,8 +105,6 @@ class HybridRolloutBuffer:
         self.state_values = np.zeros((*shape, n), dtype=np.float32)
         self.log_prob_broadcast = np.zeros((*shape, n), dtype=np.float32)
         self.log_prob_control = np.zeros((*shape, n), dtype=np.float32)
-        self.behaviour_log_prob_broadcast = np.zeros((*shape, n), dtype=np.float32)
-        self.behaviour_log_prob_control = np.zeros((*shape, n), dtype=np.float32)
         self.advantages = np.zeros((*shape, n), dtype=np.float32)
         self.returns = np.zeros((*shape, n), dtype=np.float32)
         self.broadcast_advantages = np.zeros((*shape, n), dtype=np.float32)
@@ -131,7 +123,6 @@ class HybridRolloutBuffer:
         log_prob_broadcast: np.ndarray,
         log_prob_control: np.ndarray,
         broadcast_price: np.ndarray | None = None,
-        behaviour_log_probs: tuple[np.ndarray, np.ndarray] | None = None,
     ) -> None:
         """Store one step of all environments.
 
@@ -145,8 +136,6 @@ class HybridRolloutBuffer:
         :param log_prob_control: ``log pi_i(u_i)`` (n_envs, N)
         :param broadcast_price: what the own broadcast costs in the learner's reward units (n_envs, N),
             for critics that add it to their option values (None: zero)
-        :param behaviour_log_probs: ``log mu_i(o_i)`` and ``log pi_i(u_i)`` (n_envs, N) each under
-            the policy that sampled the step, if it is another (None: the same)
         """
         self.extend(
             {key: value[None] for key, value in obs.items()},
@@ -154,7 +143,6 @@ class HybridRolloutBuffer:
             np.asarray(log_prob_broadcast)[None],
             np.asarray(log_prob_control)[None],
             None if broadcast_price is None else np.asarray(broadcast_price)[None],
-            None if behaviour_log_probs is None else tuple(np.asarray(x)[None] for x in behaviour_log_probs),
         )
 
     def extend(
@@ -168,7 +156,6 @@ class HybridRolloutBuffer:
         log_prob_broadcast: np.ndarray,
         log_prob_control: np.ndarray,
         broadcast_price: np.ndarray | None = None,
-        behaviour_log_probs: tuple[np.ndarray, np.ndarray] | None = None,
     ) -> None:
         """Store several consecutive steps of all environments: :meth:`add` with a leading step axis (T, ...).
 
@@ -181,8 +168,6 @@ class HybridRolloutBuffer:
         :param log_prob_broadcast: ``log mu_i(o_i)`` (T, n_envs, N)
         :param log_prob_control: ``log pi_i(u_i)`` (T, n_envs, N)
         :param broadcast_price: what the own broadcast costs (T, n_envs, N) (None: zero)
-        :param behaviour_log_probs: ``log mu_i(o_i)`` and ``log pi_i(u_i)`` (T, n_envs, N) each under
-            the policy that sampled the steps, if it is another (None: the same)
         """
         steps = len(broadcast)
         if self.pos + steps > self.buffer_size:
@@ -202,8 +187,6 @@ class HybridRolloutBuffer:
         self.state_values[at] = p_taken * taken + (1 - p_taken) * other
         self.log_prob_broadcast[at] = log_prob_broadcast
         self.log_prob_control[at] = log_prob_control
-        behaviour = (log_prob_broadcast, log_prob_control) if behaviour_log_probs is None else behaviour_log_probs
-        self.behaviour_log_prob_broadcast[at], self.behaviour_log_prob_control[at] = behaviour
         self.broadcast_price[at] = 0.0 if broadcast_price is None else broadcast_price
         self.pos += steps
         self.full = self.pos == self.buffer_size
@@ -256,8 +239,6 @@ class HybridRolloutBuffer:
                     self.returns,
                     self.broadcast_advantages,
                     self.broadcast_price,
-                    self.behaviour_log_prob_broadcast,
-                    self.behaviour_log_prob_control,
                 )
             ),
         )

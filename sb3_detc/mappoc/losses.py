@@ -50,24 +50,18 @@ class UpdateInputs(NamedTuple):
     train_mu: bool
 
 
-def clipped_surrogate_loss(
-    advantages: th.Tensor, ratio: th.Tensor, clip: float | th.Tensor, weights: th.Tensor
-) -> th.Tensor:
+def clipped_surrogate_loss(advantages: th.Tensor, ratio: th.Tensor, clip: float | th.Tensor) -> th.Tensor:
     """PPO's clipped surrogate loss, averaged over the batch and summed over agents.
 
-    Summing over agents keeps every agent's gradient what it would be if it trained alone. The
-    weights make it the decoupled objective of Hilton, Cobbe and Schulman (2022) for samples
-    drawn by an earlier policy than the one the ratio and the clipping refer to: ``old / behaviour``
-    probabilities (all ones for samples of the old policy itself: PPO's loss).
+    Summing over agents keeps every agent's gradient what it would be if it trained alone.
 
     :param advantages: advantages (B, N)
     :param ratio: probability ratios new / old (B, N)
     :param clip: clipping parameter epsilon
-    :param weights: importance weights old / behaviour of the samples (B, N)
     :return: scalar loss
     """
     surrogate = th.min(advantages * ratio, advantages * th.clamp(ratio, 1 - clip, 1 + clip))
-    return -(weights * surrogate).mean(0).sum()
+    return -surrogate.mean(0).sum()
 
 
 def greedy_broadcast_advantage(option_values: th.Tensor, broadcast: th.Tensor, offset: float = 0.0) -> th.Tensor:
@@ -206,8 +200,7 @@ class MAPPOCLoss(nn.Module):
         # Control policy: PPO clipped surrogate on GAE advantages of the taken option.
         log_ratio_pi = evaluation.log_prob_control - data.old_log_prob_control
         ratio_pi = th.exp(log_ratio_pi)
-        weights_pi = th.exp(data.old_log_prob_control - data.behaviour_log_prob_control)
-        pi_loss = clipped_surrogate_loss(self.normalized(data.advantages), ratio_pi, clip_pi, weights_pi)
+        pi_loss = clipped_surrogate_loss(self.normalized(data.advantages), ratio_pi, clip_pi)
 
         # Critic: squared error of Q(s, o_taken) against the lambda-return.
         q_taken = evaluation.option_values.gather(-1, data.broadcast[..., None])[..., 0]
@@ -219,8 +212,7 @@ class MAPPOCLoss(nn.Module):
         # Options: PPO clipped surrogate on the broadcast advantage, no gradient into Q.
         log_ratio_mu = evaluation.log_prob_broadcast - data.old_log_prob_broadcast
         ratio_mu = th.exp(log_ratio_mu)
-        weights_mu = th.exp(data.old_log_prob_broadcast - data.behaviour_log_prob_broadcast)
-        mu_loss = clipped_surrogate_loss(self.broadcast_advantages(evaluation, data), ratio_mu, clip_mu, weights_mu)
+        mu_loss = clipped_surrogate_loss(self.broadcast_advantages(evaluation, data), ratio_mu, clip_mu)
         entropy_mu = evaluation.entropy_broadcast.mean(0).sum()
         if update.train_mu:
             loss = loss + mu_loss - update.zeta * entropy_mu

@@ -328,3 +328,78 @@ class FusedGradientStep:
             group["eps"],
         )
         return step_stats
+
+
+# ------------------------------------------------------------------ the choice
+#: With ``torch_compile="auto"``: the shortest ``learn`` that compiles (compiling takes tens of
+#: seconds, minutes with a cold compile cache).
+COMPILE_FROM_TIMESTEPS = 200_000
+
+
+def has_cxx_compiler() -> bool:
+    """Whether ``torch.compile`` finds a C++ compiler for CPU code.
+
+    :return: True if a compiler is found
+    """
+    from torch._inductor import cpp_builder, exc
+
+    try:
+        cpp_builder.get_cpp_compiler()
+    except exc.InvalidCxxCompiler:
+        return False
+    return True
+
+
+def check_cxx_compiler() -> None:
+    """``torch.compile`` builds C++ code for the CPU: fail at once, and clearly, without a compiler.
+
+    :raises RuntimeError: if no C++ compiler is found
+    """
+    if not has_cxx_compiler():
+        raise RuntimeError(
+            "torch_compile=True needs a C++ compiler on the CPU (g++ or clang++ on PATH, or the CXX "
+            "environment variable); install one or use torch_compile=False."
+        )
+
+
+def compiles(torch_compile: bool | str, device: th.device, total_timesteps: int | None = None) -> bool:
+    """Whether to compile, from MAPPOC's ``torch_compile`` setting.
+
+    :param torch_compile: True, False or ``"auto"`` (compile on the CPU, with a C++ compiler, for a ``learn`` of at
+        least :data:`COMPILE_FROM_TIMESTEPS` steps)
+    :param device: where the networks run
+    :param total_timesteps: the steps of the coming ``learn`` (None: before any ``learn``, when ``"auto"`` does not
+        compile)
+    :return: whether to compile the sampling and the gradient step
+    :raises RuntimeError: for ``torch_compile=True`` on the CPU without a C++ compiler
+    """
+    if torch_compile == "auto":
+        long_enough = total_timesteps is not None and total_timesteps >= COMPILE_FROM_TIMESTEPS
+        return device.type == "cpu" and long_enough and has_cxx_compiler()
+    if torch_compile and device.type == "cpu":
+        check_cxx_compiler()
+    return bool(torch_compile)
+
+
+def make_gradient_step(
+    loss: MAPPOCLoss,
+    optimizer: th.optim.Optimizer,
+    max_grad_norm: float | None,
+    target_kl: float | None,
+    compiled: bool,
+) -> GradientStep | FusedGradientStep:
+    """The gradient step for these settings: fused and compiled where it can be, else the usual one.
+
+    Early stopping (``target_kl``) looks at a step's statistics before applying it: only the unfused step can.
+
+    :param loss: the loss module
+    :param optimizer: the optimizer of the loss's policy
+    :param max_grad_norm: largest joint gradient norm (None: no clipping)
+    :param target_kl: see :class:`GradientStep` (None: never stop early)
+    :param compiled: whether to compile
+    :return: a :class:`FusedGradientStep` if compiled with plain Adam and no ``target_kl``, else a
+        :class:`GradientStep` (with a compiled loss if compiled)
+    """
+    if compiled and fusable_adam(optimizer) and target_kl is None:
+        return FusedGradientStep(loss, optimizer, max_grad_norm)
+    return GradientStep(loss, optimizer, max_grad_norm, target_kl, compile_loss=compiled)

@@ -9,8 +9,8 @@ once per iteration; each environment then samples options and controls and steps
 for the whole rollout, in parallel with the others, and returns the trajectory. The
 learner evaluates log-probabilities and option values of the whole rollout in one batch
 and then goes through the steps in order (rewards, callbacks, episode statistics), so
-training is exactly on-policy, as without workers; with MAPPOC's ``overlap_rollouts`` the workers
-sample the next rollout during the update instead, one update behind (see there).
+training is exactly on-policy, as without workers. The step loop is
+:func:`sb3_detc.mappoc.sampling.run_steps`, the same as the learner's own.
 
 Use it as the outermost wrapper of every environment, e.g.
 ``make_vec_env(env_id, n_envs=2, vec_env_cls=SubprocVecEnv, wrapper_class=RolloutWorker)``
@@ -21,24 +21,80 @@ from __future__ import annotations
 
 import os
 import pickle
+import sys
+import warnings
 from typing import Any
 
 import gymnasium as gym
 import numpy as np
 import torch as th
+from stable_baselines3.common.env_util import make_vec_env
+from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecEnv
+
+from sb3_detc.mappoc.sampling import Rollout, check_finite, run_steps
 
 
-def check_finite(obs: dict[str, np.ndarray]) -> None:
-    """Refuse observations with NaN or infinite values (before a policy acts on them).
+def default_n_envs() -> int:
+    """Envs that MAPPOC builds from an env id: one rollout worker per available CPU core, at most 8.
 
-    :param obs: an observation (dict of arrays)
-    :raises ValueError: naming the first key with a non-finite value
+    A power of two (the largest not above the cores), so that the paper's iteration of 2048
+    steps divides evenly among the workers.
+
+    :return: the number of envs: 1, 2, 4 or 8
     """
-    if np.isfinite(np.concatenate([np.ravel(value) for value in obs.values()])).all():  # one check per step
-        return
-    for key, value in obs.items():
-        if not np.all(np.isfinite(value)):
-            raise ValueError(f"the environment returned a non-finite observation in '{key}'.")
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    return 1 << (max(1, min(cores, 8)).bit_length() - 1)
+
+
+def main_script_without_file() -> str | None:
+    """The main script's name if worker processes cannot import it: it has no file (e.g. a script read from stdin).
+
+    Worker processes (``forkserver`` or ``spawn``) import the main script from its file before they
+    run; a script fed on standard input (``python - <<EOF``) is named ``<stdin>`` and has none.
+
+    :return: the script's ``__file__`` if that is not a file, else None (a file, or no main script to import)
+    """
+    main_file = getattr(sys.modules.get("__main__"), "__file__", None)
+    return main_file if main_file is not None and not os.path.isfile(main_file) else None
+
+
+def make_rollout_workers(env_id: str, n_envs: int, seed: int | None = None) -> VecEnv:
+    """The fast setting for a registered joint env: ``n_envs`` :class:`RolloutWorker` envs.
+
+    Each env runs in its own process (``SubprocVecEnv``) when there are several, and samples
+    whole rollouts itself. Worker processes must find the id: the package's ids always, one's own
+    where the module that registers it is the main script or is imported by the worker (see
+    :mod:`sb3_detc`). Where they cannot, or where the main script has no file for them to import
+    (a script on standard input), the envs run in this process instead, with a warning.
+
+    :param env_id: a registered joint env id, e.g. ``"sb3_detc/MultiwalkerETC-v0"``
+    :param n_envs: number of envs (>= 1)
+    :param seed: seed of the envs (None: random)
+    :return: a ``SubprocVecEnv`` of the envs when there are several and the worker processes could make them,
+        else a ``DummyVecEnv``
+    """
+    stdin_script = main_script_without_file() if n_envs > 1 else None
+    if stdin_script is not None:
+        warnings.warn(
+            f"the main script {stdin_script!r} has no file that worker processes could import (a script fed on "
+            f"standard input), so the {n_envs} envs of {env_id!r} run in this process; save the script to a file "
+            "to run them in worker processes.",
+            stacklevel=3,
+        )
+    elif n_envs > 1:
+        try:
+            return make_vec_env(
+                env_id, n_envs=n_envs, seed=seed, vec_env_cls=SubprocVecEnv, wrapper_class=RolloutWorker
+            )
+        except (EOFError, ConnectionError) as error:  # a worker died while making its env
+            warnings.warn(
+                f"worker processes could not make {env_id!r} ({type(error).__name__}; the worker's traceback is "
+                f"above), so its {n_envs} envs run in this process. A script that starts training when it is "
+                "imported needs `if __name__ == '__main__':` (worker processes import the main script); an id "
+                "registered in another module needs that module named in the id ('module:namespace/Name-v0').",
+                stacklevel=3,
+            )
+    return make_vec_env(env_id, n_envs=n_envs, seed=seed, vec_env_cls=DummyVecEnv, wrapper_class=RolloutWorker)
 
 
 class RolloutWorker(gym.Wrapper):
@@ -101,8 +157,7 @@ class RolloutWorker(gym.Wrapper):
         seeds: list[int],
         torch_compile: bool = False,
         triggers: list[bytes] | None = None,
-        niceness: int | None = None,
-    ) -> dict[str, Any]:
+    ) -> Rollout:
         """Sample ``n_steps`` steps with the policy, from the observation the env is in.
 
         :param policy: the pickled policy when it is new to this env (None: the one sent before)
@@ -113,14 +168,9 @@ class RolloutWorker(gym.Wrapper):
         :param torch_compile: whether to compile the policy's sampling (read when ``policy`` is sent)
         :param triggers: one pickled fixed trigger per env of the vector env, forked for
             it (see ``MAPPOC.set_fixed_trigger``); None: options sampled from the policy
-        :param niceness: lower this process's scheduling priority to at least this niceness before
-            sampling (where the OS has niceness), e.g. so that a learner that updates meanwhile gets
-            its core first (None: unchanged); it stays lowered
-        :return: ``observations`` before every step (dict of (n_steps, N, ...)), ``broadcast``
-            (n_steps, N), ``control`` (n_steps, N, m; sampled, before clipping to the bounds),
-            ``dones`` (n_steps,), ``infos`` (one dict per step; at an episode end with
-            ``terminal_observation`` and ``reset_info``, the info of the reset that followed) and
-            ``last_obs`` (the observation after the last step)
+        :return: the steps as a rollout of one env (:class:`~sb3_detc.mappoc.sampling.Rollout`, B = 1); at an
+            episode end the info has ``terminal_observation`` and ``reset_info`` (the info of the reset that
+            followed)
         """
         if self._obs is None:
             raise RuntimeError("Reset the env before collecting a rollout.")
@@ -132,52 +182,44 @@ class RolloutWorker(gym.Wrapper):
                 self._act = th.compile(self._act, options={"cpp_wrapper": True})
         if self._policy is None:
             raise RuntimeError("collect_rollout needs the policy on its first call.")
-        if niceness is not None and hasattr(os, "setpriority"):
-            os.setpriority(os.PRIO_PROCESS, 0, max(niceness, os.getpriority(os.PRIO_PROCESS, 0)))
         self._policy.load_state_dict({key: th.as_tensor(value) for key, value in state_dict.items()})
         space = self.action_space["control"]
-        low, high = space.low, space.high
-        observations = {key: np.empty((n_steps, *value.shape), value.dtype) for key, value in self._obs.items()}
-        broadcast = np.empty((n_steps, *self.action_space["broadcast"].shape), np.int64)
-        control = np.empty((n_steps, *space.shape), np.float32)
-        dones = np.empty(n_steps, bool)
-        infos = []
         trigger = None if triggers is None else pickle.loads(triggers[self.worker_index])
         # The policy reads the same input tensors at every step (a batch of one): the compiled
         # sampling checks them fastest when they are the same objects.
         rows = {key: np.empty((1, *value.shape), value.dtype) for key, value in self._obs.items()}
         inputs = {key: th.from_numpy(row) for key, row in rows.items()}  # views of ``rows``
+
+        def act(obs: dict[str, np.ndarray], forced: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+            for key, row in rows.items():
+                row[...] = obs[key]
+            decided, controls = self._act(inputs, action_noise_std, None if forced is None else th.as_tensor(forced))
+            return decided.numpy(), controls.numpy()
+
+        def env_step(broadcast: np.ndarray, control: np.ndarray) -> tuple[dict, np.ndarray, list[dict[str, Any]]]:
+            obs, _, terminated, truncated, info = self.step({"broadcast": broadcast[0], "control": control[0]})
+            done = terminated or truncated
+            info["TimeLimit.truncated"] = truncated and not terminated
+            if done:
+                info["terminal_observation"] = obs
+                _, info["reset_info"] = self.reset()
+            return batch_of_one(self._obs), np.array([done]), [info]
+
         threads = th.get_num_threads()
         # One thread: batches of one sample gain nothing from more, and several workers would fight over the cores.
         th.set_num_threads(1)
         try:
             with th.random.fork_rng(devices=[]), th.no_grad():  # in the learner's process: keep its stream
                 th.manual_seed(int(seeds[self.worker_index]))
-                for t in range(n_steps):
-                    for key, value in self._obs.items():
-                        observations[key][t] = value
-                        rows[key][0] = value
-                    forced = None
-                    if trigger is not None:
-                        forced = th.as_tensor(trigger({key: value[t : t + 1] for key, value in observations.items()}))
-                    decided, controls = self._act(inputs, action_noise_std, forced)
-                    broadcast[t], control[t] = decided[0].numpy(), controls[0].numpy()
-                    # np.clip's result, without its dispatch on the bounds' types
-                    clipped = np.minimum(np.maximum(control[t], low), high)
-                    obs, _, terminated, truncated, info = self.step({"broadcast": broadcast[t], "control": clipped})
-                    dones[t] = terminated or truncated
-                    info["TimeLimit.truncated"] = truncated and not terminated
-                    if dones[t]:
-                        info["terminal_observation"] = obs
-                        _, info["reset_info"] = self.reset()
-                    infos.append(info)
+                return run_steps(act, env_step, batch_of_one(self._obs), n_steps, trigger, space.low, space.high)
         finally:
             th.set_num_threads(threads)
-        return {
-            "observations": observations,
-            "broadcast": broadcast,
-            "control": control,
-            "dones": dones,
-            "infos": infos,
-            "last_obs": self._obs,
-        }
+
+
+def batch_of_one(obs: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """An observation with a batch axis of size one (views).
+
+    :param obs: a joint observation, (N, ...) per key
+    :return: the same arrays shaped (1, N, ...)
+    """
+    return {key: value[None] for key, value in obs.items()}

@@ -1,0 +1,105 @@
+"""Checks of MAPPOC's settings and environments, before anything is built: one clear line per mistake."""
+
+from __future__ import annotations
+
+import numbers
+from collections.abc import Callable, Sequence
+from typing import Any
+
+from gymnasium import spaces
+from stable_baselines3.common.type_aliases import GymEnv
+from stable_baselines3.common.vec_env import VecEnv, unwrap_vec_normalize
+
+#: Observation keys that the policy turns into the network's state with the broadcast rule (the
+#: message copied into ``held``, ``age`` reset to 0) or that feed the policy over options: a
+#: ``VecNormalize`` must pass them on as the environment returns them.
+NETWORK_KEYS = ("message", "held", "age", "trigger", "trigger_held")
+
+
+def check_same_agents(env: GymEnv, n_agents: int) -> None:
+    """Check that a joint env has ``n_agents`` agents (if its action space is a joint one; the rest is checked later).
+
+    :param env: the joint env (Gymnasium or vector env)
+    :param n_agents: number of agents N of the model
+    :raises ValueError: if the env's ``broadcast`` action has another number of agents
+    """
+    action_space = env.action_space
+    if isinstance(action_space, spaces.Dict) and "broadcast" in action_space.spaces:
+        n_env = len(action_space["broadcast"].nvec)
+        if n_env != n_agents:
+            raise ValueError(f"the model controls {n_agents} agents but the environment has {n_env}.")
+
+
+#: Hyperparameter checks: name -> (rule, what the rule needs).
+_HYPERPARAMETER_RULES: dict[str, tuple[Callable[[Any], bool], str]] = {
+    "learning_rate": (lambda v: callable(v) or v >= 0, ">= 0 or a schedule"),
+    "n_steps": (lambda v: isinstance(v, numbers.Integral) and v > 0, "a positive integer"),
+    "batch_size": (lambda v: isinstance(v, numbers.Integral) and v > 0, "a positive integer"),
+    "n_epochs": (lambda v: isinstance(v, numbers.Integral) and v > 0, "a positive integer"),
+    "gamma": (lambda v: 0 < v <= 1, "in (0, 1]"),
+    "gae_lambda": (lambda v: 0 <= v <= 1, "in [0, 1]"),
+    "clip_range": (lambda v: callable(v) or v > 0, "> 0 or a schedule"),
+    "clip_range_broadcast": (lambda v: callable(v) or v > 0, "> 0 or a schedule"),
+    "broadcast_ent_coef": (lambda v: callable(v) or v >= 0, ">= 0 or a schedule"),
+    "vf_coef": (lambda v: v >= 0, ">= 0"),
+    "max_grad_norm": (lambda v: v is None or v > 0, "None or > 0"),
+    "action_noise_std": (lambda v: v >= 0, ">= 0"),
+    "reward_scale": (lambda v: v > 0, "> 0"),
+    "target_kl": (lambda v: v is None or v > 0, "None or > 0"),
+}
+
+
+def check_hyperparameters(**values: Any) -> None:
+    """Check the values of MAPPOC's numeric hyperparameters (before anything is built).
+
+    :param values: every hyperparameter of :data:`_HYPERPARAMETER_RULES` and ``normalize_advantage``
+    :raises ValueError: on the first value out of its range (or of the wrong type)
+    """
+    for name, (rule, needs) in _HYPERPARAMETER_RULES.items():
+        value = values[name]
+        try:
+            valid = not isinstance(value, bool) and bool(rule(value))
+        except TypeError:  # e.g. a string where a number belongs
+            valid = False
+        if not valid:
+            raise ValueError(f"{name} must be {needs}, got {value!r}.")
+    if values["normalize_advantage"] and values["batch_size"] == 1:
+        raise ValueError("batch_size must be > 1 when normalize_advantage=True (a single advantage has no spread).")
+
+
+def check_observation_normalization(norm_obs: bool, norm_obs_keys: Sequence[str] | None) -> None:
+    """Refuse a ``VecNormalize`` that would normalise observations of :data:`NETWORK_KEYS`.
+
+    ``VecNormalize`` keeps separate statistics per key, while the policy applies the broadcast
+    rule (copy the message into ``held``, reset ``age`` to 0) to the values it is given: with
+    normalised ``message``, ``held`` and ``age`` the network state it computes is no longer the
+    environment's. Normalising only the local state (``norm_obs_keys=["local"]``) or no
+    observations (``norm_obs=False``) is fine.
+
+    :param norm_obs: whether the ``VecNormalize`` normalises observations
+    :param norm_obs_keys: the keys it normalises (None: all of them)
+    :raises ValueError: if it would normalise one of :data:`NETWORK_KEYS`
+    """
+    if not norm_obs:
+        return
+    keys = [key for key in NETWORK_KEYS if norm_obs_keys is None or key in norm_obs_keys]
+    if keys:
+        raise ValueError(
+            f"MAPPOC cannot use a VecNormalize that normalises the observations {', '.join(map(repr, keys))}: "
+            "VecNormalize scales every key with its own statistics, while the policy copies the message into "
+            "'held' and resets 'age' to 0 on a broadcast, so its view of the network would differ from the "
+            "environment's. Normalise only the local state with VecNormalize(env, norm_obs_keys=['local']), "
+            "or no observations with norm_obs=False (the per-agent rewards MAPPOC learns from are normalised "
+            "by normalize_reward=True, not by VecNormalize)."
+        )
+
+
+def check_vec_normalize(env: GymEnv | None) -> None:
+    """Apply :func:`check_observation_normalization` to a ``VecNormalize`` anywhere in ``env``'s vector wrappers.
+
+    :param env: the training env (only a vector env can have a ``VecNormalize``), or None
+    :raises ValueError: if the ``VecNormalize`` normalises one of :data:`NETWORK_KEYS`
+    """
+    vec_normalize = unwrap_vec_normalize(env) if isinstance(env, VecEnv) else None
+    if vec_normalize is not None:
+        check_observation_normalization(vec_normalize.norm_obs, vec_normalize.norm_obs_keys)
