@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import ast
+import subprocess
+import sys
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -9,7 +13,7 @@ import pytest
 import torch as th
 
 from sb3_detc.envs import linear_etc_v0
-from sb3_detc.mappoc import MlpHybridPolicy
+from sb3_detc.mappoc import MlpHybridPolicy, critics
 from sb3_detc.mappoc.critics import CRITICS, AfterstateCritic, CentredCritic, OptionCritic, OptionHeadsCritic
 
 B, N = 7, 3
@@ -70,9 +74,44 @@ def test_policy_holds_the_named_critic(name: str) -> None:
     assert policy.critic == name  # the constructor parameter, saved with the policy
     assert type(policy.option_critic) is CRITICS[name]
     obs, broadcast = joint_obs(), th.zeros(B, N, dtype=th.int64)
-    q = policy.chains.run({"q": policy.option_critic.features(policy, obs, broadcast)})["q"]
+    q = policy.chains.run({"q": policy.critic_inputs(obs, broadcast)})["q"]  # the inputs the critic reads
     assert q.shape[-1] == CRITICS[name].outputs
     assert q.shape[:-1] == ((B, 2, N) if CRITICS[name].reads_afterstate else (B, N))
+
+
+def test_a_critic_that_reads_the_afterstates_needs_the_options() -> None:
+    policy = make_policy("afterstate")
+    with pytest.raises(ValueError, match="afterstate critic reads this step's options"):
+        policy.critic_inputs(joint_obs())
+
+
+def test_the_critics_do_not_import_the_policy() -> None:
+    """The policy builds the inputs of the critic it holds: the critics import nothing of the package.
+
+    The package's ``__init__`` imports the policy (its public API), so the fresh interpreter
+    imports the critics under empty parent packages; the source is checked too, type-checking
+    imports included.
+    """
+    source = Path(critics.__file__)
+    parents = {"sb3_detc": str(source.parents[1]), "sb3_detc.mappoc": str(source.parent)}
+    script = (
+        "import sys, types\n"
+        f"for name, path in {parents!r}.items():\n"
+        "    package = sys.modules[name] = types.ModuleType(name)\n"
+        "    package.__path__ = [path]\n"
+        "import sb3_detc.mappoc.critics\n"
+        "print(sorted(name for name in sys.modules if name.startswith('sb3_detc')))\n"
+    )
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == "['sb3_detc', 'sb3_detc.mappoc', 'sb3_detc.mappoc.critics']"
+    imported = set()
+    for node in ast.walk(ast.parse(source.read_text())):
+        if isinstance(node, ast.Import):
+            imported.update(alias.name for alias in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            imported.add(node.module)
+    assert imported == {"__future__", "typing", "torch"}
 
 
 def test_unknown_critic_names_the_known_ones() -> None:
@@ -142,7 +181,7 @@ def test_a_registered_critic_is_usable_by_name(monkeypatch: pytest.MonkeyPatch) 
     obs = joint_obs()
     broadcast = th.as_tensor(np.random.default_rng(3).integers(0, 2, (B, N)))
     with th.no_grad():
-        value = policy.chains.run({"q": policy.critic_features(obs)})["q"][..., 0]
+        value = policy.chains.run({"q": policy.critic_inputs(obs)})["q"][..., 0]
         action = policy(obs)
         evaluation = policy.evaluate_actions(obs, broadcast, action.control)
         state_values = policy.state_values(obs)

@@ -2,21 +2,19 @@
 
 Every critic is one :class:`OptionCritic` subclass, registered by name in :data:`CRITICS`
 (the name is what ``MlpHybridPolicy(critic=...)`` and hyperparameter files take). A critic
-says what its network reads (:meth:`OptionCritic.features`), how many outputs it has, how
-its outputs become both options' values (:meth:`OptionCritic.option_values`) and what
-training must give it (the broadcast price, the probabilities the options were drawn with).
-Adding a critic means adding a subclass here and registering it.
+says what its network reads (the network state before the options, or the afterstates of
+both own options: ``reads_afterstate``; the policy that holds the critic builds these
+inputs), how many outputs it has, how its outputs become both options' values
+(:meth:`OptionCritic.option_values`) and what training must give it (the broadcast price,
+the probabilities the options were drawn with). Adding a critic means adding a subclass
+here and registering it.
 """
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, ClassVar
+from typing import ClassVar
 
 import torch as th
-from stable_baselines3.common.type_aliases import PyTorchObs
-
-if TYPE_CHECKING:
-    from sb3_detc.mappoc.policies import MlpHybridPolicy
 
 
 class OptionCritic:
@@ -26,8 +24,11 @@ class OptionCritic:
 
     * ``name``: the critic's name in :data:`CRITICS`;
     * ``outputs``: outputs of the critic network per input;
-    * ``reads_afterstate``: whether :meth:`features` needs this step's options (then the
-      network runs after they are sampled, else before, together with ``mu``);
+    * ``reads_afterstate``: what the critic network reads. False: the network state before
+      this step's options, one input per agent, (B, N, features) (the network runs before the
+      options are sampled, together with ``mu``). True: the afterstates of both own options,
+      the others' options as taken, two inputs per agent, (B, 2, N, features) (the network
+      runs after the options are sampled);
     * ``needs_price``: whether :meth:`option_values` adds the cost of the own broadcast
       analytically (then MAPPOC reads the environments' ``broadcast_cost``; otherwise the critic
       learns it from the rewards);
@@ -42,22 +43,12 @@ class OptionCritic:
     needs_price: ClassVar[bool] = True
     needs_draw_probabilities: ClassVar[bool] = False
 
-    def features(self, policy: MlpHybridPolicy, obs: PyTorchObs, broadcast: th.Tensor | None) -> th.Tensor:
-        """Inputs of the critic network: the network state before this step's options.
-
-        :param policy: the policy whose feature builders to use
-        :param obs: joint observation (B, N, ...) from before the options
-        :param broadcast: this step's options (B, N); read only if ``reads_afterstate`` (may be None otherwise)
-        :return: (B, N, features), or (B, variants, N, features) for several inputs per sample
-        """
-        return policy.critic_features(obs)
-
     def option_values(
         self, q: th.Tensor, broadcast_price: th.Tensor | None = None, p_broadcast: th.Tensor | None = None
     ) -> th.Tensor:
         """Both options' values from the critic network's outputs.
 
-        :param q: outputs of the critic network on :meth:`features`
+        :param q: outputs of the critic network on the inputs ``reads_afterstate`` names
         :param broadcast_price: what a broadcast costs agent ``i`` in the learner's reward units (B, N)
             (None: zero); read only if ``needs_price``
         :param p_broadcast: probability of broadcasting ``p_i`` with which the options were
@@ -72,7 +63,7 @@ class OptionCritic:
     def _option_values(self, q: th.Tensor, price: th.Tensor | float, p_broadcast: th.Tensor | None) -> th.Tensor:
         """:meth:`option_values` with the price filled in and the probabilities checked.
 
-        :param q: outputs of the critic network on :meth:`features`
+        :param q: outputs of the critic network on the inputs ``reads_afterstate`` names
         :param price: what a broadcast costs agent ``i`` (B, N), or 0.0
         :param p_broadcast: probability of broadcasting with which the options were drawn (B, N), or None
         :return: ``Q_i(s, o)``, (B, N, 2)
@@ -116,22 +107,11 @@ class AfterstateCritic(OptionCritic):
     outputs = 1
     reads_afterstate = True
 
-    def features(self, policy: MlpHybridPolicy, obs: PyTorchObs, broadcast: th.Tensor | None) -> th.Tensor:
-        """The afterstates of both own options (see :meth:`OptionCritic.features`), (B, 2, N, features).
-
-        :param policy: the policy whose feature builders to use
-        :param obs: joint observation (B, N, ...) from before the options
-        :param broadcast: this step's options (B, N); required (the others' options in every afterstate)
-        :return: (B, 2, N, features): ``[:, v, i]`` is agent ``i``'s afterstate for its own option ``v``
-        """
-        assert broadcast is not None, "the afterstate critic reads this step's options"
-        return policy.afterstate_features(obs, broadcast)
-
     def _option_values(self, q: th.Tensor, price: th.Tensor | float, p_broadcast: th.Tensor | None) -> th.Tensor:
         """``[W_i(after(s, 0)), W_i(after(s, 1)) - price_i]`` from the afterstate values ``q`` (B, 2, N, 1).
 
-        :param q: outputs of the critic network on :meth:`features`: ``[:, v, i, 0]`` is ``W_i`` of
-            agent ``i``'s afterstate for its own option ``v``, (B, 2, N, 1)
+        :param q: outputs of the critic network on the afterstates: ``[:, v, i, 0]`` is ``W_i`` of agent
+            ``i``'s afterstate for its own option ``v``, (B, 2, N, 1)
         :param price: what a broadcast costs agent ``i`` (B, N), or 0.0
         :param p_broadcast: probability of broadcasting with which the options were drawn (unused)
         :return: ``Q_i(s, o)``, (B, N, 2)

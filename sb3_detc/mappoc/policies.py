@@ -386,6 +386,22 @@ class MlpHybridPolicy(BasePolicy):
             variants.append(self._centralised_features(obs, held, age))
         return th.stack(variants, dim=1)
 
+    def critic_inputs(self, obs: PyTorchObs, broadcast: th.Tensor | None = None) -> th.Tensor:
+        """Inputs of the critic network for what :attr:`option_critic` reads (its ``reads_afterstate``).
+
+        :param obs: joint observation (B, N, ...) from before the options
+        :param broadcast: this step's options (B, N); needed by a critic that reads the
+            afterstates, unused otherwise
+        :return: :meth:`afterstate_features` (B, 2, N, features) for a critic that reads the
+            afterstates, else :meth:`critic_features` (B, N, features)
+        :raises ValueError: if the critic reads the afterstates and ``broadcast`` is None
+        """
+        if not self.option_critic.reads_afterstate:
+            return self.critic_features(obs)
+        if broadcast is None:
+            raise ValueError(f"The {self.critic} critic reads this step's options (broadcast).")
+        return self.afterstate_features(obs, broadcast)
+
     def _centralised_features(self, obs: PyTorchObs, held: th.Tensor, age: th.Tensor) -> th.Tensor:
         """Critic inputs from what every agent's critic sees of everyone's held broadcasts.
 
@@ -424,7 +440,7 @@ class MlpHybridPolicy(BasePolicy):
         return self.chains.stack(
             {
                 "mu": self.option_features(obs),
-                "q": self.option_critic.features(self, obs, broadcast),
+                "q": self.critic_inputs(obs, broadcast),
                 "pi": self.control_features(obs, broadcast),
             }
         )
@@ -510,10 +526,10 @@ class MlpHybridPolicy(BasePolicy):
         :param with_critic: whether to evaluate the critic too (output ``q``)
         :return: the outputs of ``mu``, ``pi`` (and ``q``), the options, the controls
         """
-        critic = self.option_critic
+        reads_afterstate = self.option_critic.reads_afterstate
         before = {"mu": self.option_features(obs)}
-        if with_critic and not critic.reads_afterstate:
-            before["q"] = critic.features(self, obs, None)
+        if with_critic and not reads_afterstate:
+            before["q"] = self.critic_inputs(obs)
         out = self.chains.run(before)
         if sample_options is None:
             sample_options = not deterministic
@@ -521,8 +537,8 @@ class MlpHybridPolicy(BasePolicy):
             broadcast = self._sample_options(out["mu"], not sample_options)
         broadcast = broadcast.long()
         after = {"pi": self.control_features(obs, broadcast)}
-        if with_critic and critic.reads_afterstate:
-            after["q"] = critic.features(self, obs, broadcast)
+        if with_critic and reads_afterstate:
+            after["q"] = self.critic_inputs(obs, broadcast)
         out.update(self.chains.run(after))
         mean = out["pi"]
         control = mean
@@ -610,17 +626,17 @@ class MlpHybridPolicy(BasePolicy):
         :param p_broadcast: probabilities of broadcasting (B, N) to average under (None: ``mu``'s)
         :return: values (B, N)
         """
-        critic = self.option_critic
+        reads_afterstate = self.option_critic.reads_afterstate
         before = {"mu": self.option_features(obs)}
-        if not critic.reads_afterstate:
-            before["q"] = critic.features(self, obs, None)
+        if not reads_afterstate:
+            before["q"] = self.critic_inputs(obs)
         out = self.chains.run(before)
-        if critic.reads_afterstate:
+        if reads_afterstate:
             if p_broadcast is None:
                 broadcast = self._sample_options(out["mu"], deterministic=False)
             else:
                 broadcast = th.bernoulli(p_broadcast).long()
-            out.update(self.chains.run({"q": critic.features(self, obs, broadcast)}))
+            out.update(self.chains.run({"q": self.critic_inputs(obs, broadcast)}))
         q = self.option_values(out["q"], broadcast_price, broadcast_probability(out["mu"]))
         if p_broadcast is None:
             return (F.softmax(out["mu"], dim=-1) * q).sum(-1)
