@@ -1,9 +1,19 @@
 """Non-learned communication triggers, usable wherever MAPPOC accepts a fixed trigger.
 
 A trigger maps a batch of joint observations (dict of arrays shaped (B, N, ...)) to
-options (B, N) in {0, 1}. :func:`evaluate_trigger` runs a trigger with a given control law
-(e.g. :func:`lqr_on_held_states` on the linear system) and reports a :class:`TriggerPoint`
-(savings and control cost); :func:`sweep_send_on_delta` gives the cost-versus-savings curve.
+options (B, N) in {0, 1}. The triggers here other than :class:`RandomTrigger` are
+stateless: their options are a function of the observation alone, so they can be called on
+batches whose rows change from call to call (episodes run side by side and refilled as
+they end) and one object serves every rollout worker. The families: random skips,
+periodic (all agents in phase, or staggered over the agents), send-on-delta (with an
+optional maximum age) and, on the linear system, predictive triggering (:class:`PredictiveTrigger`
+with :func:`lqr_on_predicted_states`).
+
+:func:`evaluate_trigger` runs a trigger with a given control law (e.g.
+:func:`lqr_on_held_states` on the linear system) and reports a :class:`TriggerPoint`
+(savings and control cost); :func:`sweep_send_on_delta` gives the cost-versus-savings curve;
+:func:`tune_trigger` finds the parameter at which a family reaches a given savings
+(:func:`tune_trigger_on_env` with a control law on a joint env).
 :class:`FixedControl` does the converse: it fixes the control law, so that MAPPOC learns
 only when to communicate.
 """
@@ -11,6 +21,7 @@ only when to communicate.
 from __future__ import annotations
 
 import abc
+import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -18,7 +29,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from sb3_detc.envs.linear import LinearSystem, LQRController
+from sb3_detc.envs.linear import HeldStatePredictor, LinearSystem, LQRController
 from sb3_detc.envs.wrappers import JointEnv
 from sb3_detc.network import advance_timer, hold
 
@@ -90,35 +101,116 @@ class _StatelessTrigger(abc.ABC):
         return self(obs).astype(np.float64)
 
 
-class PeriodicTrigger(_StatelessTrigger):
-    """Every agent broadcasts every ``period``-th step, counted per episode; all agents at the same steps.
+def _check_count(name: str, value: int) -> int:
+    """Check a count (a period, a maximum age, a number of episodes or iterations).
 
-    Stateless: an agent broadcasts when its age of information reaches ``period - 1``, i.e.
-    when ``age + 1 >= period`` (``age`` is the timer before this step's decision). Since the
-    initial message of an episode counts as received (age 0 at reset), the broadcasts fall
-    on the steps ``period - 1, 2 period - 1, ...`` of every episode (step 0 is the first
-    step), so under this trigger all agents broadcast at the same steps. ``period=1`` is
-    periodic communication every step (no savings); savings are ``1 - 1 / period``.
+    :param name: the parameter's name, for the message
+    :param value: the value (an integer >= 1, not a bool)
+    :return: ``value`` as an int
+    :raises ValueError: if ``value`` is not an integer >= 1
+    """
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+        raise ValueError(f"{name} must be an integer >= 1, got {value!r}.")
+    return int(value)
+
+
+def _check_threshold(delta: float, norm: float) -> tuple[float, float]:
+    """Check the threshold and the norm of a send-on-delta-like trigger.
+
+    :param delta: threshold (a finite number >= 0, not a bool)
+    :param norm: order of the vector norm: a number >= 1 or ``numpy.inf`` (not a bool)
+    :return: ``delta`` as a float and ``norm``
+    :raises ValueError: if either is out of range
+    """
+    if isinstance(delta, bool) or not np.isfinite(delta) or delta < 0:
+        raise ValueError(f"delta must be a finite number >= 0, got {delta!r}.")
+    if isinstance(norm, bool) or not (norm == np.inf or (np.isfinite(norm) and norm >= 1)):
+        raise ValueError(f"norm must be a number >= 1 or numpy.inf, got {norm!r}.")
+    return float(delta), norm
+
+
+def _silent_age(obs: dict[str, np.ndarray]) -> np.ndarray:
+    """Every agent's age of information after this step if it stays silent, (B, N).
+
+    :param obs: a batch of joint observations; reads ``age`` (B, N, 1), the timers before this step's decisions
+    :return: ``age + 1`` by :func:`~sb3_detc.network.advance_timer` with no broadcast, float64
+    """
+    age = np.asarray(obs["age"], dtype=np.float64)
+    return advance_timer(age, np.zeros(age.shape[:-1]))[..., 0]
+
+
+def _age_reached(obs: dict[str, np.ndarray], steps: int) -> np.ndarray:
+    """Where an agent's age of information would reach ``steps`` if it stayed silent now, (B, N).
+
+    :param obs: a batch of joint observations; reads ``age`` (B, N, 1)
+    :param steps: the age that forces a broadcast (>= 1)
+    :return: True where ``age + 1 >= steps``
+    """
+    # Ages are whole numbers of steps (float32 in the observation): compare with half a step of margin.
+    return _silent_age(obs) > steps - 0.5
+
+
+class PeriodicTrigger(_StatelessTrigger):
+    """Every agent broadcasts every ``period``-th step, counted per episode: all in phase, or staggered.
+
+    **In phase** (default): an agent broadcasts when its age of information reaches
+    ``period - 1``, i.e. when ``age + 1 >= period`` (``age`` is the timer before this step's
+    decision). Since the initial message of an episode counts as received (age 0 at reset),
+    the broadcasts fall on the steps ``period - 1, 2 period - 1, ...`` of every episode (step
+    0 is the first step), so all agents broadcast at the same steps.
+
+    **Staggered** (round robin, ``staggered=True``): the broadcasts are spread evenly over the
+    period. Agent i has the offset ``o_i = floor(i * period / N)`` and broadcasts at the steps
+    ``period - 1 - o_i + m * period`` (m = 0, 1, ...), so no more than ``ceil(N / period)``
+    agents broadcast in one step (one agent per step if ``N <= period``). The team's clock is
+    agent 0's age of information, which every agent receives: agent 0 broadcasts when
+    ``age_0 + 1 >= period``, as in phase, so its age counts the steps of the period from
+    the reset on (``age_0 = k mod period`` at step k); agent i broadcasts when
+    ``min(age_0, period - 1) = period - 1 - o_i``. Agents with offset 0 broadcast with agent
+    0. If agent 0's age runs past ``period - 1`` (a trigger switched mid-episode), only the
+    offset-0 agents broadcast until its broadcast restarts the clock.
+
+    Either way an agent broadcasts once per ``period`` steps; savings are ``1 - 1 / period``
+    over whole periods (episodes whose length is not a multiple of ``period`` differ a little:
+    in phase, the last incomplete period has no broadcast; staggered, some agents broadcast
+    in it). ``period=1`` is periodic communication every step (no savings).
 
     :param period: steps between two broadcasts of an agent (an integer >= 1)
+    :param staggered: spread the agents' broadcasts over the period (round robin) instead of all at once
     """
 
-    def __init__(self, period: int) -> None:
-        if isinstance(period, bool) or not isinstance(period, (int, np.integer)) or period < 1:
-            raise ValueError(f"period must be an integer >= 1, got {period!r}.")
-        self.period = int(period)
+    def __init__(self, period: int, staggered: bool = False) -> None:
+        self.period = _check_count("period", period)
+        if not isinstance(staggered, (bool, np.bool_)):
+            raise ValueError(f"staggered must be a bool, got {staggered!r}.")
+        self.staggered = bool(staggered)
+
+    def __repr__(self) -> str:
+        return f"PeriodicTrigger(period={self.period}, staggered={self.staggered})"
+
+    def offsets(self, n_agents: int) -> np.ndarray:
+        """The agents' offsets in steps: how much earlier in the period each agent broadcasts than agent 0.
+
+        :param n_agents: number of agents N
+        :return: ``floor(i * period / N)`` for ``i = 0 .. N - 1`` if staggered, else zeros, int64 (N,)
+        """
+        if not self.staggered:
+            return np.zeros(n_agents, dtype=np.int64)
+        return np.arange(n_agents, dtype=np.int64) * self.period // n_agents
 
     def __call__(self, obs: dict[str, np.ndarray]) -> np.ndarray:
         """Options for a batch of joint observations, (B, N).
 
         :param obs: a batch of joint observations, arrays shaped (B, N, ...) by key; reads ``age``
             (B, N, 1), the ages of information in steps before this step's decision
-        :return: options (B, N), int64: 1 (broadcast) where ``age + 1 >= period``, else 0
+        :return: options (B, N), int64: in phase, 1 (broadcast) where ``age + 1 >= period``;
+            staggered, 1 where agent 0's age (capped at ``period - 1``) is ``period - 1 - o_i``
         """
-        age = np.asarray(obs["age"])
-        silent = advance_timer(age, np.zeros(age.shape[:-1]))[..., 0]  # the timers if nobody broadcast now
-        # Ages are whole numbers of steps (float32 in the observation): compare with half a step of margin.
-        return (silent > self.period - 0.5).astype(np.int64)
+        if not self.staggered:
+            return _age_reached(obs, self.period).astype(np.int64)
+        clock = np.minimum(np.rint(np.asarray(obs["age"], dtype=np.float64)[..., :1, 0]), self.period - 1)  # (B, 1)
+        offsets = self.offsets(np.shape(obs["age"])[-2])
+        return (clock + offsets == self.period - 1).astype(np.int64)
 
 
 class SendOnDelta(_StatelessTrigger):
@@ -127,20 +219,24 @@ class SendOnDelta(_StatelessTrigger):
     Agent i broadcasts when ``||trigger_i - trigger_held_i|| > delta`` (strictly), where
     ``trigger_held_i`` are the trigger features at the agent's own last broadcast (or at the
     reset), both read from the joint observation. The classic event-triggered reference:
-    ``delta = 0`` broadcasts whenever anything changed, a large ``delta`` never.
+    ``delta = 0`` broadcasts whenever anything changed, a large ``delta`` never. With
+    ``max_age``, an agent also broadcasts when its age of information would reach ``max_age``
+    (``age + 1 >= max_age``, as :class:`PeriodicTrigger` with that period): no receiver's view
+    of it is ever older than ``max_age - 1`` steps after a step's broadcasts.
 
     :param delta: threshold (a finite number >= 0), in the units of the trigger features
     :param norm: order of the vector norm (``numpy.linalg.norm``'s ``ord``): a number >= 1
         or ``numpy.inf`` (default 2, the Euclidean norm)
+    :param max_age: broadcast at the latest every ``max_age`` steps (an integer >= 1), or None
+        for no maximum age
     """
 
-    def __init__(self, delta: float, norm: float = 2) -> None:
-        if isinstance(delta, bool) or not np.isfinite(delta) or delta < 0:
-            raise ValueError(f"delta must be a finite number >= 0, got {delta!r}.")
-        if isinstance(norm, bool) or not (norm == np.inf or (np.isfinite(norm) and norm >= 1)):
-            raise ValueError(f"norm must be a number >= 1 or numpy.inf, got {norm!r}.")
-        self.delta = float(delta)
-        self.norm = norm
+    def __init__(self, delta: float, norm: float = 2, max_age: int | None = None) -> None:
+        self.delta, self.norm = _check_threshold(delta, norm)
+        self.max_age = None if max_age is None else _check_count("max_age", max_age)
+
+    def __repr__(self) -> str:
+        return f"SendOnDelta(delta={self.delta:g}, norm={self.norm:g}, max_age={self.max_age})"
 
     def distance(self, obs: dict[str, np.ndarray]) -> np.ndarray:
         """How far every agent's trigger features moved since its last broadcast, (B, N).
@@ -156,10 +252,83 @@ class SendOnDelta(_StatelessTrigger):
         """Options for a batch of joint observations, (B, N).
 
         :param obs: a batch of joint observations, arrays shaped (B, N, ...) by key; reads
-            ``trigger`` and ``trigger_held`` (see :meth:`distance`)
-        :return: options (B, N), int64: 1 (broadcast) where :meth:`distance` exceeds ``delta``, else 0
+            ``trigger`` and ``trigger_held`` (see :meth:`distance`), and ``age`` (B, N, 1) with ``max_age``
+        :return: options (B, N), int64: 1 (broadcast) where :meth:`distance` exceeds ``delta`` or
+            (with ``max_age``) ``age + 1 >= max_age``, else 0
         """
-        return (self.distance(obs) > self.delta).astype(np.int64)
+        broadcast = self.distance(obs) > self.delta
+        if self.max_age is not None:
+            broadcast |= _age_reached(obs, self.max_age)
+        return broadcast.astype(np.int64)
+
+
+def _linear_system(system_or_env: LinearSystem | gym.Env, name: str) -> LinearSystem:
+    """The linear system itself, or the one inside a joint env.
+
+    :param system_or_env: a :class:`~sb3_detc.envs.linear.LinearSystem` or a joint env around one
+    :param name: the caller's name, for the message
+    :return: the linear system
+    :raises ValueError: if no linear system is found
+    """
+    system = system_or_env
+    if not isinstance(system, LinearSystem):
+        network = getattr(getattr(system_or_env, "unwrapped", None), "network", None)
+        system = getattr(network, "system", None)
+    if not isinstance(system, LinearSystem):
+        raise ValueError(f"{name} needs a LinearSystem or a joint env around one, got {system_or_env!r}.")
+    return system
+
+
+class PredictiveTrigger(_StatelessTrigger):
+    """Predictive triggering on the linear system: broadcast when the receivers' prediction is off by > ``delta``.
+
+    The receivers predict every agent's current state from its held broadcast and its age
+    with the known model (:class:`~sb3_detc.envs.linear.HeldStatePredictor`: the agent's own
+    closed-loop block under the LQR gain). Agent i, which knows its state and what its
+    receivers hold, broadcasts when ``||m_i - x^_i|| > delta`` (strictly), with ``m_i`` its
+    current message (its state) and ``x^_i`` the receivers' prediction of it if it stays
+    silent now (held broadcast, age ``age_i + 1``). The control law that goes with it,
+    :func:`lqr_on_predicted_states`, acts on the same predictions: this is what a control
+    engineer with the model deploys, the model-based anchor of the matched-rate comparison.
+    ``delta = 0`` broadcasts whenever the prediction is not exact.
+
+    At the reset the initial message counts as received with age 0 (as after a broadcast a
+    step before), so until an agent first broadcasts, its prediction runs one step ahead of
+    its state.
+
+    :param system_or_env: a :class:`~sb3_detc.envs.linear.LinearSystem` or a joint env around one
+    :param delta: threshold (a finite number >= 0), in the units of the state ``(e_i, v_i)``
+    :param norm: order of the vector norm, as in :class:`SendOnDelta` (default 2)
+    :param gain: the control law's gain (N, 2N), as for :func:`lqr_on_predicted_states`; None for the LQR gain
+    :raises ValueError: if no linear system is found, or on a bad ``delta``, ``norm`` or ``gain``
+    """
+
+    def __init__(
+        self, system_or_env: LinearSystem | gym.Env, delta: float, norm: float = 2, gain: np.ndarray | None = None
+    ) -> None:
+        self.delta, self.norm = _check_threshold(delta, norm)
+        self.predictor = HeldStatePredictor(_linear_system(system_or_env, "PredictiveTrigger"), gain)
+
+    def __repr__(self) -> str:
+        return f"PredictiveTrigger(delta={self.delta:g}, norm={self.norm:g})"
+
+    def error(self, obs: dict[str, np.ndarray]) -> np.ndarray:
+        """How far the receivers' prediction of every agent would be off if it stayed silent now, (B, N).
+
+        :param obs: a batch of joint observations, arrays shaped (B, N, ...) by key; reads
+            ``message`` and ``held`` (B, N, 2), ``age`` (B, N, 1)
+        :return: norms (of order ``norm``) of ``message - prediction``, (B, N), float64
+        """
+        predicted = self.predictor(obs["held"], _silent_age(obs)[..., None])
+        return np.linalg.norm(np.asarray(obs["message"], dtype=np.float64) - predicted, ord=self.norm, axis=-1)
+
+    def __call__(self, obs: dict[str, np.ndarray]) -> np.ndarray:
+        """Options for a batch of joint observations, (B, N).
+
+        :param obs: a batch of joint observations, as :meth:`error` reads them
+        :return: options (B, N), int64: 1 (broadcast) where :meth:`error` exceeds ``delta``, else 0
+        """
+        return (self.error(obs) > self.delta).astype(np.int64)
 
 
 # --------------------------------------------------------------------- evaluation of triggers
@@ -186,18 +355,6 @@ class TriggerPoint:
     cost: float
     cost_sem: float
     episodes: int
-
-
-def _check_episodes(n_episodes: int) -> int:
-    """Check a number of episodes.
-
-    :param n_episodes: the number of episodes (an integer >= 1, not a bool)
-    :return: ``n_episodes`` as an int
-    :raises ValueError: if ``n_episodes`` is not an integer >= 1
-    """
-    if isinstance(n_episodes, bool) or not isinstance(n_episodes, (int, np.integer)) or n_episodes < 1:
-        raise ValueError(f"n_episodes must be an integer >= 1, got {n_episodes!r}.")
-    return int(n_episodes)
 
 
 def evaluate_trigger(
@@ -228,7 +385,7 @@ def evaluate_trigger(
     :return: savings and team control cost per episode
     :raises ValueError: if ``env`` is not a joint env or ``n_episodes < 1``
     """
-    n_episodes = _check_episodes(n_episodes)
+    n_episodes = _check_count("n_episodes", n_episodes)
     if not isinstance(env.unwrapped, JointEnv):
         raise ValueError(f"evaluate_trigger needs a joint sb3_detc env, got {env}.")
     costs = np.zeros(n_episodes)
@@ -266,17 +423,40 @@ def lqr_on_held_states(system_or_env: LinearSystem | gym.Env) -> Control:
     :return: ``control(obs, broadcast)`` -> controls (N, 1)
     :raises ValueError: if no linear system is found
     """
-    system = system_or_env
-    if not isinstance(system, LinearSystem):
-        network = getattr(getattr(system_or_env, "unwrapped", None), "network", None)
-        system = getattr(network, "system", None)
-    if not isinstance(system, LinearSystem):
-        raise ValueError(f"lqr_on_held_states needs a LinearSystem or a joint env around one, got {system_or_env!r}.")
-    controller = LQRController(system)
+    controller = LQRController(_linear_system(system_or_env, "lqr_on_held_states"))
 
     def control(obs: dict[str, np.ndarray], broadcast: np.ndarray) -> np.ndarray:
         held = hold(np.asarray(obs["held"]), np.asarray(obs["message"]), np.asarray(broadcast))
         return controller.on_views(held, obs["local"])
+
+    return control
+
+
+def lqr_on_predicted_states(system_or_env: LinearSystem | gym.Env, gain: np.ndarray | None = None) -> Control:
+    """Control law of predictive triggering: LQR on the receivers' predictions of the held states.
+
+    As :func:`lqr_on_held_states`, but every agent sees the others' states as predicted from
+    their held broadcasts and ages after this step's broadcasts (same-step delivery), by the
+    prediction that :class:`PredictiveTrigger` triggers on
+    (:class:`~sb3_detc.envs.linear.HeldStatePredictor`); its own row is its current state. With
+    broadcasts every step it is the centralised LQR controller. Use it with
+    :func:`evaluate_trigger` or :class:`FixedControl`.
+
+    :param system_or_env: a :class:`~sb3_detc.envs.linear.LinearSystem` or a joint env around one
+    :param gain: the gain (N, 2N) of the control law ``u = -K x`` and of the prediction (e.g. a
+        detuned one; pass the same to :class:`PredictiveTrigger`); None for the LQR gain
+    :return: ``control(obs, broadcast)`` -> controls (N, 1)
+    :raises ValueError: if no linear system is found, or ``gain`` has the wrong shape
+    """
+    system = _linear_system(system_or_env, "lqr_on_predicted_states")
+    controller = LQRController(system, gain)
+    predictor = HeldStatePredictor(system, controller.gain)
+
+    def control(obs: dict[str, np.ndarray], broadcast: np.ndarray) -> np.ndarray:
+        broadcast = np.asarray(broadcast)
+        held = hold(np.asarray(obs["held"]), np.asarray(obs["message"]), broadcast)
+        age = advance_timer(np.asarray(obs["age"]), broadcast)
+        return controller.on_views(predictor(held, age), obs["local"])
 
     return control
 
@@ -345,10 +525,216 @@ def sweep_send_on_delta(
     if not deltas:
         raise ValueError("deltas must not be empty.")
     for delta in deltas:
-        if isinstance(delta, bool) or not np.isfinite(delta) or delta < 0:
-            raise ValueError(f"every delta must be a finite number >= 0, got {delta!r}.")
-    _check_episodes(n_episodes)
+        _check_threshold(delta, 2)
+    _check_count("n_episodes", n_episodes)
     return [
         evaluate_trigger(env, SendOnDelta(delta), control, n_episodes, seed, label=f"send-on-delta {delta:g}")
         for delta in deltas
     ]
+
+
+# --------------------------------------------------------------------- matching a savings target
+#: The families of fixed triggers that :func:`tune_trigger` matches to a savings target, by name.
+TRIGGER_FAMILIES = ("periodic", "periodic_staggered", "send_on_delta", "send_on_delta_max_age", "predictive")
+
+
+class SavingsNotReached(ValueError):
+    """A family of triggers reaches no savings within the tolerance of the target on the given episodes."""
+
+
+def family_max_age(target_savings: float) -> int:
+    """The maximum age of the family ``"send_on_delta_max_age"`` at a savings target: twice the period.
+
+    A periodic trigger reaches the savings ``s`` with the period ``1 / (1 - s)``. With a maximum
+    age of that period, send-on-delta would reach the target only as periodic communication
+    (forced broadcasts alone use the whole budget); with twice the period, forced broadcasts use
+    at most half of it, so the events decide, and every agent's silence is still bounded.
+
+    :param target_savings: the savings target, in (0, 1)
+    :return: ``round(2 / (1 - target_savings))``, at least 1
+    """
+    return max(1, round(2.0 / (1.0 - target_savings)))
+
+
+def _tune_period(
+    staggered: bool, savings_of: Callable[[Trigger], float], target_savings: float, tolerance: float
+) -> tuple[Trigger, float]:
+    """The periodic trigger whose savings are closest to the target, see :func:`tune_trigger`.
+
+    :param staggered: in phase (False) or staggered periodic
+    :param savings_of: savings of a trigger on the given episodes
+    :param target_savings: the target, in (0, 1)
+    :param tolerance: the largest accepted distance of the savings from the target
+    :return: the trigger and its savings
+    :raises SavingsNotReached: if neither period around ``1 / (1 - target_savings)`` is within the tolerance
+    """
+    period = 1.0 / (1.0 - target_savings)
+    periods = sorted({max(1, math.floor(period + 1e-9)), max(1, math.ceil(period - 1e-9))})
+    tried = [(trigger, float(savings_of(trigger))) for trigger in (PeriodicTrigger(p, staggered) for p in periods)]
+    trigger, savings = min(tried, key=lambda pair: abs(pair[1] - target_savings))
+    if abs(savings - target_savings) > tolerance:
+        found = ", ".join(f"period {t.period} gives {s:.4f}" for t, s in tried)
+        raise SavingsNotReached(
+            f"no period reaches savings {target_savings:g} within {tolerance:g} on these episodes: {found}."
+        )
+    return trigger, savings
+
+
+def _tune_threshold(
+    make_trigger: Callable[[float], Trigger],
+    savings_of: Callable[[Trigger], float],
+    target_savings: float,
+    tolerance: float,
+    max_iterations: int,
+    initial: float,
+) -> tuple[Trigger, float]:
+    """Bisection on a threshold, see :func:`tune_trigger`.
+
+    :param make_trigger: the trigger at a threshold > 0
+    :param savings_of: savings of a trigger on the given episodes
+    :param target_savings: the target, in (0, 1)
+    :param tolerance: the largest accepted distance of the savings from the target
+    :param max_iterations: the most triggers to evaluate
+    :param initial: the first threshold
+    :return: the first trigger found within the tolerance and its savings
+    :raises SavingsNotReached: if none is within the tolerance after ``max_iterations`` evaluations
+    """
+    below = above = None  # the largest threshold found below the target, the smallest above it
+    threshold, tried = initial, []
+    for _ in range(max_iterations):
+        trigger = make_trigger(threshold)
+        savings = float(savings_of(trigger))
+        tried.append((threshold, savings))
+        if abs(savings - target_savings) <= tolerance:
+            return trigger, savings
+        if savings < target_savings:
+            below = threshold
+        else:
+            above = threshold
+        # Double or halve until the target is bracketed, then bisect geometrically (thresholds span decades).
+        threshold = 2 * threshold if above is None else threshold / 2 if below is None else math.sqrt(below * above)
+    closest, savings = min(tried, key=lambda pair: abs(pair[1] - target_savings))
+    raise SavingsNotReached(
+        f"no threshold reached savings {target_savings:g} within {tolerance:g} in {max_iterations} evaluations; "
+        f"closest: {closest:g} with savings {savings:.4f}."
+    )
+
+
+def tune_trigger(
+    family: str | Callable[[float], Trigger],
+    savings_of: Callable[[Trigger], float],
+    target_savings: float,
+    tolerance: float = 0.01,
+    max_iterations: int = 30,
+    system_or_env: LinearSystem | gym.Env | None = None,
+    initial: float = 1.0,
+) -> tuple[Trigger, float]:
+    """The trigger of a family that reaches a savings target on given episodes, within a tolerance.
+
+    ``savings_of(trigger)`` runs the episodes with the trigger (always the same, seeded
+    episodes, and whatever control runs them: a control law, a learned controller) and
+    returns their savings; e.g. ``lambda t: evaluate_trigger(env, t, control, 50).savings``,
+    which :func:`tune_trigger_on_env` does. The families (:data:`TRIGGER_FAMILIES`):
+
+    * ``"periodic"``, ``"periodic_staggered"``: :class:`PeriodicTrigger` in phase or staggered.
+      Periodic savings are ``1 - 1 / period``: if ``1 / (1 - target_savings)`` is an integer,
+      that period is evaluated; otherwise both integers around it, and the one whose savings
+      are closer to the target is taken. If it is further than ``tolerance`` (between the
+      savings of two neighbouring periods, e.g. 0.6 lies between 0.5 and 0.667),
+      :class:`SavingsNotReached` is raised: no period matches that rate.
+    * ``"send_on_delta"``: :class:`SendOnDelta` with threshold ``delta``.
+    * ``"send_on_delta_max_age"``: :class:`SendOnDelta` with threshold ``delta`` and the maximum
+      age :func:`family_max_age` (twice the period at the target).
+    * ``"predictive"``: :class:`PredictiveTrigger` on the linear system of ``system_or_env``.
+    * a callable ``make_trigger(threshold) -> trigger``: any family of a threshold > 0.
+
+    Threshold families are searched by bisection: the threshold starts at ``initial`` and is
+    doubled or halved until the target lies between the savings of two thresholds, then the
+    geometric mean of the two is tried, until the savings are within ``tolerance`` of the
+    target. This assumes that the savings grow with the threshold, as they do for a
+    send-on-delta rule; on a fixed set of episodes they change in steps of one broadcast, so a
+    tolerance below one broadcast per agent-steps of the episodes may not be reached.
+
+    :param family: a name from :data:`TRIGGER_FAMILIES`, or a callable from a threshold to a trigger
+    :param savings_of: savings of a trigger on the given episodes (the same episodes for every trigger)
+    :param target_savings: the savings to reach, in (0, 1)
+    :param tolerance: the largest accepted distance of the savings from the target, in (0, 1)
+    :param max_iterations: the most triggers a threshold search evaluates (an integer >= 1;
+        periodic families evaluate one or two)
+    :param system_or_env: the linear system, or a joint env around it, for ``"predictive"``
+    :param initial: the first threshold of a threshold search (> 0), in the units of the family's threshold
+    :return: the trigger and its savings on the episodes
+    :raises ValueError: on an unknown family or an argument out of range
+    :raises SavingsNotReached: if no trigger of the family is found within the tolerance
+    """
+    if family not in TRIGGER_FAMILIES if isinstance(family, str) else not callable(family):
+        raise ValueError(f"family must be one of {TRIGGER_FAMILIES} or a callable, got {family!r}.")
+    if isinstance(target_savings, bool) or not 0.0 < target_savings < 1.0:
+        raise ValueError(f"target_savings must be in (0, 1), got {target_savings!r}.")
+    if isinstance(tolerance, bool) or not 0.0 < tolerance < 1.0:
+        raise ValueError(f"tolerance must be in (0, 1), got {tolerance!r}.")
+    max_iterations = _check_count("max_iterations", max_iterations)
+    if isinstance(initial, bool) or not (np.isfinite(initial) and initial > 0):
+        raise ValueError(f"initial must be a finite number > 0, got {initial!r}.")
+    if family in ("periodic", "periodic_staggered"):
+        return _tune_period(family == "periodic_staggered", savings_of, target_savings, tolerance)
+    if family == "send_on_delta":
+        make_trigger = SendOnDelta
+    elif family == "send_on_delta_max_age":
+        max_age = family_max_age(target_savings)
+
+        def make_trigger(delta: float) -> Trigger:
+            return SendOnDelta(delta, max_age=max_age)
+
+    elif family == "predictive":
+        system = _linear_system(system_or_env, "the family 'predictive'")
+
+        def make_trigger(delta: float) -> Trigger:
+            return PredictiveTrigger(system, delta)
+
+    else:
+        make_trigger = family
+    return _tune_threshold(make_trigger, savings_of, target_savings, tolerance, max_iterations, initial)
+
+
+def tune_trigger_on_env(
+    env: gym.Env,
+    family: str | Callable[[float], Trigger],
+    target_savings: float,
+    control: Control | None = None,
+    n_episodes: int = 20,
+    seed: int = 0,
+    tolerance: float = 0.01,
+    max_iterations: int = 30,
+    initial: float = 1.0,
+) -> tuple[Trigger, TriggerPoint]:
+    """:func:`tune_trigger` on the episodes of :func:`evaluate_trigger` with a control law.
+
+    Every trigger tried runs the same episodes (seeds ``seed`` to ``seed + n_episodes - 1``).
+
+    :param env: a joint env, as for :func:`evaluate_trigger`
+    :param family: a name from :data:`TRIGGER_FAMILIES` or a callable from a threshold to a
+        trigger, see :func:`tune_trigger`
+    :param target_savings: the savings to reach, in (0, 1)
+    :param control: the control law; None for the one that goes with the family on the linear
+        system: :func:`lqr_on_predicted_states` for ``"predictive"``, else :func:`lqr_on_held_states`
+    :param n_episodes: number of episodes (>= 1)
+    :param seed: seed of the first episode
+    :param tolerance: the largest accepted distance of the savings from the target, in (0, 1)
+    :param max_iterations: the most triggers a threshold search evaluates (>= 1)
+    :param initial: the first threshold of a threshold search (> 0)
+    :return: the trigger and its point on the episodes (labelled with the trigger's ``repr``)
+    :raises ValueError: on an argument out of range, or with ``control=None`` on an env without a linear system
+    :raises SavingsNotReached: if no trigger of the family is found within the tolerance
+    """
+    if control is None:
+        control = lqr_on_predicted_states(env) if family == "predictive" else lqr_on_held_states(env)
+    n_episodes = _check_count("n_episodes", n_episodes)
+    points: list[tuple[Trigger, TriggerPoint]] = []
+
+    def savings_of(trigger: Trigger) -> float:
+        points.append((trigger, evaluate_trigger(env, trigger, control, n_episodes, seed, label=repr(trigger))))
+        return points[-1][1].savings
+
+    trigger, _ = tune_trigger(family, savings_of, target_savings, tolerance, max_iterations, env, initial)
+    return trigger, next(point for tried, point in points if tried is trigger)

