@@ -16,7 +16,6 @@ input in :mod:`sb3_detc.cli` before they hand over to rl-zoo3.
 
 from __future__ import annotations
 
-import functools
 import os
 import warnings
 from pathlib import Path
@@ -212,34 +211,48 @@ class ExperimentManager(rl_zoo3.exp_manager.ExperimentManager):
         self.callbacks.append(CSVLogCallback(self.save_path))
 
     def learn(self, model: BaseAlgorithm) -> None:
-        """Train ``model`` as rl-zoo3 does, continuing its step count if it was loaded to continue.
+        """Train ``model`` as rl-zoo3 does; a model loaded to continue (``-i``) counts on from its step count.
 
-        Training envs of rollout workers and evaluation envs of ``--vec-env`` differ in class by
-        design: SB3's evaluation callback's warning about it is left out.
+        rl-zoo3 trains with ``model.learn(n_timesteps, ...)``, which restarts the step count at
+        zero; a loaded model learns with ``reset_num_timesteps=False`` instead
+        (:class:`_ContinuedModel`). Training envs of rollout workers and evaluation envs of
+        ``--vec-env`` differ in class by design: SB3's evaluation callback's warning about it is
+        left out.
 
         :param model: the model to train
         """
         with warnings.catch_warnings():
             if self.eval_vec_env_class is not None:
                 warnings.filterwarnings("ignore", "Training and eval env are not of the same type", UserWarning)
-            self._learn(model)
+            super().learn(_ContinuedModel(model) if self.continue_training else model)  # type: ignore[arg-type]
 
-    def _learn(self, model: BaseAlgorithm) -> None:
-        """rl-zoo3's ``learn``; a model loaded to continue (``-i``) learns with ``reset_num_timesteps=False``.
 
-        :param model: the model to train
+class _ContinuedModel:
+    """A model as rl-zoo3's ``learn`` sees it: ``learn`` continues the model's step count.
+
+    Every call of ``learn`` gets ``reset_num_timesteps=False``; every other attribute is the
+    model's. The model and its class stay as they are, so what a callback saves of the model
+    and other models of the class are not affected.
+
+    :param model: the model loaded to continue training
+    """
+
+    def __init__(self, model: BaseAlgorithm) -> None:
+        self.model = model
+
+    def learn(self, *args: Any, **kwargs: Any) -> BaseAlgorithm:
+        """The model's ``learn`` with ``reset_num_timesteps=False``.
+
+        :param args: positional arguments of the model's ``learn``
+        :param kwargs: keyword arguments of the model's ``learn`` (without ``reset_num_timesteps``)
+        :return: the trained model
         """
-        if not self.continue_training:
-            super().learn(model)
-            return
-        # On the class, not the instance: checkpoints pickle the instance's attributes.
-        cls = type(model)
-        own = cls.__dict__.get("learn")
-        cls.learn = functools.partialmethod(cls.learn, reset_num_timesteps=False)  # type: ignore[method-assign]
-        try:
-            super().learn(model)
-        finally:
-            if own is None:
-                del cls.learn
-            else:
-                cls.learn = own  # type: ignore[method-assign]
+        return self.model.learn(*args, reset_num_timesteps=False, **kwargs)
+
+    def __getattr__(self, name: str) -> Any:
+        """The model's attribute ``name`` (rl-zoo3 reads e.g. ``env`` to close it after training).
+
+        :param name: the attribute
+        :return: the model's attribute
+        """
+        return getattr(self.model, name)

@@ -104,6 +104,54 @@ def test_rollout_worker_entries_train_in_worker_processes_and_evaluate_as_vec_en
         evaluation.eval_env.close()
 
 
+def test_a_model_loaded_to_continue_counts_on_and_its_class_stays_as_it_is(tmp_path: Path) -> None:
+    from argparse import Namespace
+
+    from stable_baselines3.common.callbacks import BaseCallback
+
+    own_learn = MAPPOC.__dict__["learn"]
+
+    class Seen(BaseCallback):
+        """What training starts from: the step count, and whether MAPPOC and the model are as they were."""
+
+        def _on_training_start(self) -> None:
+            self.start = self.model.num_timesteps
+            self.untouched = MAPPOC.__dict__["learn"] is own_learn and "learn" not in vars(self.model)
+
+        def _on_step(self) -> bool:
+            return True
+
+    def manager(trained_agent: str = "") -> zoo.ExperimentManager:
+        return zoo.ExperimentManager(
+            Namespace(),
+            "mappoc",
+            LINEAR,
+            str(tmp_path),
+            n_timesteps=64,
+            eval_freq=-1,
+            log_interval=-1,
+            hyperparams={"n_envs": 1, "n_steps": 64, "batch_size": 64, "n_epochs": 1},
+            trained_agent=trained_agent,
+            verbose=0,
+            config=str(zoo.HYPERPARAMS_DIR / "mappoc.yml"),
+            device="cpu",
+        )
+
+    first = manager()
+    model, _ = first.setup_experiment()
+    first.learn(model)
+    saved = tmp_path / "saved.zip"
+    model.save(saved)
+    more = manager(str(saved))
+    model, _ = more.setup_experiment()
+    seen = Seen()
+    more.callbacks.append(seen)
+    more.learn(model)
+    assert seen.start == 64 and model.num_timesteps == 128  # counting on from the saved model's 64 steps
+    assert seen.untouched
+    assert MAPPOC.__dict__["learn"] is own_learn
+
+
 def test_the_evaluation_runs_its_episodes_side_by_side_unless_told_otherwise() -> None:
     def n_eval_envs(*argv: str) -> list[str]:
         args = check_train_arguments(["--env", LINEAR, *argv])
