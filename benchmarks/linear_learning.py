@@ -44,11 +44,11 @@ from stable_baselines3.common.env_util import make_vec_env
 import sb3_detc
 from sb3_detc import MAPPOC
 from sb3_detc.callbacks import BroadcastEntropySchedule, ControlFirstCallback
+from sb3_detc.cli import ZOO_KEYS, check_hyperparams_file
 from sb3_detc.envs.linear import LinearSystem, lqr_episode_cost
 from sb3_detc.evaluation import evaluate_communication
 from sb3_detc.mappoc.critics import CRITICS
 from sb3_detc.triggers import RandomTrigger
-from sb3_detc.zoo import ZOO_KEYS, check_hyperparams_file
 
 #: MAPPOC settings for the linear env (the paper's are for Multiwalker).
 HYPERPARAMS = {

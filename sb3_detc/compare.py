@@ -35,6 +35,7 @@ import yaml
 from huggingface_sb3 import EnvironmentName
 from rl_zoo3.utils import get_saved_hyperparams
 
+from sb3_detc.cli import InputError, check_env, run_cli
 from sb3_detc.evaluation import CommunicationReport, evaluate_communication
 from sb3_detc.mappoc import MAPPOC
 from sb3_detc.mappoc.sampling import FixedTrigger
@@ -43,7 +44,6 @@ from sb3_detc.study.runner import prepare_folder, run_study
 from sb3_detc.study.spec import load_study
 from sb3_detc.study.trial import entry_fixed_trigger
 from sb3_detc.triggers import FixedControl
-from sb3_detc.zoo import InputError, check_env, run_cli
 
 #: The compared algorithms (rl-zoo3 names): learned communication and the random-skip baseline.
 ALGOS = ("mappoc", "ppo_random_skip")

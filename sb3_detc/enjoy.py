@@ -15,13 +15,13 @@ from collections.abc import Sequence
 
 import rl_zoo3.enjoy
 
-from sb3_detc.zoo import check_model_arguments, render_modes, run_cli
+from sb3_detc.cli import check_model_arguments, render_modes, run_cli
 
 
 def _enjoy() -> None:
     """The enjoy command: check ``sys.argv``, add ``--no-render`` for an env without a window, run ``rl_zoo3.enjoy``.
 
-    :raises InputError: on bad input (see :func:`~sb3_detc.zoo.check_model_arguments`)
+    :raises InputError: on bad input (see :func:`~sb3_detc.cli.check_model_arguments`)
     """
     argv, known = check_model_arguments(sys.argv[1:])
     if "--no-render" not in argv and "human" not in render_modes(known.env):

@@ -28,8 +28,8 @@ import matplotlib.pyplot as plt  # noqa: E402  (after choosing the file backend)
 import numpy as np  # noqa: E402
 from huggingface_sb3 import EnvironmentName  # noqa: E402
 
+from sb3_detc.cli import InputError, run_cli  # noqa: E402
 from sb3_detc.renamed import renamed_column  # noqa: E402
-from sb3_detc.zoo import InputError, run_cli  # noqa: E402
 
 __all__ = [
     "curriculum_phases",

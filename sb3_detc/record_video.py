@@ -14,13 +14,13 @@ import runpy
 import sys
 from collections.abc import Sequence
 
-from sb3_detc.zoo import InputError, check_model_arguments, render_modes, run_cli
+from sb3_detc.cli import InputError, check_model_arguments, render_modes, run_cli
 
 
 def _record() -> None:
     """The video command: check ``sys.argv``, then run ``rl_zoo3.record_video`` as a script.
 
-    :raises InputError: on bad input (see :func:`~sb3_detc.zoo.check_model_arguments`) or an
+    :raises InputError: on bad input (see :func:`~sb3_detc.cli.check_model_arguments`) or an
         environment without ``rgb_array`` rendering
     """
     argv, known = check_model_arguments(sys.argv[1:])

@@ -17,7 +17,8 @@ from collections.abc import Sequence
 
 import rl_zoo3.train
 
-from sb3_detc.zoo import ExperimentManager, check_train_arguments, run_cli
+from sb3_detc.cli import check_train_arguments, run_cli
+from sb3_detc.zoo import ExperimentManager
 
 
 def _train() -> None:
@@ -25,7 +26,7 @@ def _train() -> None:
 
     rl-zoo3 builds its runs with :class:`~sb3_detc.zoo.ExperimentManager` meanwhile.
 
-    :raises InputError: on bad input (see :func:`~sb3_detc.zoo.check_train_arguments`)
+    :raises InputError: on bad input (see :func:`~sb3_detc.cli.check_train_arguments`)
     """
     sys.argv[1:] = check_train_arguments(sys.argv[1:])
     stock = rl_zoo3.train.ExperimentManager

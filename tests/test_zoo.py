@@ -17,6 +17,7 @@ from stable_baselines3.common.env_util import make_vec_env
 
 from sb3_detc import MAPPOC, compare, enjoy, plot, record_video, train, zoo
 from sb3_detc.callbacks import CommMetricsCallback, ControlFirstCallback, CurriculumCallback, RandomSkipCallback
+from sb3_detc.cli import ZOO_KEYS, check_hyperparams_file, check_train_arguments
 
 LINEAR = "sb3_detc/LinearETC-v0"
 LINEAR_LQR = "sb3_detc/LinearETC-LQR-v0"
@@ -40,8 +41,8 @@ def run_folder(logs: Path, algo: str, env_id: str, run_id: int) -> Path:
 @pytest.mark.parametrize("algo", sorted(zoo.ALGORITHMS))
 @pytest.mark.parametrize("env_id", ENVS)
 def test_hyperparameter_files_build_models(algo: str, env_id: str) -> None:
-    entry = zoo.check_hyperparams_file(zoo.HYPERPARAMS_DIR / f"{algo}.yml", algo, env_id)
-    kwargs = {k: v for k, v in entry.items() if k not in zoo.ZOO_KEYS}
+    entry = check_hyperparams_file(zoo.HYPERPARAMS_DIR / f"{algo}.yml", algo, env_id)
+    kwargs = {k: v for k, v in entry.items() if k not in ZOO_KEYS}
     kwargs["policy_kwargs"] = eval(kwargs["policy_kwargs"])  # rl-zoo3 evaluates the string the same way
     env = make_vec_env(env_id, n_envs=entry.get("n_envs", 1), env_kwargs=entry.get("env_kwargs"))
     model = zoo.ALGORITHMS[algo](env=env, **kwargs)
@@ -58,8 +59,8 @@ def test_multiwalker_entries_train_without_a_cxx_compiler(algo: str) -> None:
     """The paper's entries compile where a compiler exists and fall back to eager steps, not an error, elsewhere."""
     from torch._inductor import config
 
-    entry = zoo.check_hyperparams_file(zoo.HYPERPARAMS_DIR / f"{algo}.yml", algo, MULTIWALKER)
-    kwargs = {k: v for k, v in entry.items() if k not in zoo.ZOO_KEYS}
+    entry = check_hyperparams_file(zoo.HYPERPARAMS_DIR / f"{algo}.yml", algo, MULTIWALKER)
+    kwargs = {k: v for k, v in entry.items() if k not in ZOO_KEYS}
     kwargs["policy_kwargs"] = eval(kwargs["policy_kwargs"])
     env = make_vec_env(MULTIWALKER, n_envs=1, env_kwargs=entry.get("env_kwargs"))
     with config.patch({"cpp.cxx": ("no-such-cxx-compiler",)}):
@@ -103,9 +104,57 @@ def test_rollout_worker_entries_train_in_worker_processes_and_evaluate_as_vec_en
         evaluation.eval_env.close()
 
 
+def test_a_model_loaded_to_continue_counts_on_and_its_class_stays_as_it_is(tmp_path: Path) -> None:
+    from argparse import Namespace
+
+    from stable_baselines3.common.callbacks import BaseCallback
+
+    own_learn = MAPPOC.__dict__["learn"]
+
+    class Seen(BaseCallback):
+        """What training starts from: the step count, and whether MAPPOC and the model are as they were."""
+
+        def _on_training_start(self) -> None:
+            self.start = self.model.num_timesteps
+            self.untouched = MAPPOC.__dict__["learn"] is own_learn and "learn" not in vars(self.model)
+
+        def _on_step(self) -> bool:
+            return True
+
+    def manager(trained_agent: str = "") -> zoo.ExperimentManager:
+        return zoo.ExperimentManager(
+            Namespace(),
+            "mappoc",
+            LINEAR,
+            str(tmp_path),
+            n_timesteps=64,
+            eval_freq=-1,
+            log_interval=-1,
+            hyperparams={"n_envs": 1, "n_steps": 64, "batch_size": 64, "n_epochs": 1},
+            trained_agent=trained_agent,
+            verbose=0,
+            config=str(zoo.HYPERPARAMS_DIR / "mappoc.yml"),
+            device="cpu",
+        )
+
+    first = manager()
+    model, _ = first.setup_experiment()
+    first.learn(model)
+    saved = tmp_path / "saved.zip"
+    model.save(saved)
+    more = manager(str(saved))
+    model, _ = more.setup_experiment()
+    seen = Seen()
+    more.callbacks.append(seen)
+    more.learn(model)
+    assert seen.start == 64 and model.num_timesteps == 128  # counting on from the saved model's 64 steps
+    assert seen.untouched
+    assert MAPPOC.__dict__["learn"] is own_learn
+
+
 def test_the_evaluation_runs_its_episodes_side_by_side_unless_told_otherwise() -> None:
     def n_eval_envs(*argv: str) -> list[str]:
-        args = zoo.check_train_arguments(["--env", LINEAR, *argv])
+        args = check_train_arguments(["--env", LINEAR, *argv])
         return [args[i + 1] for i, arg in enumerate(args) if arg == "--n-eval-envs"]
 
     assert n_eval_envs() == ["5"]  # rl-zoo3's 5 evaluation episodes
@@ -115,7 +164,7 @@ def test_the_evaluation_runs_its_episodes_side_by_side_unless_told_otherwise() -
 
 
 def test_multiwalker_entry_has_the_paper_settings() -> None:
-    entry = zoo.check_hyperparams_file(zoo.HYPERPARAMS_DIR / "mappoc.yml", "mappoc", MULTIWALKER)
+    entry = check_hyperparams_file(zoo.HYPERPARAMS_DIR / "mappoc.yml", "mappoc", MULTIWALKER)
     assert entry["n_steps"] * entry["n_envs"] == 2048
     assert entry["n_timesteps"] == 3000 * 2048
     assert (entry["learning_rate"], entry["batch_size"], entry["n_epochs"]) == (3e-5, 32, 10)
@@ -126,7 +175,7 @@ def test_multiwalker_entry_has_the_paper_settings() -> None:
 
 
 def test_linear_entry_trains_control_first_then_the_trigger_within_the_budget() -> None:
-    entry = zoo.check_hyperparams_file(zoo.HYPERPARAMS_DIR / "mappoc.yml", "mappoc", LINEAR)
+    entry = check_hyperparams_file(zoo.HYPERPARAMS_DIR / "mappoc.yml", "mappoc", LINEAR)
     (stages,) = [c for c in get_callback_list(entry) if isinstance(c, ControlFirstCallback)]
     iterations = entry["n_timesteps"] / (entry["n_steps"] * entry["n_envs"])
     assert 0 < stages.switch < iterations
@@ -138,9 +187,9 @@ def test_register_adds_algorithms_and_samplers_and_importing_does_not() -> None:
     script = (
         "from rl_zoo3.hyperparams_opt import HYPERPARAMS_SAMPLER\n"
         "from rl_zoo3.utils import ALGOS\n"
-        "from sb3_detc import MAPPOC, zoo\n"
+        "from sb3_detc import MAPPOC, cli, zoo\n"
         "assert 'mappoc' not in ALGOS and 'mappoc' not in HYPERPARAMS_SAMPLER\n"
-        "assert zoo.algorithm_class('mappoc') is MAPPOC  # the checks know the names without registering\n"
+        "assert cli.algorithm_class('mappoc') is MAPPOC  # the checks know the names without registering\n"
         "zoo.register()\n"
         "assert ALGOS['mappoc'] is MAPPOC and ALGOS['ppo_random_skip'] is MAPPOC\n"
         "assert HYPERPARAMS_SAMPLER['mappoc'] is zoo.sample_mappoc_params\n"
@@ -406,13 +455,13 @@ def test_bad_values_are_found_before_the_run(
 
 def test_linear_schedules_pass_the_checks() -> None:
     overrides = {"learning_rate": "lin_0.001", "clip_range": "lin_0.2"}
-    entry = zoo.check_hyperparams_file(zoo.HYPERPARAMS_DIR / "mappoc.yml", "mappoc", LINEAR, overrides)
+    entry = check_hyperparams_file(zoo.HYPERPARAMS_DIR / "mappoc.yml", "mappoc", LINEAR, overrides)
     assert entry["learning_rate"] == "lin_0.001"  # rl-zoo3 builds the schedule
 
 
 def test_observation_normalization_of_the_local_state_passes_the_checks() -> None:
     for normalize in ("dict(norm_obs_keys=['local'])", "dict(norm_obs=False, norm_reward=True)", False):
-        zoo.check_hyperparams_file(zoo.HYPERPARAMS_DIR / "mappoc.yml", "mappoc", LINEAR, {"normalize": normalize})
+        check_hyperparams_file(zoo.HYPERPARAMS_DIR / "mappoc.yml", "mappoc", LINEAR, {"normalize": normalize})
 
 
 def test_malformed_arguments_and_other_conf_files(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:

@@ -14,8 +14,8 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
+from sb3_detc.cli import run_cli
 from sb3_detc.study.spec import load_study
-from sb3_detc.zoo import run_cli
 
 #: The study files shipped with the package.
 STUDIES_DIR = Path(__file__).resolve().parent.parent / "studies"

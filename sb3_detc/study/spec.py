@@ -39,16 +39,9 @@ from typing import Any
 
 import yaml
 
+from sb3_detc.cli import InputError, check_algorithm, check_env, check_hyperparams_file
 from sb3_detc.renamed import renamed_keys
-from sb3_detc.zoo import (
-    ALGORITHMS,
-    HYPERPARAMS_DIR,
-    InputError,
-    check_algorithm,
-    check_env,
-    check_hyperparams_file,
-    uses_rollout_workers,
-)
+from sb3_detc.zoo import ALGORITHMS, HYPERPARAMS_DIR, uses_rollout_workers
 
 __all__ = [
     "CONF_FOLDER",
