@@ -22,7 +22,7 @@ import multiprocessing
 
 import gymnasium
 
-__version__ = "0.1.0"
+__version__ = "0.2.0"
 
 _ENV_IDS = {
     "sb3_detc/MultiwalkerETC-v0": "sb3_detc.envs.multiwalker_etc_v0:joint_env",

@@ -1,11 +1,15 @@
-"""The package builds without packaging warnings and ships its data files."""
+"""The package builds without packaging warnings, ships its data files and states one version everywhere."""
 
 from __future__ import annotations
 
+import configparser
+import re
 import subprocess
 import sys
 import zipfile
 from pathlib import Path
+
+import sb3_detc
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -37,3 +41,16 @@ def test_the_editable_install_prints_no_packaging_warnings(tmp_path) -> None:
     output = result.stdout + result.stderr
     for warning in ("BuildBackendWarning", "SetuptoolsDeprecationWarning", "Editable installation."):
         assert warning not in output, output
+
+
+def test_the_version_is_the_top_release_of_the_changelog_of_setup_cfg_and_of_the_citation() -> None:
+    releases = re.findall(
+        r"^## Release (\S+) \((unreleased|\d{4}-\d{2}-\d{2})\)$", (ROOT / "CHANGELOG.md").read_text(), re.M
+    )
+    assert releases, "CHANGELOG.md has no '## Release X.Y.Z (date)' heading"
+    assert releases[0][0] == sb3_detc.__version__
+    setup = configparser.ConfigParser()
+    setup.read(ROOT / "setup.cfg")
+    assert setup["metadata"]["version"] in ("attr: sb3_detc.__version__", sb3_detc.__version__)
+    citation = re.search(r"^version: (\S+)$", (ROOT / "CITATION.cff").read_text(), re.M)
+    assert citation is not None and citation.group(1) == sb3_detc.__version__
