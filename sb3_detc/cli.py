@@ -31,7 +31,7 @@ from rl_zoo3.utils import ALGOS, get_class_by_name, get_latest_run_id, get_model
 from stable_baselines3.common.base_class import BaseAlgorithm
 
 from sb3_detc.mappoc import MAPPOC
-from sb3_detc.mappoc.mappoc import check_hyperparameters, check_observation_normalization
+from sb3_detc.mappoc.checks import check_hyperparameters, check_observation_normalization
 from sb3_detc.zoo import ALGORITHMS, HYPERPARAMS_DIR, register
 
 __all__ = [

@@ -31,7 +31,6 @@ from stable_baselines3.common.logger import CSVOutputFormat
 from stable_baselines3.common.vec_env import SubprocVecEnv, VecEnv
 
 from sb3_detc.mappoc import MAPPOC
-from sb3_detc.mappoc.checks import check_hyperparameters, check_observation_normalization
 from sb3_detc.mappoc.critics import CRITICS
 
 __all__ = [
