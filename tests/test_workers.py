@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
 from typing import Any
 
 import numpy as np
@@ -177,3 +180,27 @@ def test_worker_processes_sample_while_the_learner_compiles_its_step() -> None:
     assert in_processes == [False, False] and in_learner == [True, False]
     for key, value in expected.items():
         th.testing.assert_close(trained[key], value, rtol=0, atol=0)
+
+
+def test_a_script_fed_on_standard_input_trains_with_one_warning_and_no_worker_tracebacks() -> None:
+    """Worker processes import the main script from its file; ``python - <<EOF`` has none (``<stdin>``)."""
+    script = (
+        "import warnings\n"
+        "from sb3_detc import MAPPOC\n"
+        "if __name__ == '__main__':\n"
+        "    with warnings.catch_warnings(record=True) as caught:\n"
+        "        warnings.simplefilter('always')\n"
+        "        model = MAPPOC('MlpHybridPolicy', 'sb3_detc/LinearETC-v0', n_envs=2, n_steps=8, batch_size=8,\n"
+        "                       policy_kwargs={'net_arch': [8]}, torch_compile=False)\n"
+        "        model.learn(16)\n"
+        "    print('WARNINGS', [str(w.message) for w in caught if 'standard input' in str(w.message)])\n"
+        "    print('ENV', type(model.get_env()).__name__, model.num_timesteps)\n"
+    )
+    done = subprocess.run(
+        [sys.executable, "-"], input=script, capture_output=True, text=True, timeout=300, env=dict(os.environ)
+    )
+    assert done.returncode == 0, done.stderr
+    assert "Traceback" not in done.stderr
+    warned = next(line for line in done.stdout.splitlines() if line.startswith("WARNINGS"))
+    assert warned.count("standard input") == 1 and "<stdin>" in warned
+    assert "ENV DummyVecEnv 16" in done.stdout
