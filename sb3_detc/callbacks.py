@@ -33,6 +33,7 @@ import torch as th
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.type_aliases import Schedule
 
+from sb3_detc.mappoc.checks import check_rate_target
 from sb3_detc.mappoc.mappoc import PAPER_ITERATION
 from sb3_detc.triggers import PeriodicTrigger, RandomTrigger
 
@@ -568,6 +569,7 @@ class FixedTriggerCallback(BaseCallback):
         self.charge_broadcast_cost = bool(charge_broadcast_cost)
 
     def _on_training_start(self) -> None:
+        check_rate_target(getattr(self.model, "target_savings", None), self.trigger)
         self.model.set_fixed_trigger(self.trigger)
         if not self.charge_broadcast_cost:
             set_broadcast_cost(self.training_env, 0.0)

@@ -31,7 +31,8 @@ from rl_zoo3.utils import ALGOS, get_class_by_name, get_latest_run_id, get_model
 from stable_baselines3.common.base_class import BaseAlgorithm
 
 from sb3_detc.mappoc import MAPPOC
-from sb3_detc.mappoc.checks import check_hyperparameters, check_observation_normalization
+from sb3_detc.mappoc.checks import check_hyperparameters, check_observation_normalization, check_rate_target
+from sb3_detc.mappoc.mappoc import PAPER_ITERATION
 from sb3_detc.zoo import ALGORITHMS, HYPERPARAMS_DIR, register
 
 __all__ = [
@@ -308,10 +309,13 @@ def _check_values(entry: dict[str, Any], algo: str, where: str) -> None:
         defaults = {name: p.default for name, p in inspect.signature(algorithm.__init__).parameters.items()}
         try:
             values = {**defaults, **entry}
+            if values["n_steps"] is None:  # MAPPOC's default: the paper's iteration divided over the envs
+                values["n_steps"] = PAPER_ITERATION
             for key in ("learning_rate", "clip_range"):  # a schedule 'lin_<initial value>': check its start
                 if isinstance(values[key], str):
                     values[key] = float(values[key].split("_")[1])
             check_hyperparameters(**values)
+            check_rate_target(values["target_savings"], values["fixed_trigger"])
             if normalize:  # rl-zoo3 wraps the envs in VecNormalize(**normalize) or VecNormalize()
                 kwargs = normalize if isinstance(normalize, dict) else {}
                 check_observation_normalization(kwargs.get("norm_obs", True), kwargs.get("norm_obs_keys"))

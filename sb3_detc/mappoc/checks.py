@@ -46,6 +46,7 @@ _HYPERPARAMETER_RULES: dict[str, tuple[Callable[[Any], bool], str]] = {
     "action_noise_std": (lambda v: v >= 0, ">= 0"),
     "reward_scale": (lambda v: v > 0, "> 0"),
     "target_kl": (lambda v: v is None or v > 0, "None or > 0"),
+    "broadcast_price_lr": (lambda v: v > 0, "> 0"),
 }
 
 
@@ -103,3 +104,23 @@ def check_vec_normalize(env: GymEnv | None) -> None:
     vec_normalize = unwrap_vec_normalize(env) if isinstance(env, VecEnv) else None
     if vec_normalize is not None:
         check_observation_normalization(vec_normalize.norm_obs, vec_normalize.norm_obs_keys)
+
+
+def check_rate_target(target_savings: float | None, fixed_trigger: Any) -> None:
+    """Check a rate target of the policy over options (``target_savings``).
+
+    :param target_savings: the savings to settle at, or None
+    :param fixed_trigger: the fixed trigger given with it, or None
+    :raises ValueError: for a target outside (0, 1), or one with a fixed trigger
+    """
+    if target_savings is None:
+        return
+    if isinstance(target_savings, bool) or not isinstance(target_savings, numbers.Real) or not 0 < target_savings < 1:
+        raise ValueError(
+            f"target_savings must be a number in (0, 1) (the share of silent steps), got {target_savings!r}."
+        )
+    if fixed_trigger is not None:
+        raise ValueError(
+            "target_savings sets the rate of the policy over options, but a fixed trigger takes the options instead; "
+            "give one of target_savings and fixed_trigger."
+        )

@@ -77,6 +77,11 @@ class Inbox:
         self.held = hold(self.held, current, broadcast)
         self.age = advance_timer(self.age, broadcast)
 
+    @property
+    def own_age(self) -> float:
+        """Steps since this agent's own last broadcast (what the others see as the age of its message)."""
+        return float(self.age[self.agent, 0])
+
     def view(self, own_message: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The others' held messages relative to the own current message, and their ages.
 
@@ -130,8 +135,8 @@ def run_decentralised_step(
             )
     # (a) every agent decides from its own trigger features
     sent = [
-        int(c.decide(parallel_obs[a]["trigger"], parallel_obs[a]["trigger_held"], not samples))
-        for c, a in zip(controllers, agents, strict=True)
+        int(c.decide(parallel_obs[a]["trigger"], parallel_obs[a]["trigger_held"], not samples, inbox.own_age))
+        for c, inbox, a in zip(controllers, inboxes, agents, strict=True)
         for samples in [(c.sample_options or not deterministic) if sample_options is None else sample_options]
     ]
     # (b) the broadcasts go out; every agent files them in its own table

@@ -19,7 +19,7 @@ from stable_baselines3.common.vec_env import VecEnv
 
 from sb3_detc.envs.wrappers import EventTriggeredNetwork, JointEnv
 from sb3_detc.mappoc.buffers import HybridRolloutBuffer, HybridRolloutSamples
-from sb3_detc.mappoc.checks import check_hyperparameters, check_same_agents, check_vec_normalize
+from sb3_detc.mappoc.checks import check_hyperparameters, check_rate_target, check_same_agents, check_vec_normalize
 from sb3_detc.mappoc.critics import CRITICS
 from sb3_detc.mappoc.losses import BROADCAST_ADVANTAGES, STEP_STATS, MAPPOCLoss, UpdateInputs
 from sb3_detc.mappoc.policies import MlpHybridPolicy, check_joint_spaces, drawn_broadcast_probability
@@ -139,6 +139,16 @@ class MAPPOC(OnPolicyAlgorithm):
         per CPU core rounded down to a power of two, at most 8); only for an env id
     :param fixed_trigger: take the options from this trigger instead of ``mu`` (see
         :meth:`set_fixed_trigger`; None: from ``mu``)
+    :param target_savings: communication savings the policy over options is to settle at, in
+        (0, 1) (None: no target, the rate follows from the rewards alone). A price per broadcast,
+        :attr:`broadcast_price` in the learner's reward units, is charged on top of the
+        environment's cost and adapted after every rollout whose options ``mu`` took by dual
+        ascent, ``price += broadcast_price_lr * (broadcast rate - (1 - target_savings))``: it
+        rises while the agents broadcast more than the target allows and falls (below zero, a
+        subsidy, if need be) while they broadcast less. Logged as ``train/broadcast_price``,
+        saved with the model. Not with a fixed trigger, which takes the options instead of ``mu``
+    :param broadcast_price_lr: step size of the price's dual ascent (> 0), in the learner's reward
+        units per unit of broadcast rate and rollout
     :param stats_window_size: window size of the rollout logging (episodes)
     :param tensorboard_log: log location for TensorBoard (None: no logging)
     :param policy_kwargs: additional arguments of the policy on creation
@@ -187,6 +197,8 @@ class MAPPOC(OnPolicyAlgorithm):
         torch_compile: bool | str = "auto",
         n_envs: int | None = None,
         fixed_trigger: FixedTrigger | None = None,
+        target_savings: float | None = None,
+        broadcast_price_lr: float = 0.05,
         stats_window_size: int = 100,
         tensorboard_log: str | None = None,
         policy_kwargs: dict[str, Any] | None = None,
@@ -197,6 +209,7 @@ class MAPPOC(OnPolicyAlgorithm):
     ) -> None:
         if torch_compile not in (True, False, "auto"):
             raise ValueError(f"torch_compile must be True, False or 'auto', got {torch_compile!r}.")
+        check_rate_target(target_savings, fixed_trigger)
         if broadcast_advantage not in BROADCAST_ADVANTAGES:
             raise ValueError(f"broadcast_advantage must be 'greedy' or 'return', got {broadcast_advantage!r}.")
         if n_envs is not None:
@@ -228,6 +241,7 @@ class MAPPOC(OnPolicyAlgorithm):
             reward_scale=reward_scale,
             target_kl=target_kl,
             normalize_advantage=normalize_advantage,
+            broadcast_price_lr=broadcast_price_lr,
         )
         if isinstance(env, str):  # after the checks: no worker processes for a model that cannot be built
             env = make_rollout_workers(env, n_envs, seed)  # type: ignore[arg-type]
@@ -277,6 +291,10 @@ class MAPPOC(OnPolicyAlgorithm):
         self.train_control_policy = train_control_policy
         self.train_broadcast_policy = train_broadcast_policy
         self.torch_compile = torch_compile
+        self.target_savings = None if target_savings is None else float(target_savings)
+        self.broadcast_price_lr = float(broadcast_price_lr)
+        #: the price per broadcast of the rate target, in the learner's reward units (0 without a target)
+        self.broadcast_price = 0.0
         self.fixed_trigger: FixedTrigger | None = fixed_trigger  # checked by set_fixed_trigger in _setup_model
         #: the fixed trigger that took the options of the rollout in the buffer (None: ``mu``)
         self._rollout_trigger: FixedTrigger | None = fixed_trigger
@@ -508,8 +526,8 @@ class MAPPOC(OnPolicyAlgorithm):
             new_obs = (
                 rollout.last_obs if step == n_steps - 1 else {k: v[step + 1] for k, v in rollout.observations.items()}
             )
-            prices.append(self.reward_transform.price(broadcast_cost))
-            rewards = self.reward_transform(env_rewards[step], dones)
+            prices.append(self.reward_transform.price(broadcast_cost) + self.broadcast_price)
+            rewards = self.reward_transform(env_rewards[step], dones) - self.broadcast_price * rollout.broadcast[step]
             self.num_timesteps += n_envs
             callback.update_locals(locals())
             if not callback.on_step():
@@ -517,7 +535,7 @@ class MAPPOC(OnPolicyAlgorithm):
             self._update_info_buffer(infos, dones)
             truncated += [(step, idx, terminal_obs) for idx, terminal_obs in _truncated(infos, dones)]
             all_rewards.append(rewards)
-        last_price = self.reward_transform.price(broadcast_cost)
+        last_price = self.reward_transform.price(broadcast_cost) + self.broadcast_price
         return StepsTaken(np.stack(all_rewards), np.stack(prices), last_price, truncated, episode_starts)
 
     def _store_rollout(self, rollout: Rollout, taken: StepsTaken, buffer: HybridRolloutBuffer) -> None:
@@ -622,7 +640,12 @@ class MAPPOC(OnPolicyAlgorithm):
         self.logger.record("train/broadcast_ent_coef", zeta)
         self.logger.record("train/action_noise_std", self.action_noise_std)
         self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
-        self.logger.record("rollout/broadcast_rate", float(buffer.broadcast.mean()))
+        rate = float(buffer.broadcast.mean())
+        self.logger.record("rollout/broadcast_rate", rate)
+        if self.target_savings is not None:
+            if self._rollout_trigger is None:  # a rollout of mu's own options
+                self.broadcast_price += self.broadcast_price_lr * (rate - (1.0 - self.target_savings))
+            self.logger.record("train/broadcast_price", self.broadcast_price)
 
     def update_inputs(self, rollout: HybridRolloutSamples) -> UpdateInputs:
         """What every gradient step of an update needs of the rollout and of the update's settings now.

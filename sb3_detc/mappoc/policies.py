@@ -129,6 +129,10 @@ class MlpHybridPolicy(BasePolicy):
         (default: every agent has its own networks, as in the paper)
     :param age_scale: factor applied to ages of information (in steps) before they enter a network
         (>= 0; 0: no network sees the ages)
+    :param option_age_scale: factor applied to the age of the agent's own last broadcast (in steps)
+        before it enters its policy over options as an extra input (>= 0; 0, the default: no such
+        input, as in the paper). With it, ``mu`` can represent every periodic schedule in phase
+        and every send-on-delta rule with a maximum age, not only send-on-delta
     :param broadcast_prob_init: probability of broadcasting of the untrained policies over
         options (through the bias of their output layer; 0.5: undecided). A low value lets
         training start where every broadcast carries information that would otherwise stay
@@ -169,6 +173,7 @@ class MlpHybridPolicy(BasePolicy):
         learn_log_std: bool = False,
         share_parameters: bool = False,
         age_scale: float = 0.1,
+        option_age_scale: float = 0.0,
         broadcast_prob_init: float = 0.5,
         critic: str = "option_heads",
         ortho_init: bool = True,
@@ -185,6 +190,10 @@ class MlpHybridPolicy(BasePolicy):
             raise ValueError(f"broadcast_prob_init must be in (0, 1), got {broadcast_prob_init}.")
         if not (np.isfinite(age_scale) and age_scale >= 0):
             raise ValueError(f"age_scale must be a finite number >= 0 (0: the networks ignore ages), got {age_scale}.")
+        if not (np.isfinite(option_age_scale) and option_age_scale >= 0):
+            raise ValueError(
+                f"option_age_scale must be a finite number >= 0 (0: mu ignores its own age), got {option_age_scale}."
+            )
         if critic not in CRITICS:
             raise ValueError(f"critic must be one of {tuple(CRITICS)}, got {critic!r}.")
         if optimizer_kwargs is None:
@@ -209,6 +218,7 @@ class MlpHybridPolicy(BasePolicy):
         self.learn_log_std = learn_log_std
         self.share_parameters = share_parameters
         self.age_scale = age_scale
+        self.option_age_scale = float(option_age_scale)
         self.broadcast_prob_init = broadcast_prob_init
         self.critic = critic
         self.option_critic: OptionCritic = CRITICS[critic]()
@@ -225,7 +235,7 @@ class MlpHybridPolicy(BasePolicy):
         self.register_buffer("control_low", th.as_tensor(action_space["control"].low), persistent=False)
         self.register_buffer("control_high", th.as_tensor(action_space["control"].high), persistent=False)
         in_features = {
-            "mu": 2 * n_trig,
+            "mu": 2 * n_trig + (self.option_age_scale > 0),
             "q": n_local + n * (n_msg + 1) + (n - 1) * n_msg,
             "pi": n_local + (n - 1) * (n_msg + 1),
         }
@@ -294,6 +304,7 @@ class MlpHybridPolicy(BasePolicy):
             learn_log_std=self.learn_log_std,
             share_parameters=self.share_parameters,
             age_scale=self.age_scale,
+            option_age_scale=self.option_age_scale,
             broadcast_prob_init=self.broadcast_prob_init,
             critic=self.critic,
             ortho_init=self.ortho_init,
@@ -324,11 +335,14 @@ class MlpHybridPolicy(BasePolicy):
         return hold(obs["held"], obs["message"], broadcast), advance_timer(obs["age"], broadcast)
 
     def option_features(self, obs: PyTorchObs) -> th.Tensor:
-        """Inputs of ``mu_i``: trigger features now and at the own last broadcast, (B, N, 2 n_trig).
+        """Inputs of ``mu_i``: trigger features now and at the own last broadcast, and the own age if it reads it.
 
-        :param obs: joint observation (B, N, ...); reads ``trigger`` and ``trigger_held``
-        :return: (B, N, 2 n_trig)
+        :param obs: joint observation (B, N, ...); reads ``trigger`` and ``trigger_held`` (and ``age``
+            with ``option_age_scale``)
+        :return: (B, N, 2 n_trig), or (B, N, 2 n_trig + 1) with the own age times ``option_age_scale`` last
         """
+        if self.option_age_scale > 0:
+            return th.cat([obs["trigger"], obs["trigger_held"], obs["age"] * self.option_age_scale], dim=-1)
         return th.cat([obs["trigger"], obs["trigger_held"]], dim=-1)
 
     def control_features(self, obs: PyTorchObs, broadcast: th.Tensor) -> th.Tensor:
@@ -701,6 +715,7 @@ class MlpHybridPolicy(BasePolicy):
             agent=agent,
             n_agents=self.n_agents,
             age_scale=self.age_scale,
+            option_age_scale=self.option_age_scale,
             agent_id=self.agent_id[agent].clone() if self.share_parameters else None,
             control_low=self.control_low[agent].clone(),
             control_high=self.control_high[agent].clone(),
@@ -716,12 +731,14 @@ class AgentController(nn.Module):
     :meth:`act` on the own local state and the others' held broadcasts relative to the own
     message, with their ages. The controller keeps no state.
 
-    :param option_net: the agent's ``mu`` network (trigger features -> 2 logits)
+    :param option_net: the agent's ``mu`` network (trigger features, and the own age with
+        ``option_age_scale`` -> 2 logits)
     :param control_net: the agent's ``pi`` mean network
     :param log_std: log standard deviation of the control policy (m,)
     :param agent: index of the agent
     :param n_agents: number of agents N
     :param age_scale: factor applied to ages before they enter the network
+    :param option_age_scale: factor applied to the own age before it enters ``mu`` (0: ``mu`` does not read it)
     :param agent_id: one-hot id input for shared-parameter policies, else None
     :param control_low: lower control bounds (m,)
     :param control_high: upper control bounds (m,)
@@ -742,9 +759,11 @@ class AgentController(nn.Module):
         control_low: th.Tensor,
         control_high: th.Tensor,
         sample_options: bool = False,
+        option_age_scale: float = 0.0,
     ) -> None:
         super().__init__()
         self.sample_options = sample_options
+        self.option_age_scale = option_age_scale
         self.option_net = option_net
         self.control_net = control_net
         self.agent = agent
@@ -764,15 +783,22 @@ class AgentController(nn.Module):
         return th.cat([x, self.agent_id.to(x.dtype)])
 
     @th.no_grad()
-    def decide(self, trigger: np.ndarray, trigger_held: np.ndarray, deterministic: bool = True) -> bool:
+    def decide(
+        self, trigger: np.ndarray, trigger_held: np.ndarray, deterministic: bool = True, own_age: float = 0.0
+    ) -> bool:
         """Whether to broadcast now.
 
         :param trigger: own trigger features now (n_trig,)
         :param trigger_held: own trigger features at the own last broadcast (n_trig,)
         :param deterministic: the most likely option instead of a sample
+        :param own_age: steps since the own last broadcast, before this step's decision (read with
+            ``option_age_scale``)
         :return: True to broadcast, False to stay silent
         """
-        x = th.as_tensor(np.concatenate([trigger, trigger_held]), dtype=th.float32)
+        features = [trigger, trigger_held]
+        if self.option_age_scale > 0:
+            features.append([own_age * self.option_age_scale])
+        x = th.as_tensor(np.concatenate(features), dtype=th.float32)
         logits = self.option_net(self._with_id(x))
         if deterministic:
             return bool(logits.argmax() == 1)
