@@ -14,7 +14,15 @@ from typing import Any
 
 from gymnasium import spaces
 
-__all__ = ["NEGATED", "REMOVED", "RENAMED", "renamed_action_space", "renamed_column", "renamed_keys"]
+__all__ = [
+    "NEGATED",
+    "REMOVED",
+    "RENAMED",
+    "renamed_action_space",
+    "renamed_column",
+    "renamed_keys",
+    "renamed_saved_data",
+]
 
 #: Old name -> new name (saved attributes, hyperparameters, environment arguments).
 RENAMED: dict[str, str] = {
@@ -63,6 +71,28 @@ def renamed_keys(mapping: dict[str, Any]) -> dict[str, Any]:
         elif old in NEGATED:
             renamed.setdefault(NEGATED[old], not value)
     return renamed
+
+
+def renamed_saved_data(
+    data: dict[str, Any], custom_objects: dict[str, Any] | None, kwargs: dict[str, Any]
+) -> tuple[dict[str, Any] | None, dict[str, Any]]:
+    """What SB3's ``load`` of a model saved under earlier names needs to restore it under the current ones.
+
+    Attributes saved under earlier names become the current ones unless given (as custom objects or
+    keyword arguments, also under earlier names); the model drops the old names when it is set up.
+
+    :param data: the saved model's data (``load_from_zip_file``)
+    :param custom_objects: the custom objects given to ``load``
+    :param kwargs: the attributes given to ``load``
+    :return: the custom objects (with the action space under its current key) and the attributes to set
+    """
+    if "action_space" in data:
+        action_space = renamed_action_space(data["action_space"])
+        if action_space is not data["action_space"]:
+            custom_objects = {"action_space": action_space, **(custom_objects or {})}
+    saved = {RENAMED[key]: value for key, value in data.items() if key in RENAMED}
+    given = {key: value for key, value in (custom_objects or {}).items() if key in saved}
+    return custom_objects, {**saved, **given, **renamed_keys(kwargs)}
 
 
 def renamed_column(name: str) -> str:

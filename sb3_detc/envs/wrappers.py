@@ -391,3 +391,12 @@ class JointEnv(gym.Env):
     def close(self) -> None:
         """Close the physical system."""
         self.network.system.close()
+
+
+def as_joint_env(env: Any) -> Any:
+    """Adapt a PettingZoo event-triggered env to the joint Gymnasium view.
+
+    :param env: an env id, a Gymnasium or vector env, a PettingZoo :class:`EventTriggeredNetwork`, or None
+    :return: a :class:`JointEnv` of an :class:`EventTriggeredNetwork`, anything else as given
+    """
+    return JointEnv(env) if isinstance(env, EventTriggeredNetwork) else env

@@ -10,6 +10,8 @@ from gymnasium import spaces
 from stable_baselines3.common.type_aliases import GymEnv
 from stable_baselines3.common.vec_env import VecEnv, unwrap_vec_normalize
 
+from sb3_detc.mappoc.critics import CRITICS
+
 #: Observation keys that the policy turns into the network's state with the broadcast rule (the
 #: message copied into ``held``, ``age`` reset to 0) or that feed the policy over options: a
 #: ``VecNormalize`` must pass them on as the environment returns them.
@@ -123,4 +125,39 @@ def check_rate_target(target_savings: float | None, fixed_trigger: Any) -> None:
         raise ValueError(
             "target_savings sets the rate of the policy over options, but a fixed trigger takes the options instead; "
             "give one of target_savings and fixed_trigger."
+        )
+
+
+def check_n_envs(env: Any, n_envs: int | None) -> None:
+    """Check MAPPOC's ``n_envs``: the number of envs it builds from an env id.
+
+    :param env: the env given to MAPPOC
+    :param n_envs: the number of envs, or None
+    :raises ValueError: for ``n_envs`` with an env that is not an id, or one that is not a positive integer
+    """
+    if n_envs is None:
+        return
+    if not isinstance(env, str):
+        raise ValueError("n_envs is the number of envs MAPPOC builds from an env id; pass an env id, not an env.")
+    if isinstance(n_envs, bool) or not isinstance(n_envs, int) or n_envs < 1:
+        raise ValueError(f"n_envs must be a positive integer, got {n_envs!r}.")
+
+
+def check_fixed_trigger(trigger: Any, critic: str) -> None:
+    """Check a fixed trigger for MAPPOC's ``set_fixed_trigger``.
+
+    :param trigger: the trigger, or None
+    :param critic: the name of the policy's critic (a key of :data:`~sb3_detc.mappoc.critics.CRITICS`)
+    :raises ValueError: for a trigger that is not callable, or with a critic that needs the probabilities
+        with which ``mu`` drew the options
+    """
+    if trigger is None:
+        return
+    if not callable(trigger):
+        raise ValueError(f"a fixed trigger must be callable (joint observations -> options), got {trigger!r}.")
+    if CRITICS[critic].needs_draw_probabilities:
+        usable = " or ".join(repr(name) for name, kind in CRITICS.items() if not kind.needs_draw_probabilities)
+        raise ValueError(
+            f"critic={critic!r} needs the probabilities with which the options were drawn, which a fixed trigger "
+            f"does not give; use critic={usable} with a fixed trigger."
         )

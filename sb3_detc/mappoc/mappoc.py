@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pathlib
 from collections.abc import Hashable
-from typing import Any, ClassVar, NamedTuple, TypeVar
+from typing import Any, ClassVar, TypeVar
 
 import numpy as np
 import torch as th
@@ -17,48 +17,28 @@ from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedul
 from stable_baselines3.common.utils import FloatSchedule, explained_variance, obs_as_tensor
 from stable_baselines3.common.vec_env import VecEnv
 
-from sb3_detc.envs.wrappers import EventTriggeredNetwork, JointEnv
+from sb3_detc.envs.wrappers import EventTriggeredNetwork, as_joint_env
 from sb3_detc.mappoc.buffers import HybridRolloutBuffer, HybridRolloutSamples
-from sb3_detc.mappoc.checks import check_hyperparameters, check_rate_target, check_same_agents, check_vec_normalize
-from sb3_detc.mappoc.critics import CRITICS
+from sb3_detc.mappoc.checks import (
+    check_fixed_trigger,
+    check_hyperparameters,
+    check_n_envs,
+    check_rate_target,
+    check_same_agents,
+    check_vec_normalize,
+)
 from sb3_detc.mappoc.losses import BROADCAST_ADVANTAGES, STEP_STATS, MAPPOCLoss, UpdateInputs
 from sb3_detc.mappoc.policies import MlpHybridPolicy, check_joint_spaces, drawn_broadcast_probability
-from sb3_detc.mappoc.rewards import RewardTransform, agent_rewards
-from sb3_detc.mappoc.sampling import FixedTrigger, Rollout, RolloutSampler, check_finite
+from sb3_detc.mappoc.rewards import RewardTransform, agent_rewards, broadcast_costs
+from sb3_detc.mappoc.sampling import FixedTrigger, Rollout, RolloutSampler, StepsTaken, truncated_episodes
 from sb3_detc.mappoc.steps import FusedGradientStep, GradientStep, compiles, make_gradient_step
 from sb3_detc.mappoc.workers import default_n_envs, make_rollout_workers
-from sb3_detc.renamed import REMOVED, RENAMED, renamed_action_space, renamed_keys
+from sb3_detc.renamed import REMOVED, RENAMED, renamed_action_space, renamed_keys, renamed_saved_data
 
 SelfMAPPOC = TypeVar("SelfMAPPOC", bound="MAPPOC")
 
 #: Environment steps per iteration of the paper (all envs together), MAPPOC's default.
 PAPER_ITERATION = 2048
-
-
-class StepsTaken(NamedTuple):
-    """What the learner took of a rollout's steps, in order (T steps, n_envs envs, N agents).
-
-    :param rewards: the learner's rewards (T, n_envs, N); the bootstraps of truncated episodes are added later
-    :param price: the price of a broadcast in the learner's reward units at every step (T, n_envs, N)
-    :param last_price: the price after the last step (n_envs, N)
-    :param truncated: every episode a time limit cut, as ``(step, env index, terminal observation)``
-    :param episode_starts: whether every step's observation starts an episode (T, n_envs)
-    """
-
-    rewards: np.ndarray
-    price: np.ndarray
-    last_price: np.ndarray
-    truncated: list[tuple[int, int, dict[str, np.ndarray]]]
-    episode_starts: np.ndarray
-
-
-def _as_joint_env(env: GymEnv | str | EventTriggeredNetwork | None) -> GymEnv | str | None:
-    """Adapt a PettingZoo event-triggered env to the joint Gymnasium view.
-
-    :param env: an env id, a Gymnasium or vector env, a PettingZoo :class:`EventTriggeredNetwork`, or None
-    :return: a :class:`JointEnv` of an :class:`EventTriggeredNetwork`, anything else as given
-    """
-    return JointEnv(env) if isinstance(env, EventTriggeredNetwork) else env
 
 
 class MAPPOC(OnPolicyAlgorithm):
@@ -71,16 +51,11 @@ class MAPPOC(OnPolicyAlgorithm):
     options on the greedy advantage ``Q(o) - max_o' Q(o')`` (Sec. 3 of the method reference).
 
     :param policy: the policy model (``"MlpHybridPolicy"`` or a subclass of :class:`MlpHybridPolicy`)
-    :param env: the joint env: a registered id such as ``"sb3_detc/MultiwalkerETC-v0"``,
-        from which MAPPOC builds the fast setting (``n_envs`` rollout workers, each in its own
-        process, :func:`make_rollout_workers`); a VecEnv or Gymnasium env, used as given (wrap
-        the envs in :class:`~sb3_detc.mappoc.workers.RolloutWorker` for the fast rollouts); or a
-        PettingZoo :class:`EventTriggeredNetwork`, adapted to the joint view. A ``VecNormalize``
-        in its wrappers may normalise the ``local`` observations (``norm_obs_keys=["local"]``), not
-        the keys of :data:`~sb3_detc.mappoc.checks.NETWORK_KEYS` (see
-        :func:`~sb3_detc.mappoc.checks.check_observation_normalization`); its reward normalisation
-        leaves the per-agent rewards MAPPOC learns from (``info["agent_rewards"]``) as they are,
-        ``normalize_reward`` normalises those
+    :param env: the joint env: a registered id (MAPPOC builds ``n_envs`` rollout workers,
+        :func:`~sb3_detc.mappoc.workers.make_rollout_workers`), a VecEnv or Gymnasium env (used as
+        given), or a PettingZoo :class:`EventTriggeredNetwork` (adapted to the joint view). A
+        ``VecNormalize`` may normalise the ``local`` observations only
+        (:func:`~sb3_detc.mappoc.checks.check_observation_normalization`)
     :param learning_rate: learning rate, constant or a schedule of the remaining progress (paper: 3e-5)
     :param n_steps: steps per environment per rollout (None: the paper's 2048 steps per
         iteration, divided over the environments)
@@ -98,24 +73,17 @@ class MAPPOC(OnPolicyAlgorithm):
         (the curriculum changes it during training); log-probabilities refer to the noisy controls
     :param broadcast_advantage: advantage of the taken option in ``mu``'s loss: ``"greedy"``
         (the paper: ``Q(o) - max_o' Q(o')`` with the current critic) or ``"return"`` (the
-        lambda-return minus ``V(s) = sum_o mu(o) Q(s, o)`` at collection time, standardised
-        per agent like the control advantages if ``normalize_advantage``: a sampled advantage
-        that does not rely on the critic telling the two options apart)
+        lambda-return minus ``V(s) = sum_o mu(o) Q(s, o)`` at collection time)
     :param broadcast_advantage_offset: constant added to the greedy broadcast advantage (the
         paper's code used a 0.1 "deliberation" offset; the paper and the default use 0)
     :param normalize_broadcast_advantage: divide every agent's greedy broadcast advantages by the
-        root mean square of its critic's broadcast gap ``Q(1) - Q(0)`` over the minibatch, so
-        that ``mu`` moves towards the better option at a rate set by the learning rate and
-        the clip range, not by the (often tiny) scale of the value of a single broadcast,
-        just as the control advantages are standardised (the paper: raw advantages)
+        root mean square of its critic's broadcast gap ``Q(1) - Q(0)`` over the minibatch (the
+        paper: raw advantages)
     :param reward_scale: factor applied to rewards for learning only (paper: 0.1)
     :param normalize_reward: divide every agent's (scaled) reward by a running standard
-        deviation of its discounted return, clipped to [-10, 10], as SB3's ``VecNormalize``
-        does for single-agent rewards (which it cannot do here: per-agent rewards travel in
-        ``info``); useful where returns span orders of magnitude during training
+        deviation of its discounted return, clipped to [-10, 10], as ``VecNormalize`` does
     :param team_reward: train every agent on the team's mean reward instead of its own (the
-        paper: own rewards). A broadcast mostly helps the *others* act, so with own rewards the
-        sender sees only part of its value
+        paper: own rewards)
     :param normalize_advantage: standardise the control advantages per agent and minibatch (and
         the broadcast advantages with ``broadcast_advantage="return"``)
     :param target_kl: stop the epochs of an update early when the control policy's
@@ -126,27 +94,21 @@ class MAPPOC(OnPolicyAlgorithm):
         switch it off to learn only when to communicate for a trained controller
     :param train_broadcast_policy: whether ``mu`` is trained (baselines with fixed
         communication switch it off)
-    :param torch_compile: compile the rollout's sampling and every gradient step with
-        ``torch.compile`` (needs a C++ compiler); with the default Adam optimizer and no
-        ``target_kl``, a gradient step (loss, gradients, clipping, Adam update) is one
-        compiled graph (:mod:`sb3_detc.mappoc.steps`). On a CPU about twice the gradient
-        steps per second and faster rollouts (``benchmarks/results/train_throughput.log``), for a one-off
-        compilation of tens of seconds with a warm compile cache, about a minute with a cold one (and a
-        few seconds whenever a new variant appears, e.g. a first fixed trigger), so worth it for
-        long runs. ``"auto"``: compile when a C++ compiler is found, the device is the CPU and
-        ``learn`` runs at least :data:`~sb3_detc.mappoc.steps.COMPILE_FROM_TIMESTEPS` steps
-    :param n_envs: number of envs built from an env id (None: :func:`default_n_envs`, one
-        per CPU core rounded down to a power of two, at most 8); only for an env id
+    :param torch_compile: compile the sampling and every gradient step with ``torch.compile``
+        (needs a C++ compiler; :mod:`sb3_detc.mappoc.steps`): on a CPU about twice the gradient
+        steps per second, for a one-off compilation of tens of seconds. ``"auto"``: compile on
+        the CPU with a C++ compiler for a ``learn`` of at least
+        :data:`~sb3_detc.mappoc.steps.COMPILE_FROM_TIMESTEPS` steps
+    :param n_envs: number of envs built from an env id (None: one per CPU core,
+        :func:`~sb3_detc.mappoc.workers.default_n_envs`); only for an env id
     :param fixed_trigger: take the options from this trigger instead of ``mu`` (see
         :meth:`set_fixed_trigger`; None: from ``mu``)
     :param target_savings: communication savings the policy over options is to settle at, in
-        (0, 1) (None: no target, the rate follows from the rewards alone). A price per broadcast,
-        :attr:`broadcast_price` in the learner's reward units, is charged on top of the
-        environment's cost and adapted after every rollout whose options ``mu`` took by dual
-        ascent, ``price += broadcast_price_lr * (broadcast rate - (1 - target_savings))``: it
-        rises while the agents broadcast more than the target allows and falls (below zero, a
-        subsidy, if need be) while they broadcast less. Logged as ``train/broadcast_price``,
-        saved with the model. Not with a fixed trigger, which takes the options instead of ``mu``
+        (0, 1) (None: no target). A price per broadcast, :attr:`broadcast_price` in the learner's
+        reward units, is charged on top of the environment's cost and adapted by dual ascent after
+        every rollout whose options ``mu`` took: ``price += broadcast_price_lr * (broadcast rate -
+        (1 - target_savings))``, below zero (a subsidy) if need be. Logged as
+        ``train/broadcast_price``, saved with the model. Not with a fixed trigger
     :param broadcast_price_lr: step size of the price's dual ascent (> 0), in the learner's reward
         units per unit of broadcast rate and rollout
     :param stats_window_size: window size of the rollout logging (episodes)
@@ -212,14 +174,8 @@ class MAPPOC(OnPolicyAlgorithm):
         check_rate_target(target_savings, fixed_trigger)
         if broadcast_advantage not in BROADCAST_ADVANTAGES:
             raise ValueError(f"broadcast_advantage must be 'greedy' or 'return', got {broadcast_advantage!r}.")
-        if n_envs is not None:
-            if not isinstance(env, str):
-                raise ValueError(
-                    "n_envs is the number of envs MAPPOC builds from an env id; pass an env id, not an env."
-                )
-            if isinstance(n_envs, bool) or not isinstance(n_envs, int) or n_envs < 1:
-                raise ValueError(f"n_envs must be a positive integer, got {n_envs!r}.")
-        env = _as_joint_env(env)
+        check_n_envs(env, n_envs)
+        env = as_joint_env(env)
         if isinstance(env, str):
             n_envs = n_envs or default_n_envs()
         if n_steps is None:
@@ -320,10 +276,8 @@ class MAPPOC(OnPolicyAlgorithm):
             gae_lambda=self.gae_lambda,
             n_envs=self.n_envs,
         )
-        # The settings are the model's (load(..., normalize_reward=True) changes them); a loaded model brings the
-        # statistics: in its saved transform, or as reward_rms if it was saved before RewardTransform existed.
-        saved = self.__dict__.pop("reward_transform", None)
-        saved_rms = self.__dict__.pop("reward_rms", None)
+        # The settings are the model's; a loaded model brings the statistics (as reward_rms before RewardTransform).
+        saved, saved_rms = self.__dict__.pop("reward_transform", None), self.__dict__.pop("reward_rms", None)
         for old in (*RENAMED, *REMOVED):  # a model saved under earlier names (MAPPOC.load took the values)
             self.__dict__.pop(old, None)
         self.reward_transform = RewardTransform(
@@ -402,14 +356,7 @@ class MAPPOC(OnPolicyAlgorithm):
         :raises ValueError: for a trigger that is not callable, or with a critic that needs the
             probabilities with which ``mu`` drew the options
         """
-        if trigger is not None and not callable(trigger):
-            raise ValueError(f"a fixed trigger must be callable (joint observations -> options), got {trigger!r}.")
-        if trigger is not None and self.policy.option_critic.needs_draw_probabilities:
-            usable = " or ".join(repr(name) for name, critic in CRITICS.items() if not critic.needs_draw_probabilities)
-            raise ValueError(
-                f"critic={self.policy.critic!r} needs the probabilities with which the options were drawn, which a "
-                f"fixed trigger does not give; use critic={usable} with a fixed trigger."
-            )
+        check_fixed_trigger(trigger, self.policy.critic)
         self.fixed_trigger = trigger
 
     def set_trained_policies(self, control_policy: bool, broadcast_policy: bool) -> None:
@@ -456,10 +403,7 @@ class MAPPOC(OnPolicyAlgorithm):
             another size than the earlier ones)
         """
         self.normalize_reward = bool(normalize)
-        self.reward_transform.normalize = self.normalize_reward
-        if fresh_statistics:
-            self.reward_transform.return_rms = None
-            self.reward_transform.discounted_returns = None
+        self.reward_transform.switch(self.normalize_reward, fresh_statistics)
 
     # ------------------------------------------------------------------ rollouts
     def collect_rollouts(
@@ -471,13 +415,10 @@ class MAPPOC(OnPolicyAlgorithm):
     ) -> bool:
         """Collect ``n_rollout_steps`` steps per environment with the current policies.
 
-        Per step: all options are sampled from ``mu`` (or taken from the fixed trigger), the
-        broadcasts are delivered, then all controls are sampled from ``pi`` on the updated
-        views (same-step delivery), with :attr:`action_noise_std` extra noise; the env receives
-        the controls clipped to their bounds. The steps are sampled first, inside rollout
-        workers where the env has them, else here (:mod:`sb3_detc.mappoc.sampling`); then the
-        learner goes through them in order (:meth:`_take_steps`) and stores them with their
-        log-probabilities, values and advantages (:meth:`_store_rollout`).
+        The steps are sampled first (:mod:`sb3_detc.mappoc.sampling`: options from ``mu`` or the
+        fixed trigger, the broadcasts delivered, then the controls, with :attr:`action_noise_std`
+        extra noise), inside rollout workers where the env has them; then the learner goes through
+        them in order (:meth:`_take_steps`) and stores them with their values (:meth:`_store_rollout`).
 
         :param env: the training environment
         :param callback: callback called at each step (and at the beginning and end of the rollout)
@@ -505,10 +446,8 @@ class MAPPOC(OnPolicyAlgorithm):
     def _take_steps(self, rollout: Rollout, env: VecEnv, callback: BaseCallback) -> StepsTaken | None:
         """Go through sampled steps in order, as SB3's rollout loop does after every step.
 
-        Per step: the learner's rewards (:class:`~sb3_detc.mappoc.rewards.RewardTransform`) and
-        the price of a broadcast in the same units, ``num_timesteps``, the callbacks, the episode
-        statistics and the truncated episodes. The envs are at the rollout's end whether or not a
-        callback stops on the way.
+        Per step: the learner's rewards and the price of a broadcast in the same units (with the rate
+        target's price), ``num_timesteps``, the callbacks, the episode statistics and the truncations.
 
         :param rollout: the sampled steps
         :param env: the training environment
@@ -518,7 +457,7 @@ class MAPPOC(OnPolicyAlgorithm):
         n_steps, n_envs = rollout.dones.shape
         episode_starts = np.concatenate([np.asarray(self._last_episode_starts)[None], rollout.dones[:-1]])
         self._last_obs, self._last_episode_starts = rollout.last_obs, rollout.dones[-1]  # type: ignore[assignment]
-        broadcast_cost = self._broadcast_costs(env)
+        broadcast_cost = broadcast_costs(env, self.policy.option_critic.needs_price, self.policy.critic)
         prices, all_rewards, truncated = [], [], []
         env_rewards = agent_rewards([info for infos in rollout.infos for info in infos]).reshape(n_steps, n_envs, -1)
         for step in range(n_steps):
@@ -533,7 +472,7 @@ class MAPPOC(OnPolicyAlgorithm):
             if not callback.on_step():
                 return None
             self._update_info_buffer(infos, dones)
-            truncated += [(step, idx, terminal_obs) for idx, terminal_obs in _truncated(infos, dones)]
+            truncated += [(step, idx, terminal_obs) for idx, terminal_obs in truncated_episodes(infos, dones)]
             all_rewards.append(rewards)
         last_price = self.reward_transform.price(broadcast_cost) + self.broadcast_price
         return StepsTaken(np.stack(all_rewards), np.stack(prices), last_price, truncated, episode_starts)
@@ -541,10 +480,8 @@ class MAPPOC(OnPolicyAlgorithm):
     def _store_rollout(self, rollout: Rollout, taken: StepsTaken, buffer: HybridRolloutBuffer) -> None:
         """Evaluate the rollout with the current policy in one batch and store it with its advantages.
 
-        Log-probabilities and option values of every step; the bootstrap of truncated episodes and
-        of the rollout's end with ``V(s_T) = sum_o p(o) Q(s_T, o)`` (as SB3 does for PPO) under the
-        options' probabilities ``p`` of what took them: ``mu``, or a fixed trigger that tells its
-        ``broadcast_probability``; then GAE.
+        The bootstraps of truncations and of the rollout's end are ``V(s) = sum_o p(o) Q(s, o)`` under
+        the options' probabilities of what took them: ``mu``, or a fixed trigger's ``broadcast_probability``.
 
         :param rollout: the sampled steps
         :param taken: what the learner took of them (:meth:`_take_steps`)
@@ -552,12 +489,9 @@ class MAPPOC(OnPolicyAlgorithm):
         """
         n_steps, n_envs = rollout.dones.shape
         rewards, price, truncated = taken.rewards, taken.price, taken.truncated
-        flat = n_steps * n_envs
         steps = (
-            obs_as_tensor({k: v.reshape(flat, *v.shape[2:]) for k, v in rollout.observations.items()}, self.device),
-            th.as_tensor(rollout.broadcast.reshape(flat, -1), device=self.device),
-            th.as_tensor(rollout.control.reshape(flat, *rollout.control.shape[2:]), device=self.device),
-            th.as_tensor(price.reshape(flat, -1), device=self.device),
+            *rollout.flat_tensors(self.device),
+            th.as_tensor(price.reshape(n_steps * n_envs, -1), device=self.device),
         )
         probability = getattr(self._rollout_trigger, "broadcast_probability", None)
 
@@ -678,23 +612,6 @@ class MAPPOC(OnPolicyAlgorithm):
         # the first minibatch's shape; not drawn at random: the update's minibatches stay as they were
         self.gradient_step.warm_up(update, th.arange(min(self.batch_size, samples), device=self.device))
 
-    def _broadcast_costs(self, env: VecEnv) -> np.ndarray:
-        """The communication cost ``xi`` of every environment, (n_envs,); zeros unless the critic needs it.
-
-        :param env: the training env
-        :return: the cost of a broadcast in every env, float32 (n_envs,)
-        :raises ValueError: if the critic needs the cost and the envs have no ``broadcast_cost``
-        """
-        if not self.policy.option_critic.needs_price:
-            return np.zeros(env.num_envs, dtype=np.float32)  # such critics learn it from the rewards
-        try:
-            return np.asarray(env.get_attr("broadcast_cost"), dtype=np.float32)
-        except AttributeError as err:
-            raise ValueError(
-                f"critic={self.policy.critic!r} needs the environment's communication cost (attribute "
-                "'broadcast_cost', as the sb3_detc envs have) to add it to its option values."
-            ) from err
-
     def learn(
         self: SelfMAPPOC,
         total_timesteps: int,
@@ -732,7 +649,7 @@ class MAPPOC(OnPolicyAlgorithm):
         :raises ValueError: if the environment has another number of agents than the model or
             normalises the network's observations
         """
-        env = _as_joint_env(env)
+        env = as_joint_env(env)
         check_same_agents(env, self.n_agents)  # type: ignore[arg-type]
         check_vec_normalize(env)  # type: ignore[arg-type]
         super().set_env(env, force_reset=force_reset)  # type: ignore[arg-type]
@@ -763,22 +680,14 @@ class MAPPOC(OnPolicyAlgorithm):
         :raises ValueError: if the environment has another number of agents than the model or
             normalises the network's observations (see :func:`check_observation_normalization`)
         """
-        env = _as_joint_env(env)
+        env = as_joint_env(env)
         data, _, _ = load_from_zip_file(path, device="cpu", custom_objects=custom_objects, load_data=True)
         data = data or {}
         if isinstance(env, str):  # the fast setting, with the saved number of envs (n_steps is per env)
             env = make_rollout_workers(env, int(data.get("n_envs", 1)))
-        if "action_space" in data:
-            action_space = renamed_action_space(data["action_space"])
-            if action_space is not data["action_space"]:  # saved under an earlier name (sb3_detc.renamed)
-                custom_objects = {"action_space": action_space, **(custom_objects or {})}
-            if env is not None:
-                check_same_agents(env, len(action_space["broadcast"].nvec))  # type: ignore[arg-type]
-        # Attributes saved under earlier names become the current ones unless given here (as custom objects or
-        # keyword arguments, also under earlier names); _setup_model drops the old names.
-        saved = {RENAMED[key]: value for key, value in data.items() if key in RENAMED}
-        given = {key: value for key, value in (custom_objects or {}).items() if key in saved}
-        kwargs = {**saved, **given, **renamed_keys(kwargs)}
+        custom_objects, kwargs = renamed_saved_data(data, custom_objects, kwargs)
+        if env is not None and "action_space" in data:
+            check_same_agents(env, len(renamed_action_space(data["action_space"])["broadcast"].nvec))  # type: ignore[arg-type]
         return super().load(  # type: ignore[return-value]
             path,
             env=env,  # type: ignore[arg-type]
@@ -788,19 +697,3 @@ class MAPPOC(OnPolicyAlgorithm):
             force_reset=force_reset,
             **kwargs,
         )
-
-
-def _truncated(infos: list[dict[str, Any]], dones: np.ndarray) -> list[tuple[int, dict[str, np.ndarray]]]:
-    """The envs whose episode was cut by a time limit in this step, with their last observations (checked).
-
-    :param infos: every env's info of the step (n_envs,)
-    :param dones: episode ends of the step (n_envs,)
-    :return: ``(env index, terminal observation)`` of every truncated episode
-    :raises ValueError: if a terminal observation is not finite
-    """
-    cut = []
-    for idx, (info, done) in enumerate(zip(infos, dones, strict=True)):
-        if done and info.get("TimeLimit.truncated", False) and "terminal_observation" in info:
-            check_finite(info["terminal_observation"])
-            cut.append((idx, info["terminal_observation"]))
-    return cut

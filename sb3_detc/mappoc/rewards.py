@@ -80,6 +80,17 @@ class RewardTransform:
         self.discounted_returns[np.asarray(dones, dtype=bool)] = 0.0
         return np.clip(rewards / self.spread(), -10.0, 10.0).astype(np.float32)
 
+    def switch(self, normalize: bool, fresh_statistics: bool = False) -> None:
+        """Switch the normalisation on or off.
+
+        :param normalize: whether to divide rewards by the running spread of the returns
+        :param fresh_statistics: forget the spread measured so far
+        """
+        self.normalize = normalize
+        if fresh_statistics:
+            self.return_rms = None
+            self.discounted_returns = None
+
     def spread(self) -> np.ndarray | float:
         """What rewards are divided by when normalising: every agent's return standard deviation (1 before).
 
@@ -106,3 +117,23 @@ class RewardTransform:
 
     def __getstate__(self) -> dict[str, Any]:
         return {**self.__dict__, "discounted_returns": None}
+
+
+def broadcast_costs(env: Any, needs_price: bool, critic: str) -> np.ndarray:
+    """The communication cost ``xi`` of every environment of a vector env, (n_envs,); zeros unless the critic needs it.
+
+    :param env: the training env (a VecEnv)
+    :param needs_price: whether the critic adds the price of a broadcast to its option values
+    :param critic: the critic's name (for the error message)
+    :return: the cost of a broadcast in every env, float32 (n_envs,)
+    :raises ValueError: if the critic needs the cost and the envs have no ``broadcast_cost``
+    """
+    if not needs_price:
+        return np.zeros(env.num_envs, dtype=np.float32)  # such critics learn it from the rewards
+    try:
+        return np.asarray(env.get_attr("broadcast_cost"), dtype=np.float32)
+    except AttributeError as err:
+        raise ValueError(
+            f"critic={critic!r} needs the environment's communication cost (attribute 'broadcast_cost', as the "
+            "sb3_detc envs have) to add it to its option values."
+        ) from err

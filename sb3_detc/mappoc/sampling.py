@@ -63,6 +63,36 @@ class Rollout(NamedTuple):
     infos: list[list[dict[str, Any]]]
     last_obs: dict[str, np.ndarray]
 
+    def flat_tensors(self, device: th.device | str) -> tuple[dict[str, th.Tensor], th.Tensor, th.Tensor]:
+        """Observations, options and controls of all steps as one batch (T * B, ...), step by step.
+
+        :param device: where the tensors go
+        :return: observations (T * B, N, ...) per key, options (T * B, N), controls (T * B, N, m)
+        """
+        flat = self.dones.size
+        return (
+            obs_as_tensor({k: v.reshape(flat, *v.shape[2:]) for k, v in self.observations.items()}, device),
+            th.as_tensor(self.broadcast.reshape(flat, -1), device=device),
+            th.as_tensor(self.control.reshape(flat, *self.control.shape[2:]), device=device),
+        )  # type: ignore[return-value]
+
+
+class StepsTaken(NamedTuple):
+    """What the learner took of a rollout's steps, in order (T steps, n_envs envs, N agents).
+
+    :param rewards: the learner's rewards (T, n_envs, N); the bootstraps of truncated episodes are added later
+    :param price: the price of a broadcast in the learner's reward units at every step (T, n_envs, N)
+    :param last_price: the price after the last step (n_envs, N)
+    :param truncated: every episode a time limit cut, as ``(step, env index, terminal observation)``
+    :param episode_starts: whether every step's observation starts an episode (T, n_envs)
+    """
+
+    rewards: np.ndarray
+    price: np.ndarray
+    last_price: np.ndarray
+    truncated: list[tuple[int, int, dict[str, np.ndarray]]]
+    episode_starts: np.ndarray
+
 
 def run_steps(
     act: Act,
@@ -114,6 +144,22 @@ def check_finite(obs: dict[str, np.ndarray]) -> None:
     for key, value in obs.items():
         if not np.all(np.isfinite(value)):
             raise ValueError(f"the environment returned a non-finite observation in '{key}'.")
+
+
+def truncated_episodes(infos: list[dict[str, Any]], dones: np.ndarray) -> list[tuple[int, dict[str, np.ndarray]]]:
+    """The envs whose episode was cut by a time limit in this step, with their last observations (checked).
+
+    :param infos: every env's info of the step (n_envs,)
+    :param dones: episode ends of the step (n_envs,)
+    :return: ``(env index, terminal observation)`` of every truncated episode
+    :raises ValueError: if a terminal observation is not finite
+    """
+    cut = []
+    for idx, (info, done) in enumerate(zip(infos, dones, strict=True)):
+        if done and info.get("TimeLimit.truncated", False) and "terminal_observation" in info:
+            check_finite(info["terminal_observation"])
+            cut.append((idx, info["terminal_observation"]))
+    return cut
 
 
 def has_rollout_workers(env: VecEnv) -> bool:
