@@ -1,7 +1,7 @@
 """The paper's Multiwalker claims against a study's finished seeds: a Markdown table.
 
     python benchmarks/paper_claims.py benchmarks/studies/multiwalker_paper \\
-        --out benchmarks/results/paper_claims.md --splice benchmarks/README.md
+        --out benchmarks/results/paper_claims.md
 
 One row per claim of Kesper, Trimpe and Baumann (L4DC 2023), with our result (mean over the
 finished seeds, 95 % stratified-bootstrap interval, every seed) and a verdict by fixed rules,
@@ -22,7 +22,7 @@ listed under the table:
 * a recipe saves more when its savings interval lies above the paper's MAPPOC's.
 
 ``--splice`` replaces the text between the lines ``<!-- paper_claims.py: start -->`` and
-``<!-- paper_claims.py: end -->`` of a Markdown file (the results page) with the table.
+``<!-- paper_claims.py: end -->`` of a Markdown file with the table.
 
 The numbers come from the study folder alone (``evaluation.json`` and ``progress.csv.xz`` of every
 finished trial), as ``python -m sb3_detc.study report`` computes them.
