@@ -18,7 +18,7 @@ physical lower bound. Savings are ``1 - broadcasts / agent-steps``.
 
 With ``--from-zoo`` the settings and callbacks are those of the ``sb3_detc/LinearETC-v0``
 entry of ``sb3_detc/hyperparams/mappoc.yml`` (what ``python -m sb3_detc.train`` trains);
-without it, the script's own settings below (the one-stage run of benchmarks/README.md, section
+without it, the script's own settings below (the one-stage run of benchmarks/appendix.md, section
 "Linear system: control and communication learned jointly").
 
 Rows are written to ``--out`` after every job; jobs already there are not rerun.

@@ -1,7 +1,7 @@
 """The paper's Multiwalker claims against a study's finished seeds: a Markdown table.
 
     python benchmarks/paper_claims.py benchmarks/studies/multiwalker_paper \\
-        --out benchmarks/results/paper_claims.md --splice benchmarks/README.md
+        --out benchmarks/results/paper_claims.md
 
 One row per claim of Kesper, Trimpe and Baumann (L4DC 2023), with our result (mean over the
 finished seeds, 95 % stratified-bootstrap interval, every seed) and a verdict by fixed rules,
@@ -22,9 +22,9 @@ listed under the table:
 * a recipe saves more when its savings interval lies above the paper's MAPPOC's.
 
 ``--splice`` replaces the text between the lines ``<!-- paper_claims.py: start -->`` and
-``<!-- paper_claims.py: end -->`` of a Markdown file (the results page) with the table.
+``<!-- paper_claims.py: end -->`` of a Markdown file with the table.
 
-The numbers come from the study folder alone (``evaluation.json`` and ``progress.csv`` of every
+The numbers come from the study folder alone (``evaluation.json`` and ``progress.csv.xz`` of every
 finished trial), as ``python -m sb3_detc.study report`` computes them.
 """
 
@@ -36,6 +36,7 @@ import math
 from pathlib import Path
 from typing import Any
 
+from sb3_detc.plot import open_progress, progress_file
 from sb3_detc.study.report import interval_text, mark_lines, splice, summarise
 from sb3_detc.study.spec import StudyError, load_folder_study
 from sb3_detc.study.trial import SUCCESS_NO_FALL, SUCCESS_TRAVEL, carries_package, trial_folder
@@ -65,7 +66,7 @@ def final_entropies(folder: Path, label: str) -> dict[int, float]:
     :param folder: the study folder
     :param label: the algorithm's label
     :return: seed -> final entropy of the policy over options (seeds that logged none are left out)
-    :raises StudyError: if a finished trial has no ``progress.csv``
+    :raises StudyError: if a finished trial has no ``progress.csv.xz`` (or ``progress.csv``)
     """
     spec = load_folder_study(folder)
     entropies = {}
@@ -73,10 +74,9 @@ def final_entropies(folder: Path, label: str) -> dict[int, float]:
         trial_dir = trial_folder(folder, trial)
         if trial.algorithm.label != label or not (trial_dir / "evaluation.json").is_file():
             continue
-        path = trial_dir / "progress.csv"
-        if not path.is_file():
+        if progress_file(trial_dir) is None:
             raise StudyError(f"{trial_dir}: finished, but its progress.csv is missing")
-        with path.open(newline="") as file:
+        with open_progress(trial_dir) as file:
             logged = [row["train/entropy_mu"] for row in csv.DictReader(file) if row.get("train/entropy_mu")]
         if logged:
             entropies[trial.seed] = float(logged[-1])

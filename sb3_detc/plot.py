@@ -3,23 +3,25 @@
 Two panels over iterations: the episode return (team mean per agent, communication cost
 included, ``comm/ep_return``) and the communication savings (``comm/savings``), both
 logged by :class:`~sb3_detc.callbacks.CommMetricsCallback` into every run's
-``progress.csv`` (written by :mod:`sb3_detc.train`). Every curve is smoothed with a moving
-average over ``--window`` iterations (the paper: 50); the runs of one algorithm (e.g.
-several seeds) are drawn as their mean and a band from their minimum to their maximum.
-Dashed vertical lines mark the curriculum phases of the first run that logs them
-(``curriculum/phase``, or the start and end of the broadcast entropy decay,
-``curriculum/broadcast_ent_coef``).
+``progress.csv`` (written by :mod:`sb3_detc.train`; a study trial keeps it compressed as
+``progress.csv.xz``). Every curve is smoothed with a moving average over ``--window``
+iterations (the paper: 50); the runs of one algorithm (e.g. several seeds) are drawn as
+their mean and a band from their minimum to their maximum. Dashed vertical lines mark the
+curriculum phases of the first run that logs them (``curriculum/phase``, or the start and
+end of the broadcast entropy decay, ``curriculum/broadcast_ent_coef``).
 """
 
 from __future__ import annotations
 
 import argparse
 import csv
+import lzma
 import math
 import sys
 import warnings
 from collections.abc import Sequence
 from pathlib import Path
+from typing import TextIO
 
 import matplotlib
 
@@ -37,9 +39,11 @@ __all__ = [
     "estimates_figure",
     "find_runs",
     "main",
+    "open_progress",
     "outlier_symlog_threshold",
     "plot_estimates",
     "plot_runs",
+    "progress_file",
     "read_progress",
     "smooth",
     "symlog_threshold",
@@ -48,21 +52,49 @@ __all__ = [
 #: Logged values of the two panels: (column, axis label).
 PANELS = (("comm/ep_return", "return"), ("comm/savings", "communication savings"))
 
+#: A run's logged values as the logger writes them while it trains.
+PROGRESS_CSV = "progress.csv"
+#: The same CSV compressed with xz: a study trial's log, all its attempts merged (:mod:`sb3_detc.study.trial`).
+PROGRESS_XZ = "progress.csv.xz"
+
+
+def progress_file(run: str | Path) -> Path | None:
+    """The file of a run's logged values: its ``progress.csv.xz`` (a study trial's), else its ``progress.csv``.
+
+    :param run: the run's log folder (or a study trial's folder)
+    :return: the file, None if the folder holds neither
+    """
+    for name in (PROGRESS_XZ, PROGRESS_CSV):
+        path = Path(run) / name
+        if path.is_file():
+            return path
+    return None
+
+
+def open_progress(run: str | Path) -> TextIO:
+    """Open a run's logged values (:func:`progress_file`) as CSV text, decompressed if need be.
+
+    :param run: the run's log folder (or a study trial's folder)
+    :return: the open text file (the caller closes it)
+    :raises InputError: if the folder holds no progress file
+    """
+    path = progress_file(run)
+    if path is None:
+        raise InputError(f"no {PROGRESS_CSV} in {str(run)!r}: train with python -m sb3_detc.train")
+    return lzma.open(path, "rt", newline="") if path.name == PROGRESS_XZ else path.open(newline="")
+
 
 def read_progress(run: str | Path) -> dict[str, np.ndarray]:
-    """Columns of a run's ``progress.csv`` as float arrays (missing values NaN), indexed by iteration.
+    """Columns of a run's logged values (:func:`open_progress`) as float arrays (missing values NaN), by iteration.
 
-    :param run: the run's log folder
+    :param run: the run's log folder (or a study trial's folder)
     :return: ``{"iteration": ..., column: ...}``; text columns (e.g. ``curriculum/phase``) as str arrays
     :raises InputError: if the file is missing, empty or has no ``time/iterations`` column
     """
-    path = Path(run) / "progress.csv"
-    if not path.is_file():
-        raise InputError(f"no progress.csv in {str(run)!r}: train with python -m sb3_detc.train")
-    with path.open(newline="") as file:
+    with open_progress(run) as file:
         rows = list(csv.DictReader(file))
     if not rows or "time/iterations" not in rows[0]:
-        raise InputError(f"{path}: no iterations logged yet")
+        raise InputError(f"{progress_file(run)}: no iterations logged yet")
     columns: dict[str, np.ndarray] = {}
     for key in rows[0]:
         values = [row.get(key) or "" for row in rows]
@@ -161,7 +193,7 @@ def find_runs(folder: str | Path, algo: str, env_id: str) -> list[Path]:
     runs = []
     for path in (Path(folder) / algo).glob(f"{prefix}*"):
         run_id = path.name[len(prefix) :]
-        if run_id.isdigit() and (path / "progress.csv").is_file():
+        if run_id.isdigit() and progress_file(path) is not None:
             runs.append((int(run_id), path))
     return [path for _, path in sorted(runs)]
 

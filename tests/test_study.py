@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import importlib.util
 import json
+import lzma
 import os
 import signal
 import subprocess
@@ -20,11 +21,13 @@ import yaml
 import sb3_detc
 from sb3_detc.evaluation import evaluate_episodes
 from sb3_detc.mappoc.policies import MlpHybridPolicy
+from sb3_detc.plot import PROGRESS_XZ, progress_file, read_progress
 from sb3_detc.study.__main__ import main as study_main
 from sb3_detc.study.report import report_study, splice, summarise
 from sb3_detc.study.runner import prepare_folder, run_study
 from sb3_detc.study.spec import StudyError, load_folder_study, load_study
 from sb3_detc.study.trial import (
+    FINISHED_FILES,
     MODES,
     code_commit,
     drop_stale_segments,
@@ -307,10 +310,11 @@ def test_a_study_runs_every_trial_through_ray_and_evaluates_it(finished_study):
         status = read_status(folder)
         budget = 2048 if trial.algorithm.label == "learned" else 1024  # one iteration of 1024 steps
         assert status["status"] == "done" and status["timesteps"] == budget
-        assert (folder / "policy.pt").is_file() and (folder / "progress.csv").is_file()
-        assert not (folder / "checkpoint.zip").exists()  # only the final policy stays
+        # the final policy, its evaluation, its status and its compressed log; no checkpoint, no segments
+        assert sorted(p.name for p in folder.iterdir()) == sorted(FINISHED_FILES)
         # where it trained; Ray's workers get OpenMP's passive waiting unless the caller chose a policy
-        machine = json.loads((folder / "segments" / "0" / "machine.json").read_text())
+        [machine] = status["attempts"]
+        assert machine["start_timesteps"] == 0
         assert machine["omp_wait_policy"] == os.environ.get("OMP_WAIT_POLICY", "PASSIVE")
         assert machine["torch_threads"] == 1 and machine["cores"] == os.cpu_count()
         assert machine["commit"] == code_commit() and machine["sb3_detc"] == sb3_detc.__version__
@@ -385,6 +389,47 @@ def test_the_report_equals_a_hand_computation_from_the_evaluation_files(finished
     assert pairs == {("learned", "random"), ("random", "learned")}
     result = run_command("report", str(out), "--no-plot")
     assert result.returncode == 0 and "Probability of improvement" in result.stdout
+
+
+#: The committed study folders.
+COMMITTED = sorted((ROOT / "benchmarks" / "studies").glob("*/study.yml"))
+
+
+def test_a_committed_study_keeps_what_its_report_reads_and_nothing_else():
+    trials = [trial for study in COMMITTED for trial in study.parent.glob("trials/*/*")]
+    assert COMMITTED and trials
+    for trial in trials:
+        assert sorted(p.name for p in trial.iterdir()) == sorted(FINISHED_FILES), trial
+    size = sum(p.stat().st_size for p in (ROOT / "benchmarks" / "studies").rglob("*") if p.is_file())
+    assert size < 40 * 2**20, f"benchmarks/studies holds {size / 2**20:.0f} MiB"
+
+
+def test_the_report_of_a_committed_study_regenerates_from_its_kept_files(tmp_path):
+    """Tables and figures from the trials' evaluations and compressed logs, as committed."""
+    source = ROOT / "benchmarks" / "studies" / "linear_lqr"
+    folder = tmp_path / "linear_lqr"
+    for path in source.rglob("*"):  # the trials' files and the study file; not the report and its figures
+        if path.is_file() and (path.name in FINISHED_FILES or path.name == "study.yml"):
+            (folder / path.relative_to(source)).parent.mkdir(parents=True, exist_ok=True)
+            (folder / path.relative_to(source)).write_bytes(path.read_bytes())
+    text = report_study(folder, plot=True)
+    # the same text, "Curves: ..." included: every algorithm's curves were drawn from its logs
+    expected = (source / "report.md").read_text().replace(str(source.relative_to(ROOT)), str(folder))
+    assert text + "\n" == expected and f"Curves: {folder / 'curves.png'}" in text
+
+
+def test_a_compressed_log_reads_as_the_plain_one(tmp_path):
+    text = "time/iterations,time/total_timesteps,comm/option_ent_coef,curriculum/phase\n1,1024,0.1,a\n2,2048,,b\n"
+    plain, compressed = tmp_path / "plain", tmp_path / "compressed"
+    plain.mkdir()
+    compressed.mkdir()
+    (plain / "progress.csv").write_text(text)
+    (compressed / PROGRESS_XZ).write_bytes(lzma.compress(text.encode()))
+    assert progress_file(compressed) == compressed / PROGRESS_XZ and progress_file(tmp_path) is None
+    expected, columns = read_progress(plain), read_progress(compressed)
+    assert columns.keys() == expected.keys() and "comm/broadcast_ent_coef" in columns  # renamed as well
+    for key, values in expected.items():
+        np.testing.assert_array_equal(columns[key], values)
 
 
 _voi_spec = importlib.util.spec_from_file_location("voi", ROOT / "benchmarks" / "multiwalker_value_of_information.py")
@@ -580,11 +625,12 @@ def test_trials_read_the_study_from_the_folder_while_the_files_it_was_started_wi
         stdout, stderr = process.communicate(timeout=300)
     assert process.returncode == 0, stdout + stderr
     for trial in (first, second):
-        assert read_status(trial) | {"seconds": 0} == {
+        assert read_status(trial) | {"seconds": 0, "attempts": []} == {
             "status": "done",
             "budget": 8192,
             "timesteps": 8192,
             "seconds": 0,
+            "attempts": [],
         }
 
 
@@ -631,9 +677,9 @@ def test_a_killed_study_resumes_from_its_checkpoints(tmp_path):
     status = read_status(long)
     assert status["status"] == "done" and status["timesteps"] == 12288  # the budget, not budget + steps before
     assert status["seconds"] > trained  # both attempts' time
-    assert (long / "segments" / str(checkpoint)).is_dir()  # the second attempt started at the checkpoint
-    progress = np.genfromtxt(long / "progress.csv", delimiter=",", names=True)
-    steps = progress["timetotal_timesteps"]
+    assert [a["start_timesteps"] for a in status["attempts"]] == [0, checkpoint]  # the second from the checkpoint
+    assert sorted(p.name for p in long.iterdir()) == sorted(FINISHED_FILES)
+    steps = read_progress(long)["time/total_timesteps"]
     assert np.all(np.diff(steps) > 0) and steps[-1] == 12288  # one row per iteration, none twice
 
 
@@ -719,8 +765,16 @@ def test_an_interrupted_trial_says_so_and_the_next_run_finishes_it(tmp_path):
     assert read_status(folder)["status"] == "interrupted"
     assert not (folder / "error.txt").exists()
     assert json.loads((folder / "checkpoint.json").read_text())["timesteps"] == 2048
+    # what the next attempt resumes from stays while the trial trains: the checkpoint and the first attempt's log
+    assert (folder / "segments" / "0" / "progress.csv").is_file()
+    assert read_progress(folder)["time/total_timesteps"][-1] == 2048  # the log up to the checkpoint
     status = run_trial(spec, trial, tmp_path / "out")
     assert status["status"] == "done" and status["timesteps"] == 4096
+    assert [a["start_timesteps"] for a in status["attempts"]] == [0, 2048]
+    # done: the kept files alone, one log of both attempts, each iteration once
+    assert sorted(p.name for p in folder.iterdir()) == sorted(FINISHED_FILES)
+    assert progress_file(folder) == folder / PROGRESS_XZ
+    np.testing.assert_array_equal(read_progress(folder)["time/total_timesteps"], [1024, 2048, 3072, 4096])
 
 
 def test_segments_of_lost_checkpoints_are_dropped(tmp_path):

@@ -1,6 +1,6 @@
 """The report of a study folder: statistics over seeds (rliable), tables, curves and ``summary.json``.
 
-It reads only the trials' files (``evaluation.json``, ``status.json``, ``progress.csv``), so
+It reads only the trials' files (``evaluation.json``, ``status.json``, ``progress.csv.xz``), so
 anyone with a copy of the folder can make it. Per algorithm label, every metric of
 :func:`~sb3_detc.study.trial.evaluate_policy_modes` is summarised over the finished seeds by
 its mean and a 95 % stratified-bootstrap percentile interval of the mean (rliable's
@@ -23,7 +23,7 @@ import numpy as np
 from rliable import library as rly
 from rliable import metrics as rly_metrics
 
-from sb3_detc.plot import plot_estimates, plot_runs
+from sb3_detc.plot import open_progress, plot_estimates, plot_runs, progress_file
 from sb3_detc.study.spec import StudyError, load_folder_study
 from sb3_detc.study.trial import read_status, replace_atomically, trial_folder
 
@@ -301,12 +301,12 @@ def _markdown(directory: Path, spec: Any, summary: dict[str, Any]) -> str:
 
 
 def _logged_iterations(run: Path) -> int:
-    """Rows of a run's ``progress.csv`` (one per logged iteration).
+    """Rows of a run's logged values (one per logged iteration, :func:`~sb3_detc.plot.open_progress`).
 
-    :param run: the trial folder, holding a ``progress.csv``
+    :param run: the trial folder, holding a ``progress.csv.xz``
     :return: the number of non-empty lines after the header
     """
-    with open(run / "progress.csv") as file:
+    with open_progress(run) as file:
         return max(0, sum(1 for line in file if line.strip()) - 1)
 
 
@@ -329,7 +329,7 @@ def report_study(directory: str | Path, plot: bool = True) -> str:
         groups, single = {}, []
         for algorithm in spec.algorithms:
             runs = [trial_folder(directory, t) for t in spec.trials() if t.algorithm is algorithm]
-            runs = [run for run in runs if (run / "progress.csv").is_file()]
+            runs = [run for run in runs if progress_file(run) is not None]
             if runs and all(_logged_iterations(run) < 2 for run in runs):
                 single.append(algorithm.label)  # no curve to draw
             elif runs:

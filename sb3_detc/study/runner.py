@@ -42,14 +42,19 @@ STOP_FILE = ".stop"
 #: The file a running study holds locked (:func:`run_study`).
 LOCK_FILE = ".lock"
 
+#: The lines of a study folder's ``.gitignore`` (:func:`prepare_folder`).
+IGNORED = (".ray/", STOP_FILE, LOCK_FILE, "*.tmp", "*.tmp.*", "checkpoint.zip", "checkpoint.json", "segments/")
+
 
 def prepare_folder(spec: StudySpec, directory: str | os.PathLike) -> Path:
     """Create the study folder, or check that an existing one belongs to this study.
 
     The folder keeps a copy of the study file (``study.yml``), of every hyperparameter file
     that it names (``conf/<label><suffix>``, see :func:`~sb3_detc.study.spec.load_folder_study`)
-    and a ``.gitignore`` for Ray's files and half-written checkpoints; it keeps
-    ``checkpoint.zip`` in, so that a study committed while it runs resumes on another machine.
+    and a ``.gitignore`` for Ray's files, scratch files and what a trial keeps only while it
+    trains (its checkpoint and its segments, :mod:`sb3_detc.study.trial`): a committed study
+    holds its trials' results, and an unfinished trial resumes from its checkpoint on the
+    machine that trains it.
 
     :param spec: the study
     :param directory: the study folder
@@ -82,8 +87,7 @@ def prepare_folder(spec: StudySpec, directory: str | os.PathLike) -> Path:
         replace_atomically(kept, lambda scratch, content=content: scratch.write_bytes(content))
     if not copy.is_file():
         replace_atomically(copy, lambda scratch: scratch.write_text(spec.text))
-    ignored = f".ray/\n{STOP_FILE}\n{LOCK_FILE}\n*.tmp\n*.tmp.zip\n*.tmp.csv\n*.tmp.pt\n!checkpoint.zip\n"
-    (folder / ".gitignore").write_text(ignored)
+    (folder / ".gitignore").write_text("\n".join(IGNORED) + "\n")
     return folder
 
 

@@ -4,17 +4,20 @@ A trial's folder (``<study dir>/trials/<label>/seed<seed>/``) holds plain files:
 
 * ``status.json``: ``status`` (``running``, ``done``, ``interrupted`` or ``failed``), ``timesteps``, ``budget``,
   ``seconds`` (training time over all attempts; of an attempt that ended without notice, up to
-  its latest checkpoint);
-* ``checkpoint.zip`` and ``checkpoint.json`` while it trains: the latest checkpoint (the whole
-  model, optimizer included) and its step count, written atomically every
-  ``checkpoint_interval`` steps at the start of a rollout;
-* ``segments/<first step>/``: rl-zoo3's files of every attempt (``config.yml``, monitor
-  files, the logger's ``progress.csv``) and ``machine.json`` (where it trained:
-  :func:`machine_record`); ``progress.csv`` in the trial folder merges them, cut at each
-  checkpoint an attempt resumed from;
+  its latest checkpoint) and ``attempts`` (where each attempt trained, :func:`machine_record`,
+  with ``start_timesteps``, the step it started from);
+* ``progress.csv.xz``: the logger's rows of all attempts, each cut where the next one resumed
+  (:func:`merged_progress`), as CSV compressed with xz (:func:`sb3_detc.plot.read_progress`
+  reads it); rewritten at every checkpoint;
+* while it trains (never committed, see :func:`~sb3_detc.study.runner.prepare_folder`):
+  ``checkpoint.zip`` and ``checkpoint.json``, the latest checkpoint (the whole model, optimizer
+  included) and its step count, written atomically every ``checkpoint_interval`` steps at the
+  start of a rollout; ``segments/<first step>/``, rl-zoo3's files of every attempt
+  (``config.yml``, monitor files, the logger's ``progress.csv``);
 * when done: ``policy.pt`` (the final policy only, :meth:`MlpHybridPolicy.load`) and
-  ``evaluation.json`` (:func:`evaluate_policy_modes`); the checkpoint is removed;
-* ``error.txt``: the traceback of the last failure.
+  ``evaluation.json`` (:func:`evaluate_policy_modes`); the checkpoint and the segments are
+  removed, so that a finished trial holds :data:`FINISHED_FILES` alone;
+* ``error.txt``: the traceback of the last failure (removed when the trial is done).
 """
 
 from __future__ import annotations
@@ -47,12 +50,14 @@ import sb3_detc
 from sb3_detc.callbacks import FixedTriggerCallback
 from sb3_detc.evaluation import Episodes, evaluate_episodes
 from sb3_detc.mappoc.policies import MlpHybridPolicy
+from sb3_detc.plot import PROGRESS_CSV, PROGRESS_XZ
 from sb3_detc.renamed import renamed_column
 from sb3_detc.study.spec import StudySpec, Trial
 from sb3_detc.triggers import RandomTrigger
 from sb3_detc.zoo import ExperimentManager
 
 __all__ = [
+    "FINISHED_FILES",
     "MODES",
     "SUCCESS_NO_FALL",
     "SUCCESS_TRAVEL",
@@ -72,6 +77,9 @@ __all__ = [
 
 #: The evaluation modes, in the order of the protocol.
 MODES = ("learned", "random_same_rate", "periodic", "never")
+
+#: The files of a finished trial's folder: nothing else is kept.
+FINISHED_FILES = ("evaluation.json", "policy.pt", PROGRESS_XZ, "status.json")
 
 #: Fraction of evaluation episodes without a fall for a Multiwalker seed to succeed.
 SUCCESS_NO_FALL = 0.9
@@ -225,7 +233,7 @@ def merged_progress(folder: Path) -> pd.DataFrame:
     starts = sorted((int(path.name), path) for path in (folder / "segments").glob("*") if path.name.isdigit())
     parts = []
     for k, (_, path) in enumerate(starts):
-        csv = path / "progress.csv"
+        csv = path / PROGRESS_CSV
         if not csv.is_file() or csv.stat().st_size == 0:
             continue
         rows = pd.read_csv(csv).rename(columns=renamed_column)  # also logs of earlier versions
@@ -236,18 +244,19 @@ def merged_progress(folder: Path) -> pd.DataFrame:
 
 
 def _write_progress(folder: Path) -> None:
-    """Write the trial's ``progress.csv`` (atomically): :func:`merged_progress`; nothing if nothing was logged.
+    """Write the trial's ``progress.csv.xz`` (atomically): :func:`merged_progress`; nothing if nothing was logged.
 
     :param folder: the trial folder
     """
     rows = merged_progress(folder)
     if not rows.empty:
-        write = functools.partial(rows.to_csv, index=False)
-        replace_atomically(folder / "progress.csv", write, "progress.tmp.csv")
+        write = functools.partial(rows.to_csv, index=False, compression="xz")
+        replace_atomically(folder / PROGRESS_XZ, write, "progress.tmp.csv.xz")
+        (folder / PROGRESS_CSV).unlink(missing_ok=True)  # one log per trial: a plain one is outdated now
 
 
 def code_commit(source: Path | None = None) -> str | None:
-    """The git commit of the package's source, so that a trial's segments name the code they ran.
+    """The git commit of the package's source, so that a trial's attempts name the code they ran.
 
     :param source: the folder whose code to name; None for the sb3_detc package itself
     :return: the commit's hash, with ``+modified`` when files under ``source`` differ from it (or
@@ -268,7 +277,7 @@ def code_commit(source: Path | None = None) -> str | None:
 
 
 def machine_record() -> dict[str, Any]:
-    """Where and how this process trains: what a segment's steps per second depend on.
+    """Where and how this process trains: what an attempt's steps per second depend on.
 
     :return: host name, processor model, cores, torch's threads, ``OMP_WAIT_POLICY`` (None
         if unset), versions of Python, torch and sb3_detc, the code (:func:`code_commit`), and the
@@ -429,10 +438,10 @@ def trial_manager(
 
 
 def _train(spec: StudySpec, trial: Trial, folder: Path, on_progress: Callable[[int], None] | None) -> None:
-    """Train a trial to its budget (from its checkpoint if it has one) and save ``policy.pt`` and ``progress.csv``.
+    """Train a trial to its budget (from its checkpoint if it has one) and save ``progress.csv.xz`` and ``policy.pt``.
 
     Every attempt logs to its own segment ``segments/<first step>/``; ``status.json`` keeps the step
-    count and training seconds.
+    count, the training seconds and the attempts (as their segments, those from the checkpoint on are dropped).
 
     :param spec: the study
     :param trial: the trial
@@ -458,10 +467,12 @@ def _train(spec: StudySpec, trial: Trial, folder: Path, on_progress: Callable[[i
     manager.save_path = str(segment)
     manager.params_path = str(segment / "params")
     model, _ = manager.setup_experiment()
-    segment.mkdir(parents=True, exist_ok=True)
-    _write_json(segment / "machine.json", machine_record())
+    status = read_status(folder)
+    attempts = [a for a in status.get("attempts", []) if a["start_timesteps"] < start]
+    attempts.append({"start_timesteps": start, **machine_record()})
+    _write_json(folder / "status.json", {**status, "attempts": attempts})
 
-    earlier = read_status(folder).get("seconds", 0.0)  # training time of the attempts before
+    earlier = status.get("seconds", 0.0)  # training time of the attempts before
     began = time.monotonic()
 
     def saved(steps: int) -> None:  # a killed attempt keeps its time up to its latest checkpoint
@@ -488,8 +499,8 @@ def _train(spec: StudySpec, trial: Trial, folder: Path, on_progress: Callable[[i
         raise KeyboardInterrupt(f"training of {trial.name} stopped at {model.num_timesteps} of {budget} steps")
     seconds = earlier + time.monotonic() - began
     _write_json(folder / "status.json", {**read_status(folder), "timesteps": model.num_timesteps, "seconds": seconds})
+    _write_progress(folder)  # first: a trial with its policy never trains again, and its segments go when it is done
     replace_atomically(folder / "policy.pt", lambda scratch: model.policy.save(str(scratch)), "policy.tmp.pt")
-    _write_progress(folder)
 
 
 def drop_stale_segments(folder: Path, start: int) -> None:
@@ -549,8 +560,9 @@ def run_trial(
             env.close()
         evaluation["timesteps"] = read_status(folder).get("timesteps", budget)
         _write_json(folder / "evaluation.json", evaluation)
-        for leftover in ("checkpoint.zip", "checkpoint.json"):
+        for leftover in ("checkpoint.zip", "checkpoint.json", "error.txt"):
             (folder / leftover).unlink(missing_ok=True)
+        shutil.rmtree(folder / "segments", ignore_errors=True)
         status = {**read_status(folder), "status": "done"}
         status.pop("error", None)
         _write_json(folder / "status.json", status)
