@@ -274,6 +274,9 @@ class MlpHybridPolicy(BasePolicy):
     def load(cls, path: str, device: th.device | str = "auto") -> MlpHybridPolicy:  # type: ignore[override]
         """Load a policy saved with :meth:`save`, also one saved under earlier names (:mod:`sb3_detc.renamed`).
 
+        A policy saved before ``sample_options`` (or its earlier opposite ``deterministic_options``)
+        existed sampled its options in every evaluation: it loads with ``sample_options=True``.
+
         :param path: the file
         :param device: where the policy runs
         :return: the policy
@@ -281,6 +284,7 @@ class MlpHybridPolicy(BasePolicy):
         device = get_device(device)
         saved = th.load(path, map_location=device, weights_only=False)  # the spaces are pickled gymnasium objects
         data = renamed_keys({**saved["data"], "action_space": renamed_action_space(saved["data"]["action_space"])})
+        data.setdefault("sample_options", True)  # saved before the setting existed: it sampled its options
         policy = cls(**data)
         policy.load_state_dict(saved["state_dict"])
         return policy.to(device)
