@@ -402,6 +402,14 @@ class MlpHybridPolicy(BasePolicy):
         true = relative_views(obs["message"], obs["message"], self.others).flatten(2)
         return th.cat([obs["local"], views, age[..., 0] * self.age_scale, true], dim=-1)
 
+    def broadcast_probabilities(self, obs: PyTorchObs) -> th.Tensor:
+        """Every agent's probability of broadcasting under ``mu`` (draws nothing; only ``mu`` runs).
+
+        :param obs: joint observation (B, N, ...)
+        :return: probabilities of broadcasting (B, N)
+        """
+        return broadcast_probability(self.chains.run({"mu": self.option_features(obs)})["mu"])
+
     def option_values(
         self, q: th.Tensor, broadcast_price: th.Tensor | None = None, p_broadcast: th.Tensor | None = None
     ) -> th.Tensor:
