@@ -1,11 +1,11 @@
-"""Evaluate one trained MAPPOC run at equal communication: learned options, random ones, periodic.
+"""Evaluate one trained MAPPOC run, or every checkpoint of it, with the package's evaluation protocol.
 
 ``python benchmarks/evaluate_run.py <run folder> --env <id>`` loads the run's final model
 (as :mod:`sb3_detc.train` saves it, also when training was interrupted with Ctrl-C) and
-runs the same seeded episodes, with the run's environment settings, three times: options
-sampled from the learned policy over options, random options at the learned broadcast rate,
-and periodic communication (every agent broadcasts every step), all with the learned
-control policy (mean control). It prints the table of :func:`sb3_detc.compare.table`.
+runs the protocol (:func:`sb3_detc.evaluation.evaluate_policy_modes`) on seeded episodes with
+the run's environment settings: the learned options, the most likely options, random options at
+the learned rate, periodic communication and none, all with the learned control policy (mean
+control). It prints the table of ``python -m sb3_detc.evaluate`` (which does this for any saved model).
 
 With ``--checkpoints`` it does the same for every checkpoint of the run
 (``rl_model_<steps>_steps.zip``, as ``--save-freq`` writes them), in the order of their
@@ -18,31 +18,29 @@ from __future__ import annotations
 import argparse
 import re
 from pathlib import Path
+from typing import Any
 
-from sb3_detc.compare import evaluate_run, table
-from sb3_detc.evaluation import CommunicationReport
-from sb3_detc.triggers import RandomTrigger
+import gymnasium as gym
+from huggingface_sb3 import EnvironmentName
+
+import sb3_detc  # noqa: F401  (registers the env ids)
+from sb3_detc.cli import InputError
+from sb3_detc.evaluate import load_saved, modes_table
+from sb3_detc.evaluation import EVAL_SEED, evaluate_policy_modes
 
 CHECKPOINT = re.compile(r"rl_model_(\d+)_steps\.zip")
 
 
-def compare(run: Path, env_id: str, episodes: int, model: Path | None = None) -> dict[str, CommunicationReport]:
-    """Learned options, random options at the learned rate and periodic communication on the same episodes.
+def evaluate(model: Path, episodes: int) -> dict[str, Any]:
+    """The protocol on a saved model of a run, with the run's env settings and trigger.
 
-    :param run: the run folder
-    :param env_id: environment id
-    :param episodes: evaluation episodes per trigger
-    :param model: the saved model (None: the run's final model)
-    :return: trigger name -> report
+    :param model: the saved model in its run folder
+    :param episodes: evaluation episodes per mode
+    :return: what :func:`~sb3_detc.evaluation.evaluate_policy_modes` returns
     """
-    learned = evaluate_run(run, env_id, episodes, model=model)
-    return {
-        "learned options": learned,
-        "random options, same rate": evaluate_run(
-            run, env_id, episodes, RandomTrigger(learned.savings, seed=0), model=model
-        ),
-        "periodic": evaluate_run(run, env_id, episodes, RandomTrigger(0.0), model=model),
-    }
+    saved = load_saved(model)
+    with gym.make(saved.env_id, **saved.env_kwargs) as env:
+        return evaluate_policy_modes(saved.policy, env, episodes, EVAL_SEED, saved.trigger)
 
 
 def checkpoints(run: Path) -> list[tuple[int, Path]]:
@@ -63,26 +61,32 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("run", type=Path, help="rl-zoo3 run folder, e.g. logs/mappoc/sb3_detc-MultiwalkerETC-v0_1")
     parser.add_argument("--env", required=True, help="environment id")
-    parser.add_argument("--episodes", type=int, default=20, help="evaluation episodes per trigger")
+    parser.add_argument("--episodes", type=int, default=20, help="evaluation episodes per mode")
     parser.add_argument("--checkpoints", action="store_true", help="evaluate every checkpoint of the run")
     args = parser.parse_args()
     if args.episodes < 1:
         parser.error(f"--episodes must be >= 1, got {args.episodes}")
     if not args.run.is_dir():
         parser.error(f"no run folder {args.run}")
+    final = args.run / f"{EnvironmentName(args.env)}.zip"
     try:
-        found = checkpoints(args.run) if args.checkpoints else []
         if not args.checkpoints:
-            print(table({name: [report] for name, report in compare(args.run, args.env, args.episodes).items()}))
+            if not final.is_file():
+                raise FileNotFoundError(f"no saved model {final}")
+            print(modes_table(evaluate(final, args.episodes)))
             return
-    except FileNotFoundError as error:  # no model or no checkpoints in the folder
+        found = checkpoints(args.run)
+    except (FileNotFoundError, InputError) as error:  # no model or checkpoints in the folder, or not a run's
         parser.exit(2, f"error: {error}\n")
     print("| steps | savings | control return: learned | random, same rate | periodic |")
     print("|---|---|---|---|---|")
     for steps, path in found:
-        reports = compare(args.run, args.env, args.episodes, model=path)
-        returns = " | ".join(f"{report.mean_control_return:.1f}" for report in reports.values())
-        print(f"| {steps} | {reports['learned options'].savings:.3f} | {returns} |", flush=True)
+        metrics = evaluate(path, args.episodes)["metrics"]
+        returns = " | ".join(
+            f"{metrics[key]:.1f}"
+            for key in ("control_return", "random_same_rate_control_return", "periodic_control_return")
+        )
+        print(f"| {steps} | {metrics['savings']:.3f} | {returns} |", flush=True)
 
 
 if __name__ == "__main__":

@@ -151,7 +151,8 @@ def build(job: dict[str, Any], log_folder: Path) -> tuple[Any, dict[str, Any]]:
     differ = sorted(
         key
         for key, value in saved._get_constructor_parameters().items()
-        if key not in ("observation_space", "action_space", "lr_schedule")
+        # sample_options says how the trigger is evaluated, not how the networks are built
+        if key not in ("observation_space", "action_space", "lr_schedule", "sample_options")
         and model.policy._get_constructor_parameters().get(key) != value
     )
     if differ:

@@ -33,6 +33,7 @@ import torch as th
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.type_aliases import Schedule
 
+from sb3_detc.evaluation import EpisodeCounter, Episodes
 from sb3_detc.mappoc.checks import check_rate_target
 from sb3_detc.mappoc.mappoc import PAPER_ITERATION
 from sb3_detc.triggers import PeriodicTrigger, RandomTrigger
@@ -641,8 +642,10 @@ class PeriodicCommCallback(FixedTriggerCallback):
 class CommMetricsCallback(BaseCallback):
     """Communication metrics of every rollout, logged to the SB3 logger (stdout, CSV, TensorBoard, ...).
 
-    Reads ``infos`` and ``dones`` of every step (``info["broadcast"]``, ``info["agent_rewards"]``,
-    ``info["control_rewards"]``, and ``info["package_x"]`` where present). Per rollout:
+    Counts every step's ``infos`` and ``dones`` with :class:`~sb3_detc.evaluation.EpisodeCounter`,
+    the count that evaluation uses too (``info["broadcast"]``, ``info["agent_rewards"]``,
+    ``info["control_rewards"]``, and ``info["package_x"]`` and ``info["failed"]`` where present).
+    Per rollout:
 
     * ``comm/savings_agent_{i}``: ``Gamma_i = 1 - broadcasts_i / steps`` over the rollout's
       steps (all envs), and their mean ``comm/savings``;
@@ -656,13 +659,13 @@ class CommMetricsCallback(BaseCallback):
       start): ``comm/ep_return_agent_{i}`` (with the communication cost) and
       ``comm/ep_control_return_agent_{i}`` (without), their agent means ``comm/ep_return``
       and ``comm/ep_control_return``, ``comm/episodes`` (how many), ``comm/fall_rate`` (the
-      fraction that terminated rather than being truncated: falls and package drops in
-      Multiwalker, but also reaching the end of the terrain) and, where the env reports
-      ``package_x`` (Multiwalker), ``comm/package_travel`` (final minus initial package x,
-      the initial one from the info of the reset before the episode: ``info["reset_info"]`` of
-      the step that ended the one before, which MAPPOC's rollouts add, else the VecEnv's
-      ``reset_infos``); not logged in a rollout in which no
-      episode finished.
+      fraction that ended by a failure: ``info["failed"]`` where the env reports it, in
+      Multiwalker a fall or a dropped package, else the fraction that terminated rather than
+      being truncated) and, where the env reports ``package_x`` (Multiwalker),
+      ``comm/package_travel`` (final minus initial package x, the initial one from the info of
+      the reset before the episode: ``info["reset_info"]`` of the step that ended the one
+      before, which MAPPOC's rollouts add, else the VecEnv's ``reset_infos``); not logged in a
+      rollout in which no episode finished.
 
     :param histogram: record the inter-event times as a histogram (TensorBoard)
     :param verbose: verbosity level
@@ -671,116 +674,53 @@ class CommMetricsCallback(BaseCallback):
     def __init__(self, histogram: bool = True, verbose: int = 0) -> None:
         super().__init__(verbose)
         self.histogram = histogram
-        self._n_agents: int | None = None
 
-    # --------------------------------------------------------------- per-env state
     def _on_training_start(self) -> None:
         n_envs = self.training_env.num_envs
+        self.counter = EpisodeCounter(n_envs)
         starts = getattr(self.model, "_last_episode_starts", None)
         # Only episodes seen from their first step are reported (learn() may continue an episode).
-        self._tracked = np.ones(n_envs, bool) if starts is None else np.asarray(starts, bool).copy()
-        self._start_x = np.array([self._reset_package_x(e) for e in range(n_envs)])
-        self._ep_step = np.zeros(n_envs, np.int64)
-        self._n_agents = None
-        self._reset_rollout()
+        for e in range(n_envs):
+            if starts is None or starts[e]:
+                self.counter.start(e, self._reset_info(e))
 
-    def _reset_package_x(self, env_idx: int) -> float:
-        """Package x at the VecEnv's last reset of one env: the start of the package travel.
+    def _reset_info(self, env_idx: int) -> dict[str, Any] | None:
+        """The info of the VecEnv's last reset of one env.
 
         :param env_idx: index of the env in the training VecEnv
-        :return: ``package_x`` of the env's ``reset_infos`` entry (m); NaN if the VecEnv has no reset infos
-            for it or the env reports no ``package_x``
+        :return: its ``reset_infos`` entry; None if the VecEnv has none for it
         """
         reset_infos = getattr(self.training_env, "reset_infos", None)
         if reset_infos is None or env_idx >= len(reset_infos):
-            return math.nan
-        return float(reset_infos[env_idx].get("package_x", math.nan))
+            return None
+        return reset_infos[env_idx]
 
-    def _init_agents(self, n_agents: int) -> None:
-        """Create the per-env, per-agent episode state (n_envs, N) at the first step and clear the rollout's counts.
-
-        :param n_agents: number of agents N (the length of ``info["broadcast"]``)
-        """
-        n_envs = len(self._tracked)
-        self._n_agents = n_agents
-        self._ep_return = np.zeros((n_envs, n_agents))
-        self._ep_control_return = np.zeros((n_envs, n_agents))
-        self._last_event = np.full((n_envs, n_agents), -1, np.int64)
-        self._reset_rollout()
-
-    def _reset_rollout(self) -> None:
-        """Clear the rollout's counts: broadcasts, steps, inter-event times and finished episodes."""
-        n = self._n_agents or 0
-        self._broadcasts = np.zeros(n, np.int64)
-        self._steps = 0
-        self._intervals: list[list[int]] = [[] for _ in range(n)]
-        self._returns: list[np.ndarray] = []
-        self._control_returns: list[np.ndarray] = []
-        self._terminated: list[bool] = []
-        self._travel: list[float] = []
-
-    # --------------------------------------------------------------- callbacks
     def _on_rollout_start(self) -> None:
-        self._reset_rollout()
+        self.counter.clear()
 
     def _on_step(self) -> bool:
         infos, dones = self.locals["infos"], self.locals["dones"]
         for e, (info, done) in enumerate(zip(infos, dones, strict=True)):
-            if "broadcast" not in info:
-                raise ValueError("CommMetricsCallback needs info['broadcast']: use a joint sb3_detc env (JointEnv).")
-            broadcast = np.asarray(info["broadcast"], np.int64)
-            if self._n_agents is None:
-                self._init_agents(len(broadcast))
-            k = self._ep_step[e]
-            self._broadcasts += broadcast
-            for i in np.flatnonzero(broadcast):
-                if self._last_event[e, i] >= 0:
-                    self._intervals[i].append(int(k - self._last_event[e, i]))
-                self._last_event[e, i] = k
-            self._ep_return[e] += info["agent_rewards"]
-            self._ep_control_return[e] += info["control_rewards"]
-            self._ep_step[e] += 1
-            if done:
-                self._end_episode(e, info)
-        self._steps += len(infos)
+            truncated = bool(done) and info.get("TimeLimit.truncated", False)
+            self.counter.step(e, info, terminated=bool(done) and not truncated, truncated=truncated)
+            if done:  # the VecEnv reset env e after this step
+                reset_info = info.get("reset_info")
+                self.counter.start(e, reset_info if reset_info is not None else self._reset_info(e))
         return True
 
-    def _end_episode(self, e: int, info: dict[str, Any]) -> None:
-        """Record the episode that env ``e`` finished (if seen from its start) and start the env's next one.
-
-        :param e: index of the env in the training VecEnv
-        :param info: the info of the step that ended the episode; reads ``TimeLimit.truncated``,
-            ``package_x`` and ``reset_info`` where present
-        """
-        if self._tracked[e]:
-            self._returns.append(self._ep_return[e].copy())
-            self._control_returns.append(self._ep_control_return[e].copy())
-            self._terminated.append(not info.get("TimeLimit.truncated", False))
-            if "package_x" in info and math.isfinite(self._start_x[e]):
-                self._travel.append(float(info["package_x"]) - self._start_x[e])
-        self._tracked[e] = True
-        self._ep_return[e] = 0.0
-        self._ep_control_return[e] = 0.0
-        self._last_event[e] = -1
-        self._ep_step[e] = 0
-        # the VecEnv reset env e after this step
-        reset_info = info.get("reset_info")
-        self._start_x[e] = (
-            float(reset_info.get("package_x", math.nan)) if reset_info is not None else self._reset_package_x(e)
-        )
-
     def _on_rollout_end(self) -> None:
-        if self._n_agents is None or self._steps == 0:
+        counter = self.counter
+        if counter.steps == 0:
             return
         record = self.logger.record
-        savings = 1.0 - self._broadcasts / self._steps
+        savings = 1.0 - counter.broadcasts / counter.steps
         for i, value in enumerate(savings):
             record(f"comm/savings_agent_{i}", float(value))
         record("comm/savings", float(savings.mean()))
 
-        every = [t for agent in self._intervals for t in agent]
+        every = [t for agent in counter.intervals for t in agent]
         if every:
-            for i, agent in enumerate(self._intervals):
+            for i, agent in enumerate(counter.intervals):
                 record(f"comm/inter_event_time_mean_agent_{i}", float(np.mean(agent)) if agent else math.nan)
                 record(f"comm/inter_event_time_min_agent_{i}", float(np.min(agent)) if agent else math.nan)
             record("comm/inter_event_time_mean", float(np.mean(every)))
@@ -792,14 +732,16 @@ class CommMetricsCallback(BaseCallback):
                     exclude=("stdout", "log", "json", "csv"),
                 )
 
-        if self._returns:
-            returns, control = np.mean(self._returns, axis=0), np.mean(self._control_returns, axis=0)
-            for i in range(self._n_agents):
+        if counter.episodes:
+            episodes = Episodes.from_records(counter.episodes)
+            returns, control = episodes.agent_returns.mean(axis=0), episodes.agent_control_returns.mean(axis=0)
+            for i in range(len(returns)):
                 record(f"comm/ep_return_agent_{i}", float(returns[i]))
                 record(f"comm/ep_control_return_agent_{i}", float(control[i]))
             record("comm/ep_return", float(returns.mean()))
             record("comm/ep_control_return", float(control.mean()))
-            record("comm/episodes", len(self._returns))
-            record("comm/fall_rate", float(np.mean(self._terminated)))
-            if self._travel:
-                record("comm/package_travel", float(np.mean(self._travel)))
+            record("comm/episodes", len(counter.episodes))
+            record("comm/fall_rate", float(np.mean(episodes.failed)))
+            travel = episodes.package_travel[np.isfinite(episodes.package_travel)]
+            if len(travel):
+                record("comm/package_travel", float(np.mean(travel)))

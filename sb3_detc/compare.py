@@ -4,9 +4,11 @@
 ``mappoc`` (learned communication) and ``ppo_random_skip`` (random skips, the paper's
 baseline) with the package's hyperparameter entries, for every seed (``--seeds``, default
 0, 1 and 2), on Ray on this machine (the cores each entry's rollout workers need). Every final policy then runs the
-same 50 seeded evaluation episodes with the training communication cost, with its own
-options (MAPPOC sampling from its policy over options, the baseline with its random
-trigger), with random skips at its own rate, always and never broadcasting. The default
+same 50 seeded evaluation episodes with the training communication cost in the modes of the
+package's protocol (:func:`~sb3_detc.evaluation.evaluate_policy_modes`): with its own options
+(MAPPOC's sampled from its policy over options, as the entries' ``sample_options`` say, the
+baseline's from its random trigger), with MAPPOC's most likely options, with random skips at its
+own rate, always and never broadcasting. The default
 environment is ``sb3_detc/LinearETC-LQR-v0``: the controls are LQR on held broadcasts, so
 the comparison is between a learned and a random trigger for the same controller, and the
 baseline, random options for a controller it cannot change, trains one iteration only. The table
@@ -30,19 +32,13 @@ from pathlib import Path
 from typing import Any
 
 import gymnasium as gym
-import numpy as np
 import yaml
-from huggingface_sb3 import EnvironmentName
-from rl_zoo3.utils import get_saved_hyperparams
 
 from sb3_detc.cli import InputError, check_env, run_cli
-from sb3_detc.evaluation import CommunicationReport, evaluate_communication
-from sb3_detc.mappoc import MAPPOC
-from sb3_detc.mappoc.sampling import FixedTrigger
+from sb3_detc.evaluation import EVAL_SEED
 from sb3_detc.study.report import interval_text, report_study, summarise
 from sb3_detc.study.runner import prepare_folder, run_study
 from sb3_detc.study.spec import load_study
-from sb3_detc.study.trial import entry_fixed_trigger
 from sb3_detc.triggers import FixedControl
 
 #: The compared algorithms (rl-zoo3 names): learned communication and the random-skip baseline.
@@ -50,66 +46,6 @@ ALGOS = ("mappoc", "ppo_random_skip")
 
 #: Row of the table: the baseline with random skips at the learned trigger's rate.
 EQUAL_RATE = "ppo_random_skip at mappoc's rate"
-
-#: Seed of the first evaluation episode (the same episodes for every model).
-EVAL_SEED = 10_000
-
-
-def evaluate_run(
-    run: Path, env_id: str, episodes: int, trigger: FixedTrigger | None = None, model: Path | None = None
-) -> CommunicationReport:
-    """Evaluate a run's final model or a checkpoint on seeded episodes, with the run's env settings and trigger.
-
-    The environment gets the run's ``env_kwargs`` (so the communication cost of training is
-    charged also for the baseline, which trained without it); a run trained with a fixed
-    trigger (:class:`~sb3_detc.callbacks.FixedTriggerCallback`) is evaluated with that trigger.
-
-    :param run: the run folder
-    :param env_id: environment id
-    :param episodes: evaluation episodes
-    :param trigger: options to use instead of the run's (None: the run's own)
-    :param model: the saved model to evaluate, e.g. a checkpoint ``rl_model_<steps>_steps.zip``
-        (None: the run's final model ``<run>/<env name>.zip``)
-    :return: the evaluation report
-    :raises FileNotFoundError: if the model file does not exist
-    """
-    name = EnvironmentName(env_id)
-    config, _ = get_saved_hyperparams(str(run / name))
-    if trigger is None:
-        trigger = entry_fixed_trigger(dict(config))
-    path = run / f"{name}.zip" if model is None else model
-    if not path.is_file():
-        raise FileNotFoundError(f"no saved model {path}")
-    with gym.make(env_id, **(config.get("env_kwargs") or {})) as env:
-        return evaluate_communication(
-            MAPPOC.load(path, device="cpu"),
-            env,
-            episodes,
-            deterministic=True,
-            sample_options=True,
-            fixed_trigger=trigger,
-            seed=EVAL_SEED,
-        )
-
-
-def table(reports: dict[str, list[CommunicationReport]]) -> str:
-    """Markdown table of mean (and, over several seeds, min-max) return, control return and savings.
-
-    :param reports: algorithm name -> one report per seed
-    :return: the table
-    """
-
-    def cell(values: list[float], digits: int) -> str:
-        text = f"{np.mean(values):.{digits}f}"
-        return text + (f" ({min(values):.{digits}f} to {max(values):.{digits}f})" if len(values) > 1 else "")
-
-    lines = ["| algorithm | seeds | return | control return | savings |", "|---|---|---|---|---|"]
-    for algo, runs in reports.items():
-        returns = [r.mean_return for r in runs]
-        control = [r.mean_control_return for r in runs]
-        savings = [r.savings for r in runs]
-        lines.append(f"| {algo} | {len(runs)} | {cell(returns, 2)} | {cell(control, 2)} | {cell(savings, 3)} |")
-    return "\n".join(lines)
 
 
 def controls_fixed(env_id: str) -> bool:

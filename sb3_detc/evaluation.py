@@ -1,20 +1,335 @@
-"""Evaluation of communication and control: returns with and without the communication cost, savings, per episode."""
+"""Evaluation of communication and control: episode metrics, the episode runner and the package's protocol of modes.
+
+* :class:`EpisodeCounter` counts episodes step by step from a joint env's infos: returns with
+  and without the communication cost, broadcasts and savings per agent, inter-event times,
+  package travel and failures. It is the one count of episode statistics: the episode runner
+  and :class:`~sb3_detc.callbacks.CommMetricsCallback` (during training) both use it.
+* :func:`evaluate_episodes` runs a policy for whole seeded episodes and returns them as
+  :class:`Episodes`; :func:`evaluate_communication` averages them into a :class:`CommunicationReport`.
+* :func:`evaluate_policy_modes` is the package's evaluation protocol, the one the studies
+  (:mod:`sb3_detc.study`), ``python -m sb3_detc.compare`` and ``python -m sb3_detc.evaluate``
+  run: the same seeded episodes in every mode of :data:`MODES`.
+
+**Dependence of the trigger on the state.** A trigger that broadcasts with the same
+probability in every state is a random skip; one whose probability of broadcasting follows the
+state can send where a message is worth it. The protocol measures the difference as the mutual
+information between an agent's option and the state it is taken in, over the states the
+learned mode's episodes visit (:attr:`Episodes.option_state_information`):
+``I(O; S) = H(mean_s p(s)) - mean_s H(p(s))``, in bits, with ``p(s)`` the agent's probability
+of broadcasting in state ``s`` and ``H`` the binary entropy; the mean over the agents. It is the
+entropy of state-independent options at the same rate minus that of the trigger's own: 0 for a
+trigger that ignores the state (random skips), up to 1 bit; ``H(rate)`` for a deterministic
+trigger whose options follow the state alone (e.g. send-on-delta), since then every ``H(p(s))`` is 0.
+"""
 
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import gymnasium as gym
 import numpy as np
 import torch as th
+from scipy.special import entr
 from stable_baselines3.common.utils import obs_as_tensor
 
 from sb3_detc.envs.wrappers import JointEnv
 from sb3_detc.mappoc.mappoc import MAPPOC
 from sb3_detc.mappoc.policies import MlpHybridPolicy
 from sb3_detc.mappoc.sampling import FixedTrigger
+from sb3_detc.triggers import RandomTrigger
+
+__all__ = [
+    "EVAL_SEED",
+    "MAX_SIDE_BY_SIDE",
+    "MODES",
+    "SUCCESS_NO_FALL",
+    "SUCCESS_TRAVEL",
+    "CommunicationReport",
+    "EpisodeCounter",
+    "EpisodeRecord",
+    "Episodes",
+    "binary_entropy",
+    "carries_package",
+    "evaluate_communication",
+    "evaluate_episodes",
+    "evaluate_policy_modes",
+]
+
+#: The modes of the protocol (:func:`evaluate_policy_modes`), in its order.
+MODES = ("learned", "mode", "random_same_rate", "periodic", "never")
+
+#: Seed of the first evaluation episode unless a study or a command says otherwise.
+EVAL_SEED = 10_000
+
+#: Fraction of evaluation episodes without a fall for a Multiwalker seed to succeed.
+SUCCESS_NO_FALL = 0.9
+#: Package travel of a successful seed relative to communication at every step with the same controller.
+SUCCESS_TRAVEL = 0.5
+
+#: Most envs that :func:`evaluate_episodes` runs side by side.
+MAX_SIDE_BY_SIDE = 64
+
+
+def binary_entropy(p: np.ndarray | float) -> np.ndarray:
+    """Entropy of options that broadcast with probability ``p``, in bits (0 at 0 and 1, 1 at 0.5).
+
+    :param p: probabilities of broadcasting
+    :return: ``-p log2 p - (1 - p) log2 (1 - p)``, elementwise
+    """
+    p = np.asarray(p, dtype=np.float64)
+    return (entr(p) + entr(1.0 - p)) / math.log(2.0)
+
+
+def carries_package(metrics: dict[str, float]) -> bool:
+    """Whether a Multiwalker seed carries the package: the travel part of the success criterion.
+
+    :param metrics: a trial's evaluation metrics (``package_travel``, ``periodic_package_travel``)
+    :return: True when its package travel is at least :data:`SUCCESS_TRAVEL` of the travel with
+        communication at every step (the same controllers)
+    """
+    return metrics["package_travel"] >= SUCCESS_TRAVEL * metrics["periodic_package_travel"]
+
+
+# ----------------------------------------------------------------------------- episode metrics
+@dataclass
+class EpisodeRecord:
+    """One finished episode, as :class:`EpisodeCounter` counted it.
+
+    :param returns: every agent's return, communication cost included (N,)
+    :param control_returns: every agent's return without the communication cost (N,)
+    :param length: steps
+    :param broadcasts: every agent's broadcasts (N,)
+    :param terminated: whether the episode terminated (rather than being truncated)
+    :param failed: whether it ended by a failure: ``info["failed"]`` of its last step where the
+        env reports it (Multiwalker: a fall or a dropped package, not reaching the end of the
+        terrain), else whether it terminated
+    :param package_travel: final minus initial ``info["package_x"]`` (NaN where the env does not report it)
+    :param broadcast_probability: every agent's mean probability of broadcasting over the
+        episode's steps (N,) (NaN where the probabilities were not given)
+    :param option_entropy: every agent's mean entropy of its options over the episode's steps,
+        :func:`binary_entropy` of the probabilities, in bits (N,) (NaN where they were not given)
+    """
+
+    returns: np.ndarray
+    control_returns: np.ndarray
+    length: int
+    broadcasts: np.ndarray
+    terminated: bool
+    failed: bool
+    package_travel: float
+    broadcast_probability: np.ndarray
+    option_entropy: np.ndarray
+
+
+class EpisodeCounter:
+    """Episodes of envs that run side by side, counted step by step from the joint env's infos.
+
+    Every step of env ``e`` goes to :meth:`step` with the step's info (``broadcast``,
+    ``agent_rewards`` and ``control_rewards`` of every agent, and ``package_x`` and ``failed``
+    where the env reports them); every episode that starts goes to :meth:`start` with the info of
+    its reset. :meth:`step` returns the :class:`EpisodeRecord` of the episode that the step ends,
+    if it was started with :meth:`start`: an episode already running when the counting began
+    (e.g. in a training run continued by another ``learn``) counts in the step statistics only.
+
+    The step statistics since the counter was made or :meth:`clear` ed (e.g. one rollout):
+    :attr:`steps` (steps of one env each), :attr:`broadcasts` (N,), :attr:`intervals` (per
+    agent, the inter-event times: the numbers of steps between two consecutive broadcasts of the
+    agent in one episode; the reset is not an event, and an interval counts when its closing
+    broadcast is sent) and :attr:`episodes` (the records returned since).
+
+    :param n_envs: number of envs counted side by side
+    """
+
+    def __init__(self, n_envs: int) -> None:
+        self.n_envs = n_envs
+        self.n_agents: int | None = None  # from the first step's broadcasts
+        self._started = np.zeros(n_envs, bool)
+        self._start_x = np.full(n_envs, math.nan)
+        self.clear()
+
+    def clear(self) -> None:
+        """Forget the step statistics and the returned episodes (the episodes in progress go on)."""
+        n = self.n_agents or 0
+        self.steps = 0
+        self.broadcasts = np.zeros(n, np.int64)
+        self.intervals: list[list[int]] = [[] for _ in range(n)]
+        self.episodes: list[EpisodeRecord] = []
+
+    def _first_step(self, n_agents: int) -> None:
+        """Make the per-env, per-agent counts (n_envs, N) once the number of agents is known.
+
+        :param n_agents: number of agents N
+        """
+        shape = (self.n_envs, n_agents)
+        self.n_agents = n_agents
+        self._returns = np.zeros(shape)
+        self._control_returns = np.zeros(shape)
+        self._episode_broadcasts = np.zeros(shape, np.int64)
+        self._probability = np.zeros(shape)
+        self._entropy = np.zeros(shape)
+        self._probability_steps = np.zeros(self.n_envs, np.int64)
+        self._length = np.zeros(self.n_envs, np.int64)
+        self._last_event = np.full(shape, -1, np.int64)
+        self.broadcasts = np.zeros(n_agents, np.int64)
+        self.intervals = [[] for _ in range(n_agents)]
+
+    def start(self, env: int, reset_info: dict[str, Any] | None = None) -> None:
+        """An episode starts in env ``env``: it is recorded when it ends.
+
+        :param env: index of the env
+        :param reset_info: the info of its reset (reads ``package_x`` where present; None: not known)
+        """
+        self._started[env] = True
+        self._start_x[env] = float((reset_info or {}).get("package_x", math.nan))
+
+    def step(
+        self,
+        env: int,
+        info: dict[str, Any],
+        terminated: bool,
+        truncated: bool,
+        broadcast_probability: np.ndarray | None = None,
+    ) -> EpisodeRecord | None:
+        """Count one step of env ``env``.
+
+        :param env: index of the env
+        :param info: the step's info: ``broadcast``, ``agent_rewards`` (with the communication cost)
+            and ``control_rewards`` (without), each (N,), and where the env reports them
+            ``package_x`` and ``failed``
+        :param terminated: whether the step terminated the episode
+        :param truncated: whether it truncated it
+        :param broadcast_probability: every agent's probability of broadcasting in this step (N,)
+            (None: not known)
+        :return: the record of the episode this step ended, if it ended one that was started with
+            :meth:`start`, else None
+        :raises ValueError: if the info has no ``broadcast`` (not a joint sb3_detc env)
+        """
+        if "broadcast" not in info:
+            raise ValueError("episode metrics need info['broadcast']: use a joint sb3_detc env (JointEnv).")
+        broadcast = np.asarray(info["broadcast"], np.int64)
+        if self.n_agents is None:
+            self._first_step(len(broadcast))
+        k = self._length[env]
+        for i in np.flatnonzero(broadcast):
+            if self._last_event[env, i] >= 0:
+                self.intervals[i].append(int(k - self._last_event[env, i]))
+            self._last_event[env, i] = k
+        self.broadcasts += broadcast
+        self.steps += 1
+        self._episode_broadcasts[env] += broadcast
+        self._returns[env] += info["agent_rewards"]
+        self._control_returns[env] += info["control_rewards"]
+        self._length[env] += 1
+        if broadcast_probability is not None:
+            self._probability[env] += broadcast_probability
+            self._entropy[env] += binary_entropy(broadcast_probability)
+            self._probability_steps[env] += 1
+        if not (terminated or truncated):
+            return None
+        record = None
+        if self._started[env]:
+            given = self._probability_steps[env]
+            record = EpisodeRecord(
+                returns=self._returns[env].copy(),
+                control_returns=self._control_returns[env].copy(),
+                length=int(self._length[env]),
+                broadcasts=self._episode_broadcasts[env].copy(),
+                terminated=bool(terminated),
+                failed=bool(info.get("failed", terminated)),
+                package_travel=float(info.get("package_x", math.nan)) - self._start_x[env],
+                broadcast_probability=self._probability[env] / given if given else np.full(self.n_agents, math.nan),
+                option_entropy=self._entropy[env] / given if given else np.full(self.n_agents, math.nan),
+            )
+            self.episodes.append(record)
+        self._started[env] = False
+        for counts in (self._returns, self._control_returns, self._probability, self._entropy):
+            counts[env] = 0.0
+        self._episode_broadcasts[env] = 0
+        self._probability_steps[env] = 0
+        self._length[env] = 0
+        self._last_event[env] = -1
+        return record
+
+
+@dataclass
+class Episodes:
+    """Results of a policy's episodes, one entry per episode (arrays of length ``episodes``).
+
+    :param agent_returns: every agent's return, communication cost included (episodes, N)
+    :param agent_control_returns: every agent's return without the communication cost (episodes, N)
+    :param lengths: steps
+    :param broadcasts: broadcasts of every agent (episodes, N)
+    :param terminated: whether the episode terminated (rather than being truncated)
+    :param failed: whether it ended by a failure (:attr:`EpisodeRecord.failed`)
+    :param package_travel: final minus initial ``info["package_x"]`` (NaN where the env does not report it)
+    :param broadcast_probability: every agent's mean probability of broadcasting (episodes, N)
+        (NaN where not known: a fixed trigger without ``broadcast_probability``)
+    :param option_entropy: every agent's mean entropy of its options in bits (episodes, N) (NaN where not known)
+    """
+
+    agent_returns: np.ndarray
+    agent_control_returns: np.ndarray
+    lengths: np.ndarray
+    broadcasts: np.ndarray
+    terminated: np.ndarray
+    failed: np.ndarray
+    package_travel: np.ndarray
+    broadcast_probability: np.ndarray
+    option_entropy: np.ndarray
+
+    @classmethod
+    def from_records(cls, records: Sequence[EpisodeRecord]) -> Episodes:
+        """The episodes of some records, in their order.
+
+        :param records: the episodes' records
+        :return: their results side by side
+        """
+        return cls(
+            agent_returns=np.array([r.returns for r in records]),
+            agent_control_returns=np.array([r.control_returns for r in records]),
+            lengths=np.array([r.length for r in records]),
+            broadcasts=np.array([r.broadcasts for r in records]),
+            terminated=np.array([r.terminated for r in records]),
+            failed=np.array([r.failed for r in records]),
+            package_travel=np.array([r.package_travel for r in records]),
+            broadcast_probability=np.array([r.broadcast_probability for r in records]),
+            option_entropy=np.array([r.option_entropy for r in records]),
+        )
+
+    @property
+    def returns(self) -> np.ndarray:
+        """Team-mean return of every episode, communication cost included (episodes,)."""
+        return self.agent_returns.mean(axis=1)
+
+    @property
+    def control_returns(self) -> np.ndarray:
+        """Team-mean return of every episode without the communication cost (episodes,)."""
+        return self.agent_control_returns.mean(axis=1)
+
+    @property
+    def agent_savings(self) -> np.ndarray:
+        """Every agent's savings over all episodes, ``1 - broadcasts_i / steps`` (N,)."""
+        return 1.0 - self.broadcasts.sum(axis=0) / self.lengths.sum()
+
+    @property
+    def savings(self) -> float:
+        """Communication savings over all episodes, ``1 - broadcasts / agent-steps``."""
+        return float(self.agent_savings.mean())
+
+    @property
+    def option_state_information(self) -> float:
+        """Mutual information between options and state over the visited states, in bits, the mean over the agents.
+
+        Per agent ``H(mean p) - mean H(p)`` over every step of every episode (see the module's
+        text); NaN where the probabilities of broadcasting are not known.
+        """
+        weights = self.lengths[:, None] / self.lengths.sum()
+        mean_probability = (self.broadcast_probability * weights).sum(axis=0)
+        mean_entropy = (self.option_entropy * weights).sum(axis=0)
+        return float(np.mean(np.maximum(binary_entropy(mean_probability) - mean_entropy, 0.0)))
 
 
 @dataclass
@@ -39,49 +354,13 @@ class CommunicationReport:
     episodes: int
 
 
-@dataclass
-class Episodes:
-    """Per-episode results of a policy, one entry per episode (arrays of length ``episodes``).
-
-    :param returns: team-mean return, communication cost included
-    :param control_returns: team-mean return without the communication cost
-    :param lengths: steps
-    :param broadcasts: broadcasts of every agent (episodes, N)
-    :param terminated: whether the episode terminated (rather than being truncated)
-    :param failed: whether it ended by a failure (``info["failed"]``, Multiwalker: a fall or a
-        dropped package; False where the env does not report it)
-    :param package_travel: final minus initial ``info["package_x"]`` (NaN where the env does not report it)
-    """
-
-    returns: np.ndarray
-    control_returns: np.ndarray
-    lengths: np.ndarray
-    broadcasts: np.ndarray
-    terminated: np.ndarray
-    failed: np.ndarray
-    package_travel: np.ndarray
-
-    @property
-    def savings(self) -> float:
-        """Communication savings over all episodes, ``1 - broadcasts / agent-steps``."""
-        return float(1.0 - self.broadcasts.sum() / (self.lengths.sum() * self.broadcasts.shape[1]))
-
-
-#: Most envs that :func:`evaluate_episodes` runs side by side.
-MAX_SIDE_BY_SIDE = 64
-
-
+# ----------------------------------------------------------------------------- the episode runner
 @dataclass
 class _Running:
     """An episode in progress in one of the envs."""
 
     index: int  # position of its seed
     obs: dict[str, np.ndarray]
-    start_x: float
-    broadcasts: np.ndarray  # (N,) broadcasts so far of every agent
-    total: float = 0.0
-    control_total: float = 0.0
-    steps: int = 0
 
 
 def evaluate_episodes(
@@ -92,7 +371,7 @@ def evaluate_episodes(
     sample_options: bool | None = None,
     fixed_trigger: FixedTrigger | None = None,
 ) -> Episodes:
-    """Run a policy for whole episodes, one per seed, and record each.
+    """Run a policy for whole episodes, one per seed, and record each (:class:`EpisodeCounter`).
 
     Where every episode has its seed and ``env`` can be made again (``env.spec``, as for an
     env from ``gym.make`` or an id, with wrappers that Gymnasium can make again), the episodes
@@ -105,6 +384,9 @@ def evaluate_episodes(
     seed, the policy's draws (options sampled from ``mu``, controls unless ``deterministic``)
     are seeded with the first (PyTorch's CPU generator, left as it was afterwards; a policy on
     a GPU draws from the GPU's): the same policy, env and seeds give the same episodes.
+    The probabilities of broadcasting are recorded at every step: ``mu``'s
+    (:meth:`~sb3_detc.mappoc.policies.MlpHybridPolicy.broadcast_probabilities`), or those of
+    ``fixed_trigger`` where it has ``broadcast_probability(obs)``.
 
     :param policy: the policy (of a trained model, ``model.policy``, or loaded on its own)
     :param env: a joint env (not vectorised) or its registered id
@@ -129,7 +411,7 @@ def evaluate_episodes(
         sample_options = policy.sample_options or not deterministic
     policy.set_training_mode(False)
     low, high = env.action_space["control"].low, env.action_space["control"].high
-    n_agents = env.action_space["broadcast"].shape[0]
+    trigger_probability = getattr(fixed_trigger, "broadcast_probability", None)
     seeded = all(seed is not None for seed in seeds)
     copies = []
     if seeded and env.spec is not None:
@@ -138,15 +420,17 @@ def evaluate_episodes(
         except (ValueError, gym.error.Error):  # a wrapper that cannot be made again (the first copy fails)
             copies = []  # one episode after another
     envs = [env, *copies]
+    counter = EpisodeCounter(len(envs))
     pending = iter(enumerate(seeds))
     running: dict[int, _Running] = {}  # env position -> its episode
-    records: list[dict | None] = [None] * len(seeds)
+    records: list[EpisodeRecord | None] = [None] * len(seeds)
 
     def start(slot: int) -> None:
         index, seed = next(pending, (None, None))
         if index is not None:
             obs, info = envs[slot].reset(seed=seed)
-            running[slot] = _Running(index, obs, info.get("package_x", math.nan), np.zeros(n_agents, np.int64))
+            counter.start(slot, info)
+            running[slot] = _Running(index, obs)
 
     try:
         with th.random.fork_rng(devices=[], enabled=seeded):
@@ -158,44 +442,33 @@ def evaluate_episodes(
                 slots = list(running)
                 batch = {key: np.stack([running[slot].obs[key] for slot in slots]) for key in running[slots[0]].obs}
                 with th.no_grad():
-                    forced = None
-                    if fixed_trigger is not None:
+                    obs = obs_as_tensor(batch, policy.device)
+                    forced, probability = None, None
+                    if fixed_trigger is None:
+                        probability = policy.broadcast_probabilities(obs).cpu().numpy()
+                    else:
+                        if trigger_probability is not None:
+                            probability = trigger_probability(batch)
                         forced = th.as_tensor(fixed_trigger(batch), device=policy.device)
                     sampled, controls = policy.sample_actions(
-                        obs_as_tensor(batch, policy.device),
-                        broadcast=forced,
-                        deterministic=deterministic,
-                        sample_options=sample_options,
+                        obs, broadcast=forced, deterministic=deterministic, sample_options=sample_options
                     )
                 sampled, controls = sampled.cpu().numpy(), np.clip(controls.cpu().numpy(), low, high)
                 for row, slot in enumerate(slots):
-                    episode = running[slot]
-                    obs, reward, terminated, truncated, info = envs[slot].step(
+                    obs, _, terminated, truncated, info = envs[slot].step(
                         {"broadcast": sampled[row], "control": controls[row]}
                     )
-                    episode.obs = obs
-                    episode.total += reward
-                    episode.control_total += float(np.mean(info["control_rewards"]))
-                    episode.broadcasts += sampled[row]
-                    episode.steps += 1
+                    running[slot].obs = obs
+                    record = counter.step(
+                        slot, info, terminated, truncated, None if probability is None else probability[row]
+                    )
                     if terminated or truncated:
-                        records[episode.index] = {
-                            "returns": episode.total,
-                            "control_returns": episode.control_total,
-                            "lengths": episode.steps,
-                            "broadcasts": episode.broadcasts,
-                            "terminated": bool(terminated),
-                            "failed": bool(info.get("failed", False)),
-                            "package_travel": info.get("package_x", math.nan) - episode.start_x,
-                        }
-                        del running[slot]
+                        records[running.pop(slot).index] = record
                         start(slot)
     finally:
         for copy in copies:
             copy.close()
-    return Episodes(
-        **{field: np.asarray([record[field] for record in records]) for field in Episodes.__dataclass_fields__}
-    )
+    return Episodes.from_records(records)  # type: ignore[arg-type]
 
 
 def evaluate_communication(
@@ -234,13 +507,137 @@ def evaluate_communication(
         sample_options=sample_options,
         fixed_trigger=fixed_trigger,
     )
-    agent_rate = episodes.broadcasts.sum(axis=0) / episodes.lengths.sum()
     return CommunicationReport(
         mean_return=float(np.mean(episodes.returns)),
         mean_control_return=float(np.mean(episodes.control_returns)),
         std_control_return=float(np.std(episodes.control_returns)),
-        broadcast_rate=float(agent_rate.mean()),
-        savings=float(1 - agent_rate.mean()),
-        agent_savings=1 - agent_rate,
+        broadcast_rate=1.0 - episodes.savings,
+        savings=episodes.savings,
+        agent_savings=episodes.agent_savings,
         episodes=n_eval_episodes,
     )
+
+
+# ----------------------------------------------------------------------------- the protocol
+def _episodes_json(episodes: Episodes) -> dict[str, Any]:
+    """One evaluation mode's episodes as JSON lists, one entry per episode.
+
+    :param episodes: the mode's episodes
+    :return: ``return``, ``control_return``, ``length``, ``broadcasts`` (of all agents), ``failed`` and
+        ``package_travel`` (None where not reported) per episode, and ``savings`` over all of them
+    """
+    return {
+        "return": episodes.returns.tolist(),
+        "control_return": episodes.control_returns.tolist(),
+        "length": episodes.lengths.tolist(),
+        "broadcasts": episodes.broadcasts.sum(axis=1).tolist(),
+        "failed": episodes.failed.tolist(),
+        "package_travel": [None if math.isnan(x) else x for x in episodes.package_travel.tolist()],
+        "savings": episodes.savings,
+    }
+
+
+def evaluate_policy_modes(
+    policy: MlpHybridPolicy,
+    env: gym.Env,
+    episodes: int,
+    seed: int,
+    own_trigger: FixedTrigger | None = None,
+    sample_options: bool | None = None,
+    on_mode: Callable[[str, Episodes], None] | None = None,
+) -> dict[str, Any]:
+    """The package's evaluation protocol: the same seeded episodes in every communication mode.
+
+    Episode ``k`` is reset with ``seed + k`` in every mode; the control policy acts with its
+    mean. The modes (:data:`MODES`):
+
+    * ``learned``: the policy's own trigger. Its options are sampled from the policy over
+      options ``mu`` or its most likely ones, as ``sample_options`` says (the paper's entries
+      sample, :class:`~sb3_detc.mappoc.policies.MlpHybridPolicy`), or they come from the fixed
+      trigger the policy trained with, ``own_trigger``;
+    * ``mode``: the most likely options of ``mu`` (only for a policy that learned its options,
+      i.e. without ``own_trigger``; the ``learned`` mode's episodes where those take them too);
+    * ``random_same_rate``: every agent skips at random with the ``learned`` mode's savings;
+    * ``periodic``: every agent broadcasts at every step;
+    * ``never``: no broadcasts after the reset.
+
+    :param policy: the trained policy
+    :param env: a joint env with the trial's settings (communication cost included)
+    :param episodes: episodes per mode
+    :param seed: seed of the first episode
+    :param own_trigger: the fixed trigger the policy trained with (None: its policy over options)
+    :param sample_options: the ``learned`` mode samples its options from ``mu`` (True) or takes
+        the most likely ones (False) (None: as the policy's ``sample_options`` says)
+    :param on_mode: called with every mode's name and episodes when they are done (e.g. to show progress)
+    :return: ``episodes``, ``seed``, ``options`` (how the ``learned`` mode took its options:
+        ``"sampled"``, ``"mode"`` or ``"fixed trigger"``), ``modes`` (mode -> per-episode lists
+        and savings) and ``metrics``: ``return``, ``control_return`` and ``savings`` of the
+        ``learned`` mode; ``<mode>_return`` and ``<mode>_control_return`` of every other mode and
+        ``<mode>_savings`` of ``mode`` and ``random_same_rate``;
+        ``learned_minus_random_control_return`` (the mean paired difference of the learned and
+        the random control returns); ``option_state_information`` (the ``learned`` mode's
+        dependence on the state, :attr:`Episodes.option_state_information`, where its
+        probabilities of broadcasting are known); and where the env reports the package
+        (Multiwalker) ``package_travel``, ``fall_rate`` and ``success`` of the ``learned`` mode,
+        ``<mode>_package_travel`` of ``mode``, ``random_same_rate`` and ``periodic``, and
+        ``mode_fall_rate``
+    """
+    seeds = [seed + k for k in range(episodes)]
+    if sample_options is None:
+        sample_options = policy.sample_options
+    if own_trigger is not None and hasattr(own_trigger, "fork"):
+        own_trigger = own_trigger.fork(seed)
+    results: dict[str, Episodes] = {}
+
+    def run(mode: str, result: Episodes) -> Episodes:
+        results[mode] = result
+        if on_mode is not None:
+            on_mode(mode, result)
+        return result
+
+    learned = run(
+        "learned",
+        evaluate_episodes(
+            policy, env, seeds, deterministic=True, sample_options=sample_options, fixed_trigger=own_trigger
+        ),
+    )
+    if own_trigger is None:
+        run("mode", evaluate_episodes(policy, env, seeds, sample_options=False) if sample_options else learned)
+    for mode, skip in (("random_same_rate", learned.savings), ("periodic", 0.0), ("never", 1.0)):
+        trigger = RandomTrigger(float(np.clip(skip, 0.0, 1.0)), seed=seed)
+        run(mode, evaluate_episodes(policy, env, seeds, deterministic=True, fixed_trigger=trigger))
+    metrics: dict[str, float] = {
+        "return": float(np.mean(learned.returns)),
+        "control_return": float(np.mean(learned.control_returns)),
+        "savings": learned.savings,
+    }
+    others = [mode for mode in MODES[1:] if mode in results]
+    for mode in others:
+        metrics[f"{mode}_return"] = float(np.mean(results[mode].returns))
+        metrics[f"{mode}_control_return"] = float(np.mean(results[mode].control_returns))
+    for mode in ("mode", "random_same_rate"):
+        if mode in results:
+            metrics[f"{mode}_savings"] = results[mode].savings
+    difference = learned.control_returns - results["random_same_rate"].control_returns
+    metrics["learned_minus_random_control_return"] = float(np.mean(difference))
+    information = learned.option_state_information
+    if not math.isnan(information):
+        metrics["option_state_information"] = information
+    if not np.isnan(learned.package_travel).any():
+        metrics["package_travel"] = float(np.mean(learned.package_travel))
+        metrics["fall_rate"] = float(np.mean(learned.failed))
+        for mode in ("mode", "random_same_rate", "periodic"):
+            if mode in results:
+                metrics[f"{mode}_package_travel"] = float(np.mean(results[mode].package_travel))
+        if "mode" in results:
+            metrics["mode_fall_rate"] = float(np.mean(results["mode"].failed))
+        upright = 1.0 - metrics["fall_rate"] >= SUCCESS_NO_FALL
+        metrics["success"] = float(upright and carries_package(metrics))
+    options = "fixed trigger" if own_trigger is not None else "sampled" if sample_options else "mode"
+    return {
+        "episodes": episodes,
+        "seed": seed,
+        "options": options,
+        "modes": {mode: _episodes_json(result) for mode, result in results.items()},
+        "metrics": metrics,
+    }

@@ -1,4 +1,4 @@
-"""``benchmarks/evaluate_saved_model.py``: a saved model evaluated with the study's protocol, from the command line."""
+"""``python -m sb3_detc.evaluate``: a saved model or policy evaluated with the package's protocol."""
 
 from __future__ import annotations
 
@@ -9,43 +9,104 @@ from pathlib import Path
 
 import gymnasium as gym
 import pytest
+import torch as th
+from stable_baselines3 import PPO
 
 import sb3_detc  # noqa: F401  (registers the env ids)
-from sb3_detc import MAPPOC
-from sb3_detc.study.trial import MODES, evaluate_policy_modes
+from sb3_detc import MAPPOC, evaluate
+from sb3_detc.evaluation import MODES, evaluate_policy_modes
 
-SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "evaluate_saved_model.py"
+ROOT = Path(__file__).resolve().parents[1]
+STUDY = ROOT / "benchmarks" / "studies" / "multiwalker_paper"
 ENV_ID = "sb3_detc/LinearETC-v0"
 
 
-def test_the_script_writes_the_study_protocol_of_a_saved_model(tmp_path: Path) -> None:
+def refused(argv: list[str], capsys: pytest.CaptureFixture) -> str:
+    """The one line the command refuses ``argv`` with."""
+    with pytest.raises(SystemExit) as stopped:
+        evaluate.main(argv)
+    assert stopped.value.code == 2
+    error = capsys.readouterr().err
+    assert error.count("\n") == 1 and "Traceback" not in error, error
+    return error
+
+
+def test_a_shipped_policy_is_evaluated_as_its_study_did(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    """The env, its settings and the trigger come from the study; short episodes keep it fast."""
+    out = tmp_path / "evaluation.json"
+    policy = STUDY / "trials" / "mappoc_paper" / "seed0" / "policy.pt"
+    evaluate.main([str(policy), "--episodes", "1", "--env-kwargs", "max_cycles=8", "--out", str(out)])
+    printed = capsys.readouterr().out
+    result = json.loads(out.read_text())
+    assert result["seed"] == 10_000 and result["episodes"] == 1  # the study's evaluation seed
+    assert result["options"] == "sampled"  # as the study evaluated the paper's policies
+    assert list(result["modes"]) == list(MODES) and result["modes"]["learned"]["length"] == [8]
+    assert "broadcast_cost=0.25, max_cycles=8" in printed  # the study's settings, and the one given here
+    for mode in MODES:
+        assert f"  {mode}: control return" in printed  # a line as each mode finishes
+        assert f"| {mode} | {result['metrics'].get(f'{mode}_return', result['metrics']['return']):.2f} |" in printed
+    assert "| mode | return | control return | savings | package travel | fall rate |" in printed
+    assert result["metrics"]["return"] < result["metrics"]["control_return"]  # broadcasts cost 0.25 each
+    assert "option_state_information" in result["metrics"] and "bits" in printed
+    # The baseline of the same study: its learned mode is the random trigger it trained with.
+    baseline = STUDY / "trials" / "random_skip_paper" / "seed2" / "policy.pt"
+    evaluate.main([str(baseline), "--episodes", "1", "--env-kwargs", "max_cycles=8", "--out", str(out)])
+    result = json.loads(out.read_text())
+    assert result["options"] == "fixed trigger" and "mode" not in result["modes"]
+    assert "the fixed trigger it trained with" in capsys.readouterr().out
+
+
+def test_a_saved_model_with_an_env_given_is_evaluated_with_the_protocol(tmp_path: Path) -> None:
     env_kwargs = {"n_agents": 2, "max_cycles": 12, "broadcast_cost": 1e-3}
     model = MAPPOC("MlpHybridPolicy", gym.make(ENV_ID, **env_kwargs), n_steps=16, policy_kwargs={"net_arch": [8]})
     model.save(tmp_path / "model.zip")
     out = tmp_path / "evaluation.json"
-    command = [sys.executable, str(SCRIPT), str(tmp_path / "model.zip"), "--env", ENV_ID, "--episodes", "3"]
-    command += ["--seed", "40", "--out", str(out), "--env-kwargs", "n_agents=2", "max_cycles=12", "broadcast_cost=1e-3"]
-    printed = subprocess.run(command, check=True, capture_output=True, text=True).stdout
+    command = [sys.executable, "-m", "sb3_detc.evaluate", str(tmp_path / "model.zip"), "--env", ENV_ID]
+    command += ["--episodes", "3", "--seed", "40", "--out", str(out), "--sample-options"]
+    command += ["--env-kwargs", "n_agents=2", "max_cycles=12", "broadcast_cost=1e-3"]
+    subprocess.run(command, check=True, capture_output=True, text=True, cwd=ROOT)
     result = json.loads(out.read_text())
-    assert result["episodes"] == 3 and result["seed"] == 40 and set(result["modes"]) == set(MODES)
-    assert all(len(mode["control_return"]) == 3 for mode in result["modes"].values())
-    assert f"control_return: {result['metrics']['control_return']:.4g}" in printed
-    # The same as the study's protocol run here on the env with these settings (the cost included),
-    # the options sampled from mu too: the episodes' seeds seed them.
-    expected = evaluate_policy_modes(MAPPOC.load(tmp_path / "model.zip").policy, gym.make(ENV_ID, **env_kwargs), 3, 40)
+    assert result["episodes"] == 3 and result["seed"] == 40 and result["options"] == "sampled"
+    # The same as the protocol run here on the env with these settings (the cost included), the options
+    # sampled from mu too: the episodes' seeds seed them.
+    policy = MAPPOC.load(tmp_path / "model.zip").policy
+    expected = evaluate_policy_modes(policy, gym.make(ENV_ID, **env_kwargs), 3, 40, sample_options=True)
     assert set(result["metrics"]) == set(expected["metrics"])
     for metric, value in expected["metrics"].items():
         assert result["metrics"][metric] == pytest.approx(value, rel=1e-6), metric
     # A model of the baseline: its own options are the random trigger it trained with.
-    subprocess.run([*command, "--skip-prob", "1.0"], check=True, capture_output=True)
+    evaluate.main([*command[3:], "--skip-prob", "1.0"])
     assert json.loads(out.read_text())["metrics"]["savings"] == 1.0
 
 
-def test_the_script_rejects_settings_without_a_value(tmp_path: Path) -> None:
-    command = [sys.executable, str(SCRIPT), str(tmp_path / "model.zip"), "--env", ENV_ID, "--out", str(tmp_path / "x")]
-    done = subprocess.run([*command, "--env-kwargs", "n_agents"], capture_output=True, text=True)
-    assert done.returncode == 2 and "key=value" in done.stderr
-    done = subprocess.run([*command, "--episodes", "0"], capture_output=True, text=True)
-    assert done.returncode == 2 and "--episodes must be >= 1" in done.stderr
-    done = subprocess.run(command, capture_output=True, text=True)
-    assert done.returncode == 2 and "no saved model" in done.stderr
+def test_a_video_of_one_episode(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    policy = STUDY / "trials" / "mappoc_paper" / "seed0" / "policy.pt"
+    video = tmp_path / "videos" / "episode.mp4"
+    evaluate.main([str(policy), "--episodes", "1", "--env-kwargs", "max_cycles=5", "--video", str(video)])
+    assert video.stat().st_size > 1000 and str(video) in capsys.readouterr().out
+    model = MAPPOC("MlpHybridPolicy", gym.make(ENV_ID), n_steps=16, policy_kwargs={"net_arch": [8]})
+    model.save(tmp_path / "model.zip")
+    argv = [str(tmp_path / "model.zip"), "--env", ENV_ID, "--episodes", "1", "--video", str(video)]
+    assert f"{ENV_ID} does not render" in refused(argv, capsys)
+
+
+def test_what_is_not_a_saved_model_or_policy_is_refused_with_one_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture
+) -> None:
+    text = tmp_path / "notes.txt"
+    text.write_text("not a model")
+    assert "notes.txt is not a saved MAPPOC model (.zip) or policy (policy.pt)" in refused([str(text)], capsys)
+    assert "no such file" in refused([str(tmp_path / "missing.zip")], capsys)
+    PPO("MlpPolicy", "CartPole-v1", n_steps=16).save(tmp_path / "ppo.zip")
+    assert "ppo.zip is a model of another algorithm" in refused([str(tmp_path / "ppo.zip")], capsys)
+    th.save({"weights": th.zeros(2)}, tmp_path / "tensors.pt")
+    assert "tensors.pt is not a saved MAPPOC model" in refused([str(tmp_path / "tensors.pt")], capsys)
+    model = MAPPOC("MlpHybridPolicy", gym.make(ENV_ID), n_steps=16, policy_kwargs={"net_arch": [8]})
+    model.save(tmp_path / "model.zip")
+    assert "cannot tell the env" in refused([str(tmp_path / "model.zip")], capsys)  # no run or study around it
+    model.policy.save(str(tmp_path / "policy.pt"))
+    assert "cannot tell the env" in refused([str(tmp_path / "policy.pt")], capsys)
+    argv = [str(tmp_path / "model.zip"), "--env", ENV_ID]
+    assert "--env-kwargs takes key=value" in refused([*argv, "--env-kwargs", "n_agents"], capsys)
+    assert "--episodes must be >= 1" in refused([*argv, "--episodes", "0"], capsys)
+    assert "unknown" in refused([str(tmp_path / "model.zip"), "--env", "sb3_detc/Nothing-v0"], capsys).lower()

@@ -1,4 +1,4 @@
-"""Evaluation episodes side by side (copies of the env, one policy call per step) and one after another."""
+"""Evaluation: episodes side by side and one after another, the protocol of modes, the shared episode counter."""
 
 from __future__ import annotations
 
@@ -6,13 +6,16 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import torch as th
+from logged import capture_logger  # tests/logged.py
+from stable_baselines3.common.env_util import make_vec_env
 
 import sb3_detc  # noqa: F401  (registers the env ids)
 from sb3_detc import evaluation
+from sb3_detc.callbacks import CommMetricsCallback
 from sb3_detc.envs.linear_etc_v0 import joint_env
 from sb3_detc.evaluation import evaluate_episodes
 from sb3_detc.mappoc import MAPPOC
-from sb3_detc.triggers import PeriodicTrigger, RandomTrigger
+from sb3_detc.triggers import PeriodicTrigger, RandomTrigger, SendOnDelta
 
 ENV_ID = "sb3_detc/LinearETC-v0"
 SETTINGS = {"n_agents": 2, "max_cycles": 15}
@@ -89,3 +92,134 @@ def test_evaluate_communication_seeds_every_episode() -> None:
     episodes = evaluate_episodes(model.policy, gym.make(ENV_ID, **SETTINGS), [7, 8, 9])
     assert report.mean_control_return == pytest.approx(float(np.mean(episodes.control_returns)))
     assert report.savings == pytest.approx(episodes.savings)
+
+
+def test_binary_entropy_hand_values() -> None:
+    np.testing.assert_allclose(evaluation.binary_entropy([0.0, 0.5, 1.0, 0.25]), [0, 1, 0, 0.8112781244591328])
+
+
+def zeroed_mu(policy, p_broadcast: float) -> None:
+    """Make ``mu`` ignore the state: no weights into its output layer, a bias for ``p_broadcast`` in every state."""
+    views = policy.net_parameters("mu")
+    weights, biases = views[: len(views) // 2], views[len(views) // 2 :]
+    weights[-1].zero_()
+    biases[-1].zero_()
+    biases[-1][..., 1] = float(np.log(p_broadcast / (1 - p_broadcast)))
+
+
+def sharpened_mu(policy, scale: float = 1e4) -> None:
+    """Make ``mu`` follow the state: its outputs scaled up, so its probabilities leave 0.5 for 0 or 1 by state."""
+    views = policy.net_parameters("mu")
+    views[len(views) // 2 - 1].mul_(scale)
+
+
+@pytest.mark.parametrize("trigger", [RandomTrigger(0.7, seed=1), RandomTrigger(0.0)])
+def test_a_trigger_that_ignores_the_state_carries_no_information_about_it(policy, trigger) -> None:
+    episodes = evaluate_episodes(policy, gym.make(ENV_ID, **SETTINGS), [1, 2, 3], fixed_trigger=trigger)
+    np.testing.assert_allclose(episodes.broadcast_probability, 1 - trigger.skip_prob)
+    assert episodes.option_state_information == pytest.approx(0.0, abs=1e-12)
+
+
+def test_a_deterministic_trigger_of_the_state_carries_the_entropy_of_its_rate() -> None:
+    """Options that follow the state alone: ``I(O; S) = H(rate) - 0``, the rate of every agent over the episodes."""
+    model = MAPPOC("MlpHybridPolicy", gym.make(ENV_ID, **SETTINGS), policy_kwargs={"net_arch": [8]}, seed=0)
+    episodes = evaluate_episodes(model.policy, gym.make(ENV_ID, **SETTINGS), [1, 2, 3], fixed_trigger=SendOnDelta(0.1))
+    rates = 1 - episodes.agent_savings
+    assert 0.1 < rates.min() and rates.max() < 0.9  # broadcasts in some steps only
+    expected = float(np.mean(evaluation.binary_entropy(rates)))
+    assert episodes.option_state_information == pytest.approx(expected, rel=1e-9)
+
+
+def test_the_dependence_of_mu_on_the_state() -> None:
+    """A policy over options that ignores the state has none; one whose options follow the state has some."""
+    env = gym.make(ENV_ID, **SETTINGS)
+    model = MAPPOC("MlpHybridPolicy", env, policy_kwargs={"net_arch": [8], "sample_options": True}, seed=0)
+    zeroed_mu(model.policy, 0.3)
+    ignoring = evaluate_episodes(model.policy, env, [1, 2, 3])
+    np.testing.assert_allclose(ignoring.broadcast_probability, 0.3, rtol=1e-6)
+    assert ignoring.option_state_information == pytest.approx(0.0, abs=1e-6)
+    assert 0.5 < ignoring.savings < 0.9  # sampled at 30 %
+
+    model = MAPPOC("MlpHybridPolicy", env, policy_kwargs={"net_arch": [8], "sample_options": True}, seed=0)
+    sharpened_mu(model.policy)
+    following = evaluate_episodes(model.policy, env, [1, 2, 3])
+    assert following.option_state_information > 0.1
+    assert np.all(following.option_entropy < 0.5)  # nearly sure of its option in every state
+
+
+@pytest.mark.parametrize("sample_options", [True, False])
+def test_the_protocol_names_its_options_and_runs_the_mode_of_mu(sample_options: bool) -> None:
+    env = gym.make(ENV_ID, **SETTINGS)
+    model = MAPPOC(
+        "MlpHybridPolicy",
+        env,
+        policy_kwargs={"net_arch": [8], "broadcast_prob_init": 0.5, "sample_options": sample_options},
+        seed=0,
+    )
+    sharpened_mu(model.policy, 300)  # depends on the state, still undecided in some states
+    result = evaluation.evaluate_policy_modes(model.policy, env, 3, 40)
+    assert list(result["modes"]) == list(evaluation.MODES)
+    assert result["options"] == ("sampled" if sample_options else "mode")
+    # The mode of mu: the most likely options on the same episodes.
+    mode = evaluate_episodes(model.policy, env, [40, 41, 42], sample_options=False)
+    assert result["modes"]["mode"]["control_return"] == pytest.approx(mode.control_returns.tolist())
+    assert result["metrics"]["mode_savings"] == pytest.approx(mode.savings)
+    assert result["metrics"]["mode_control_return"] == pytest.approx(float(np.mean(mode.control_returns)))
+    learned = evaluate_episodes(model.policy, env, [40, 41, 42], sample_options=sample_options)
+    assert result["metrics"]["control_return"] == pytest.approx(float(np.mean(learned.control_returns)))
+    assert (result["modes"]["learned"] == result["modes"]["mode"]) is not sample_options
+    assert result["metrics"]["option_state_information"] == pytest.approx(learned.option_state_information)
+    assert result["metrics"]["option_state_information"] > 0.01
+    # Either setting can be asked for: the learned mode then samples, or takes the most likely options.
+    other = evaluation.evaluate_policy_modes(model.policy, env, 3, 40, sample_options=not sample_options)
+    assert other["options"] == ("mode" if sample_options else "sampled")
+    assert other["modes"]["mode"] == result["modes"]["mode"]
+
+
+def test_a_policy_trained_with_a_fixed_trigger_has_no_mode_row() -> None:
+    env = gym.make(ENV_ID, **SETTINGS)
+    model = MAPPOC("MlpHybridPolicy", env, policy_kwargs={"net_arch": [8]}, seed=0)
+    seen = []
+    result = evaluation.evaluate_policy_modes(
+        model.policy, env, 3, 40, own_trigger=RandomTrigger(0.6), on_mode=lambda mode, _: seen.append(mode)
+    )
+    assert seen == list(result["modes"]) == ["learned", "random_same_rate", "periodic", "never"]
+    assert result["options"] == "fixed trigger"
+    assert not any(key.startswith("mode_") for key in result["metrics"])
+    assert result["metrics"]["option_state_information"] == pytest.approx(0.0, abs=1e-12)
+
+
+def test_the_callback_counts_the_episodes_as_the_evaluation_does() -> None:
+    """CommMetricsCallback and evaluate_episodes share the counter: the same episodes give the same numbers."""
+    xi = 0.1
+    settings = {**SETTINGS, "broadcast_cost": xi}
+    envs = make_vec_env(ENV_ID, n_envs=2, env_kwargs=settings)
+    policy_kwargs = {"net_arch": [8], "broadcast_prob_init": 0.5}
+    model = MAPPOC("MlpHybridPolicy", envs, n_steps=SETTINGS["max_cycles"], policy_kwargs=policy_kwargs, seed=0)
+    sharpened_mu(model.policy)
+    capture = capture_logger(model)
+    callback = CommMetricsCallback()
+    callback.init_callback(model)
+    envs.seed(7)  # env i: seed 7 + i
+    obs = envs.reset()
+    callback.on_training_start({}, {})
+    callback.on_rollout_start()
+    for _ in range(SETTINGS["max_cycles"]):  # one episode in each env, the mean controls and most likely options
+        obs, _, dones, infos = envs.step(model.predict(obs, deterministic=True)[0])
+        callback.update_locals({"infos": infos, "dones": dones})
+        callback.on_step()
+    callback.on_rollout_end()
+    logged = model.logger.name_to_value
+    assert capture.rows == []  # the values wait in the logger
+
+    episodes = evaluate_episodes(model.policy, gym.make(ENV_ID, **settings), [7, 8])
+    assert 0.1 < episodes.savings < 0.9 and logged["comm/episodes"] == 2
+    assert logged["comm/savings"] == pytest.approx(episodes.savings, abs=1e-12)
+    for i, savings in enumerate(episodes.agent_savings):
+        assert logged[f"comm/savings_agent_{i}"] == pytest.approx(savings, abs=1e-12)
+        assert logged[f"comm/ep_return_agent_{i}"] == pytest.approx(episodes.agent_returns[:, i].mean())
+        assert logged[f"comm/ep_control_return_agent_{i}"] == pytest.approx(episodes.agent_control_returns[:, i].mean())
+    assert logged["comm/ep_return"] == pytest.approx(episodes.returns.mean())
+    assert logged["comm/ep_control_return"] == pytest.approx(episodes.control_returns.mean())
+    cost = xi * episodes.broadcasts.sum() / episodes.broadcasts.size  # per agent and episode
+    assert logged["comm/ep_control_return"] - logged["comm/ep_return"] == pytest.approx(cost)

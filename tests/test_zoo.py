@@ -252,12 +252,16 @@ def test_train_continue_enjoy_plot_through_the_command_line(tmp_path: Path, caps
         rows = list(csv.DictReader(file))
     assert float(rows[0]["time/total_timesteps"]) == 2048  # counting on from the saved model's 1024 steps
     assert MAPPOC.load(continued / "sb3_detc-LinearETC-v0.zip").num_timesteps == 2048
-    # any saved model (e.g. a checkpoint) with a run's settings: here the first run's model
-    first_return = compare.evaluate_run(run, LINEAR, 2).mean_return
-    assert compare.evaluate_run(continued, LINEAR, 2, model=model).mean_return == first_return
-    assert compare.evaluate_run(continued, LINEAR, 2).mean_return != first_return
-    with pytest.raises(FileNotFoundError, match="no saved model"):
-        compare.evaluate_run(run, LINEAR, 2, model=run / "rl_model_1_steps.zip")
+    # a saved model with its run's settings, as python -m sb3_detc.evaluate finds them (args.yml, config.yml)
+    from sb3_detc.evaluate import load_saved
+    from sb3_detc.evaluation import evaluate_episodes
+
+    saved = load_saved(model)
+    assert saved.env_id == LINEAR and saved.trigger is None
+    first_returns = evaluate_episodes(saved.policy, LINEAR, [0, 1]).returns
+    assert (evaluate_episodes(load_saved(continued / model.name).policy, LINEAR, [0, 1]).returns != first_returns).any()
+    with pytest.raises(InputError, match="no such file"):
+        load_saved(run / "rl_model_1_steps.zip")
 
     baseline = cli("sb3_detc.train", "--algo", "ppo_random_skip", "-n", "256", *common, cwd=tmp_path)
     assert baseline.returncode == 0, baseline.stderr

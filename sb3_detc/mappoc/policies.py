@@ -284,6 +284,9 @@ class MlpHybridPolicy(BasePolicy):
     def load(cls, path: str, device: th.device | str = "auto") -> MlpHybridPolicy:  # type: ignore[override]
         """Load a policy saved with :meth:`save`, also one saved under earlier names (:mod:`sb3_detc.renamed`).
 
+        A policy saved before ``sample_options`` (or its earlier opposite ``deterministic_options``)
+        existed sampled its options in every evaluation: it loads with ``sample_options=True``.
+
         :param path: the file
         :param device: where the policy runs
         :return: the policy
@@ -291,6 +294,7 @@ class MlpHybridPolicy(BasePolicy):
         device = get_device(device)
         saved = th.load(path, map_location=device, weights_only=False)  # the spaces are pickled gymnasium objects
         data = renamed_keys({**saved["data"], "action_space": renamed_action_space(saved["data"]["action_space"])})
+        data.setdefault("sample_options", True)  # saved before the setting existed: it sampled its options
         policy = cls(**data)
         policy.load_state_dict(saved["state_dict"])
         return policy.to(device)
@@ -427,6 +431,14 @@ class MlpHybridPolicy(BasePolicy):
         views = relative_to_receivers(held, obs["message"]).flatten(2)
         true = relative_views(obs["message"], obs["message"], self.others).flatten(2)
         return th.cat([obs["local"], views, age[..., 0] * self.age_scale, true], dim=-1)
+
+    def broadcast_probabilities(self, obs: PyTorchObs) -> th.Tensor:
+        """Every agent's probability of broadcasting under ``mu`` (draws nothing; only ``mu`` runs).
+
+        :param obs: joint observation (B, N, ...)
+        :return: probabilities of broadcasting (B, N)
+        """
+        return broadcast_probability(self.chains.run({"mu": self.option_features(obs)})["mu"])
 
     def option_values(
         self, q: th.Tensor, broadcast_price: th.Tensor | None = None, p_broadcast: th.Tensor | None = None

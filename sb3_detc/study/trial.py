@@ -26,7 +26,6 @@ import argparse
 import contextlib
 import functools
 import json
-import math
 import os
 import platform
 import shutil
@@ -39,7 +38,6 @@ from pathlib import Path
 from typing import Any
 
 import gymnasium as gym
-import numpy as np
 import pandas as pd
 import torch as th
 from rl_zoo3.utils import get_callback_list
@@ -48,12 +46,11 @@ from stable_baselines3.common.save_util import load_from_zip_file
 
 import sb3_detc
 from sb3_detc.callbacks import FixedTriggerCallback
-from sb3_detc.evaluation import Episodes, evaluate_episodes
+from sb3_detc.evaluation import MODES, SUCCESS_NO_FALL, SUCCESS_TRAVEL, carries_package, evaluate_policy_modes
 from sb3_detc.mappoc.policies import MlpHybridPolicy
 from sb3_detc.plot import PROGRESS_CSV, PROGRESS_XZ
 from sb3_detc.renamed import renamed_column
 from sb3_detc.study.spec import StudySpec, Trial
-from sb3_detc.triggers import RandomTrigger
 from sb3_detc.zoo import ExperimentManager
 
 __all__ = [
@@ -75,26 +72,8 @@ __all__ = [
     "trial_folder",
 ]
 
-#: The evaluation modes, in the order of the protocol.
-MODES = ("learned", "random_same_rate", "periodic", "never")
-
 #: The files of a finished trial's folder: nothing else is kept.
 FINISHED_FILES = ("evaluation.json", "policy.pt", PROGRESS_XZ, "status.json")
-
-#: Fraction of evaluation episodes without a fall for a Multiwalker seed to succeed.
-SUCCESS_NO_FALL = 0.9
-#: Package travel of a successful seed relative to communication at every step with the same controller.
-SUCCESS_TRAVEL = 0.5
-
-
-def carries_package(metrics: dict[str, float]) -> bool:
-    """Whether a Multiwalker seed carries the package: the travel part of the success criterion.
-
-    :param metrics: a trial's evaluation metrics (``package_travel``, ``periodic_package_travel``)
-    :return: True when its package travel is at least :data:`SUCCESS_TRAVEL` of the travel with
-        communication at every step (the same controllers)
-    """
-    return metrics["package_travel"] >= SUCCESS_TRAVEL * metrics["periodic_package_travel"]
 
 
 def trial_folder(directory: str | os.PathLike, trial: Trial) -> Path:
@@ -301,83 +280,6 @@ def machine_record() -> dict[str, Any]:
         "sb3_detc": sb3_detc.__version__,
         "commit": code_commit(),
         "started": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-    }
-
-
-def _episodes_json(episodes: Episodes) -> dict[str, Any]:
-    """One evaluation mode's episodes as JSON lists, one entry per episode.
-
-    :param episodes: the mode's episodes
-    :return: ``return``, ``control_return``, ``length``, ``broadcasts`` (of all agents), ``failed`` and
-        ``package_travel`` (None where not reported) per episode, and ``savings`` over all of them
-    """
-    return {
-        "return": episodes.returns.tolist(),
-        "control_return": episodes.control_returns.tolist(),
-        "length": episodes.lengths.tolist(),
-        "broadcasts": episodes.broadcasts.sum(axis=1).tolist(),
-        "failed": episodes.failed.tolist(),
-        "package_travel": [None if math.isnan(x) else x for x in episodes.package_travel.tolist()],
-        "savings": episodes.savings,
-    }
-
-
-def evaluate_policy_modes(
-    policy: MlpHybridPolicy,
-    env: gym.Env,
-    episodes: int,
-    seed: int,
-    own_trigger: Any = None,
-) -> dict[str, Any]:
-    """The study's evaluation protocol: the same seeded episodes in four communication modes.
-
-    Episode ``k`` is reset with ``seed + k`` in every mode; the control policy acts with its
-    mean. Modes: ``learned`` (options sampled from the policy over options, or the fixed
-    trigger the trial trained with, ``own_trigger``), ``random_same_rate`` (every agent
-    skips at random with the learned mode's savings), ``periodic`` (every agent broadcasts
-    every step), ``never`` (no broadcasts after the reset).
-
-    :param policy: the trained policy
-    :param env: a joint env with the trial's settings (communication cost included)
-    :param episodes: episodes per mode
-    :param seed: seed of the first episode
-    :param own_trigger: the trial's fixed trigger (None: its policy over options)
-    :return: ``modes`` (mode -> per-episode lists and savings) and ``metrics`` (see the
-        study report: returns with and without the communication cost per mode, savings, the
-        mean paired difference of learned and random control returns, and where the env
-        reports them package travel, fall rate and success)
-    """
-    seeds = [seed + k for k in range(episodes)]
-    if own_trigger is not None and hasattr(own_trigger, "fork"):
-        own_trigger = own_trigger.fork(seed)
-    learned = evaluate_episodes(policy, env, seeds, deterministic=True, sample_options=True, fixed_trigger=own_trigger)
-    results = {"learned": learned}
-    for mode, skip in (("random_same_rate", learned.savings), ("periodic", 0.0), ("never", 1.0)):
-        trigger = RandomTrigger(float(np.clip(skip, 0.0, 1.0)), seed=seed)
-        results[mode] = evaluate_episodes(policy, env, seeds, deterministic=True, fixed_trigger=trigger)
-    metrics: dict[str, float] = {
-        "return": float(np.mean(learned.returns)),
-        "control_return": float(np.mean(learned.control_returns)),
-        "savings": learned.savings,
-    }
-    for mode in MODES[1:]:
-        metrics[f"{mode}_return"] = float(np.mean(results[mode].returns))
-        metrics[f"{mode}_control_return"] = float(np.mean(results[mode].control_returns))
-    metrics["random_same_rate_savings"] = results["random_same_rate"].savings
-    difference = learned.control_returns - results["random_same_rate"].control_returns
-    metrics["learned_minus_random_control_return"] = float(np.mean(difference))
-    if not np.isnan(learned.package_travel).any():
-        metrics["package_travel"] = float(np.mean(learned.package_travel))
-        metrics["fall_rate"] = float(np.mean(learned.failed))
-        metrics["periodic_package_travel"] = float(np.mean(results["periodic"].package_travel))
-        metrics["random_same_rate_package_travel"] = float(np.mean(results["random_same_rate"].package_travel))
-        upright = 1.0 - metrics["fall_rate"] >= SUCCESS_NO_FALL
-        metrics["success"] = float(upright and carries_package(metrics))
-    return {
-        "episodes": episodes,
-        "seed": seed,
-        "modes": {mode: _episodes_json(result) for mode, result in results.items()},
-        "metrics": metrics,
     }
 
 
