@@ -17,7 +17,7 @@ from stable_baselines3.common.env_util import make_vec_env
 
 from sb3_detc import MAPPOC, compare, enjoy, plot, record_video, train, zoo
 from sb3_detc.callbacks import CommMetricsCallback, ControlFirstCallback, CurriculumCallback, RandomSkipCallback
-from sb3_detc.cli import ZOO_KEYS, check_hyperparams_file, check_train_arguments
+from sb3_detc.cli import ZOO_KEYS, InputError, check_hyperparams_file, check_train_arguments
 
 LINEAR = "sb3_detc/LinearETC-v0"
 LINEAR_LQR = "sb3_detc/LinearETC-LQR-v0"
