@@ -39,7 +39,13 @@ from sb3_detc.envs.wrappers import JointEnv
 from sb3_detc.mappoc.mappoc import MAPPOC
 from sb3_detc.mappoc.policies import MlpHybridPolicy
 from sb3_detc.mappoc.sampling import FixedTrigger
-from sb3_detc.triggers import RandomTrigger
+from sb3_detc.triggers import (
+    TRIGGER_FAMILIES,
+    FixedControl,
+    RandomTrigger,
+    lqr_on_predicted_states,
+    tune_trigger,
+)
 
 __all__ = [
     "EVAL_SEED",
@@ -55,6 +61,8 @@ __all__ = [
     "carries_package",
     "evaluate_communication",
     "evaluate_episodes",
+    "evaluate_fixed_family",
+    "fixed_family_env",
     "evaluate_policy_modes",
 ]
 
@@ -537,6 +545,56 @@ def _episodes_json(episodes: Episodes) -> dict[str, Any]:
     }
 
 
+def fixed_family_env(env: gym.Env, family: str) -> gym.Env:
+    """The env in which a fixed trigger family runs: predictive triggering with LQR on the predicted states.
+
+    :param env: the evaluation env (a joint env)
+    :param family: a name from :data:`~sb3_detc.triggers.TRIGGER_FAMILIES`
+    :return: ``env`` itself, or for ``"predictive"`` its joint env with the controls of
+        :func:`~sb3_detc.triggers.lqr_on_predicted_states` (the model-based anchor on the linear system)
+    :raises ValueError: for ``"predictive"`` on an env without a linear system
+    """
+    if family != "predictive":
+        return env
+    joint = env.unwrapped
+    return FixedControl(joint, lqr_on_predicted_states(joint))
+
+
+def evaluate_fixed_family(
+    policy: MlpHybridPolicy,
+    env: gym.Env,
+    family: str,
+    savings: float,
+    seeds: Sequence[int],
+    tune_seeds: Sequence[int],
+    tolerance: float = 0.01,
+) -> tuple[FixedTrigger, Episodes]:
+    """A fixed trigger family at a given savings: tuned on some episodes, then run on the evaluation's.
+
+    The family's parameter (period, threshold) is found by :func:`~sb3_detc.triggers.tune_trigger`
+    on the episodes ``tune_seeds``, with the policy's controls (or, for ``"predictive"``, LQR on the
+    predicted states: :func:`fixed_family_env`).
+
+    :param policy: the policy whose controls act (the options come from the trigger)
+    :param env: the evaluation env (a joint env)
+    :param family: a name from :data:`~sb3_detc.triggers.TRIGGER_FAMILIES`
+    :param savings: the savings to reach, in (0, 1)
+    :param seeds: the evaluation episodes' seeds
+    :param tune_seeds: the seeds of the episodes the parameter is tuned on
+    :param tolerance: the largest accepted distance of the tuned savings from ``savings``
+    :return: the tuned trigger and its episodes
+    :raises SavingsNotReached: if the family reaches no savings within the tolerance
+    :raises ValueError: for ``"predictive"`` on an env without a linear system, or savings outside (0, 1)
+    """
+    runs_in = fixed_family_env(env, family)
+
+    def savings_of(trigger: FixedTrigger) -> float:
+        return evaluate_episodes(policy, runs_in, tune_seeds, fixed_trigger=trigger).savings
+
+    trigger, _ = tune_trigger(family, savings_of, savings, tolerance, system_or_env=env.unwrapped)
+    return trigger, evaluate_episodes(policy, runs_in, seeds, fixed_trigger=trigger)
+
+
 def evaluate_policy_modes(
     policy: MlpHybridPolicy,
     env: gym.Env,
@@ -545,6 +603,8 @@ def evaluate_policy_modes(
     own_trigger: FixedTrigger | None = None,
     sample_options: bool | None = None,
     on_mode: Callable[[str, Episodes], None] | None = None,
+    fixed_families: Sequence[str] = (),
+    tune_episodes: int = 20,
 ) -> dict[str, Any]:
     """The package's evaluation protocol: the same seeded episodes in every communication mode.
 
@@ -559,7 +619,12 @@ def evaluate_policy_modes(
       i.e. without ``own_trigger``; the ``learned`` mode's episodes where those take them too);
     * ``random_same_rate``: every agent skips at random with the ``learned`` mode's savings;
     * ``periodic``: every agent broadcasts at every step;
-    * ``never``: no broadcasts after the reset.
+    * ``never``: no broadcasts after the reset;
+    * ``fixed_<family>`` for every family of ``fixed_families``: the family's trigger tuned to the
+      ``learned`` mode's savings on the first ``tune_episodes`` episodes
+      (:func:`evaluate_fixed_family`); a family that reaches no savings within 0.01 of them, or
+      that the env cannot run (``predictive`` needs the linear system), is left out and the
+      reason recorded.
 
     :param policy: the trained policy
     :param env: a joint env with the trial's settings (communication cost included)
@@ -569,6 +634,9 @@ def evaluate_policy_modes(
     :param sample_options: the ``learned`` mode samples its options from ``mu`` (True) or takes
         the most likely ones (False) (None: as the policy's ``sample_options`` says)
     :param on_mode: called with every mode's name and episodes when they are done (e.g. to show progress)
+    :param fixed_families: the fixed trigger families to compare at the learned rate, names from
+        :data:`~sb3_detc.triggers.TRIGGER_FAMILIES` (default: none)
+    :param tune_episodes: episodes the families' parameters are tuned on (the first of the evaluation's)
     :return: ``episodes``, ``seed``, ``options`` (how the ``learned`` mode took its options:
         ``"sampled"``, ``"mode"`` or ``"fixed trigger"``), ``modes`` (mode -> per-episode lists
         and savings) and ``metrics``: ``return``, ``control_return`` and ``savings`` of the
@@ -580,8 +648,15 @@ def evaluate_policy_modes(
         probabilities of broadcasting are known); and where the env reports the package
         (Multiwalker) ``package_travel``, ``fall_rate`` and ``success`` of the ``learned`` mode,
         ``<mode>_package_travel`` of ``mode``, ``random_same_rate`` and ``periodic``, and
-        ``mode_fall_rate``
+        ``mode_fall_rate``; with ``fixed_families`` also ``fixed`` (family -> its tuned trigger, or
+        why it was left out), ``best_fixed`` (the family with the highest mean control return) and the
+        metrics ``fixed_<family>_control_return``, ``fixed_<family>_savings``,
+        ``best_fixed_control_return`` and ``learned_minus_best_fixed_control_return`` (the mean
+        paired difference of the learned and the best family's control returns)
     """
+    unknown = [family for family in fixed_families if family not in TRIGGER_FAMILIES]
+    if unknown:
+        raise ValueError(f"fixed_families must be names from {TRIGGER_FAMILIES}, got {unknown}.")
     seeds = [seed + k for k in range(episodes)]
     if sample_options is None:
         sample_options = policy.sample_options
@@ -606,6 +681,17 @@ def evaluate_policy_modes(
     for mode, skip in (("random_same_rate", learned.savings), ("periodic", 0.0), ("never", 1.0)):
         trigger = RandomTrigger(float(np.clip(skip, 0.0, 1.0)), seed=seed)
         run(mode, evaluate_episodes(policy, env, seeds, deterministic=True, fixed_trigger=trigger))
+    fixed: dict[str, str] = {}
+    for family in fixed_families:
+        try:
+            tuned, result = evaluate_fixed_family(
+                policy, env, family, learned.savings, seeds, seeds[: max(1, tune_episodes)]
+            )
+        except ValueError as reason:  # SavingsNotReached among them
+            fixed[family] = f"left out: {reason}"
+            continue
+        fixed[family] = repr(tuned)
+        run(f"fixed_{family}", result)
     metrics: dict[str, float] = {
         "return": float(np.mean(learned.returns)),
         "control_return": float(np.mean(learned.control_returns)),
@@ -633,11 +719,23 @@ def evaluate_policy_modes(
             metrics["mode_fall_rate"] = float(np.mean(results["mode"].failed))
         upright = 1.0 - metrics["fall_rate"] >= SUCCESS_NO_FALL
         metrics["success"] = float(upright and carries_package(metrics))
+    compared = {family: results[f"fixed_{family}"] for family in fixed_families if f"fixed_{family}" in results}
+    for family, result in compared.items():
+        metrics[f"fixed_{family}_control_return"] = float(np.mean(result.control_returns))
+        metrics[f"fixed_{family}_savings"] = result.savings
+    best = max(compared, key=lambda family: float(np.mean(compared[family].control_returns)), default=None)
+    if best is not None:
+        metrics["best_fixed_control_return"] = float(np.mean(compared[best].control_returns))
+        paired = learned.control_returns - compared[best].control_returns
+        metrics["learned_minus_best_fixed_control_return"] = float(np.mean(paired))
     options = "fixed trigger" if own_trigger is not None else "sampled" if sample_options else "mode"
-    return {
+    evaluation = {
         "episodes": episodes,
         "seed": seed,
         "options": options,
         "modes": {mode: _episodes_json(result) for mode, result in results.items()},
         "metrics": metrics,
     }
+    if fixed_families:
+        evaluation.update(fixed=fixed, best_fixed=best)
+    return evaluation

@@ -42,20 +42,24 @@ def joint_env(**kwargs) -> JointEnv:
     return JointEnv(parallel_env(**renamed_keys(kwargs)))
 
 
-def lqr_joint_env(**kwargs) -> gym.Env:
+def lqr_joint_env(prediction: bool = False, **kwargs) -> gym.Env:
     """Joint view in which every agent's control is its row of the LQR gain on its view of held broadcasts.
 
     Only *when* to communicate is left to learn (the classic event-triggered setting, in
     which send-on-delta is the reference); the action's ``control`` entry is ignored (see
     :class:`~sb3_detc.triggers.FixedControl`). Keywords as :func:`parallel_env`.
 
+    :param prediction: act on the receivers' predictions of the held states instead
+        (:func:`~sb3_detc.triggers.lqr_on_predicted_states`, the controller of predictive
+        triggering) rather than on the held states themselves
     :param kwargs: keyword arguments of :func:`joint_env`, which passes them on to
         :func:`parallel_env` (``broadcast_cost`` and ``trigger`` for the
         :class:`EventTriggeredNetwork`, everything else for
         :class:`~sb3_detc.envs.linear.LinearSystem`; earlier names accepted)
     :return: a :class:`~sb3_detc.triggers.FixedControl` around the env of :func:`joint_env`, its
-        controls from :func:`~sb3_detc.triggers.lqr_on_held_states`
+        controls from :func:`~sb3_detc.triggers.lqr_on_held_states` (or ``lqr_on_predicted_states``)
     """
-    from sb3_detc.triggers import FixedControl  # triggers builds on the env modules
+    from sb3_detc.triggers import FixedControl, lqr_on_held_states, lqr_on_predicted_states  # builds on the envs
 
-    return FixedControl(joint_env(**kwargs))
+    joint = joint_env(**kwargs)
+    return FixedControl(joint, (lqr_on_predicted_states if prediction else lqr_on_held_states)(joint))

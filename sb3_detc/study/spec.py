@@ -9,6 +9,7 @@ A study file is YAML::
     evaluation:                          # optional
       episodes: 50                       # seeded episodes per mode (the same for every trial)
       seed: 10000                        # seed of the first episode (episode k: seed + k)
+      fixed_families: [periodic, send_on_delta_max_age]  # optional: fixed triggers at the learned rate
     algorithms:                          # label -> trial settings
       mappoc_paper:
         algo: mappoc                     # rl-zoo3 algorithm name
@@ -41,6 +42,7 @@ import yaml
 
 from sb3_detc.cli import InputError, check_algorithm, check_env, check_hyperparams_file
 from sb3_detc.renamed import renamed_keys
+from sb3_detc.triggers import TRIGGER_FAMILIES
 from sb3_detc.zoo import ALGORITHMS, HYPERPARAMS_DIR, uses_rollout_workers
 
 __all__ = [
@@ -64,7 +66,7 @@ ALGORITHM_KEYS = frozenset({"algo", "seeds", "cpus", "conf", "hyperparams"})
 CONF_FOLDER = "conf"
 #: What a study's ``conf`` may be: a YAML or Python hyperparameter file.
 CONF_SUFFIXES = (".yml", ".yaml", ".py")
-EVALUATION_KEYS = frozenset({"episodes", "seed"})
+EVALUATION_KEYS = frozenset({"episodes", "seed", "fixed_families"})
 
 
 class StudyError(InputError):
@@ -124,6 +126,9 @@ class StudySpec:
     :param episodes: evaluation episodes per mode
     :param eval_seed: seed of the first evaluation episode
     :param algorithms: the algorithms, in the file's order
+    :param fixed_families: the fixed trigger families the evaluation compares at every trial's learned
+        rate (names from :data:`~sb3_detc.triggers.TRIGGER_FAMILIES`;
+        :func:`~sb3_detc.evaluation.evaluate_policy_modes`)
     """
 
     path: Path
@@ -134,6 +139,7 @@ class StudySpec:
     episodes: int
     eval_seed: int
     algorithms: tuple[AlgorithmSpec, ...] = field(default_factory=tuple)
+    fixed_families: tuple[str, ...] = ()
 
     def trials(self) -> list[Trial]:
         """Every (algorithm, seed) trial: each algorithm's first seed (in the file's order), then the second ones, ...
@@ -394,11 +400,16 @@ def load_study(path: str | os.PathLike, conf_folder: str | os.PathLike | None = 
     _unknown(path, "'evaluation'", evaluation, EVALUATION_KEYS)
     episodes = _int(path, "'evaluation: episodes'", evaluation.get("episodes", 50), 1)
     eval_seed = _int(path, "'evaluation: seed'", evaluation.get("seed", 10_000), 0)
+    families = evaluation.get("fixed_families", [])
+    if not isinstance(families, list) or any(family not in TRIGGER_FAMILIES for family in families):
+        raise _fail(
+            path, f"'evaluation: fixed_families' must be a list of {', '.join(TRIGGER_FAMILIES)}; got {families!r}"
+        )
     algorithms = content.get("algorithms")
     if not isinstance(algorithms, dict) or not algorithms:
         raise _fail(path, "'algorithms' must be a non-empty mapping of labels to settings")
     specs = tuple(_algorithm(path, env, label, settings, seeds, conf_folder) for label, settings in algorithms.items())
-    study = StudySpec(path, text, env, n_timesteps, interval, episodes, eval_seed, specs)
+    study = StudySpec(path, text, env, n_timesteps, interval, episodes, eval_seed, specs, tuple(families))
     for algorithm in specs:
         if study.budget(algorithm) < 1:
             raise _fail(path, f"algorithm {algorithm.label!r} trains 0 steps: its 'n_timesteps' must be >= 1")

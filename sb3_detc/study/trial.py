@@ -456,7 +456,12 @@ def run_trial(
         env = gym.make(spec.env, **env_kwargs)
         try:
             evaluation = evaluate_policy_modes(
-                policy, env, spec.episodes, spec.eval_seed, entry_fixed_trigger(trial.algorithm.entry)
+                policy,
+                env,
+                spec.episodes,
+                spec.eval_seed,
+                entry_fixed_trigger(trial.algorithm.entry),
+                fixed_families=spec.fixed_families,
             )
         finally:
             env.close()
