@@ -35,11 +35,11 @@ from typing import Any
 
 import numpy as np
 import torch as th
-from resumable import OutError, check_at_least_one, run_rows
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.env_util import make_vec_env
 
 from sb3_detc import MAPPOC
+from sb3_detc.study.sweep import OutError, check_at_least_one, run_rows
 from sb3_detc.triggers import FixedControl, SendOnDelta
 
 #: MAPPOC settings of ``benchmarks/linear_learning.py`` (lr 3e-4 to let the critic settle quickly).

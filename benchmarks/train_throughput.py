@@ -62,7 +62,6 @@ from typing import Any
 import numpy as np
 import torch as th
 from pettingzoo.sisl import multiwalker_v9
-from resumable import check_at_least_one
 from stable_baselines3 import PPO
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.callbacks import BaseCallback
@@ -71,6 +70,7 @@ from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
 
 from sb3_detc import MAPPOC
 from sb3_detc.mappoc.workers import RolloutWorker
+from sb3_detc.study.sweep import check_at_least_one
 
 N_WALKERS = 3
 
