@@ -151,11 +151,11 @@ def build(job: dict[str, Any], log_folder: Path) -> tuple[Any, dict[str, Any]]:
     hyperparams = {**algorithm.hyperparams, **changes, "env_kwargs": env_kwargs, "callback": []}
     model, _ = trial_manager(spec, trial, log_folder, job["timesteps"], hyperparams).setup_experiment()
     saved = MlpHybridPolicy.load(str(path), device="cpu")
+    entry = model.policy.constructor_parameters()
     differ = sorted(
         key
-        for key, value in saved._get_constructor_parameters().items()
-        if key not in ("observation_space", "action_space", "lr_schedule")
-        and model.policy._get_constructor_parameters().get(key) != value
+        for key, value in saved.constructor_parameters().items()
+        if key not in ("observation_space", "action_space", "lr_schedule") and entry.get(key) != value
     )
     if differ:
         model.env.close()

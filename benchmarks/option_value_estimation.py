@@ -75,7 +75,8 @@ class OptionValueProbe(BaseCallback):
         self._rewards: list[np.ndarray] = []
 
     def _on_step(self) -> bool:
-        # the learner's rewards of this step, before a truncation's bootstrap is added to them
+        # the learner's rewards of this step (n_envs, N), before a truncation's bootstrap is added to
+        # them: MAPPOC hands them to the callbacks as SB3's on-policy algorithms do, as ``rewards``
         self._rewards.append(np.array(self.locals["rewards"]))
         return True
 
