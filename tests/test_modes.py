@@ -132,7 +132,7 @@ def test_under_a_fixed_trigger_the_rollout_ends_are_valued_under_its_probabiliti
     model.learn(16)  # one rollout of 16 steps; the episodes of 20 steps go on after it
     buffer = model.rollout_buffer
     assert not buffer.episode_starts[1:].any()
-    obs = obs_as_tensor(model._last_obs, model.device)
+    obs = obs_as_tensor(model.last_obs, model.device)
     price = th.as_tensor(buffer.broadcast_price[-1], device=model.device)
     with th.no_grad():
         q = model.policy.evaluate_actions(obs, th.ones((1, 2)), th.zeros((1, 2, 1)), price).option_values

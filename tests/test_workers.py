@@ -82,7 +82,7 @@ def test_worker_rollouts_fill_the_buffer_like_rollouts_in_the_learner(normalize_
         for key in comm:
             np.testing.assert_allclose(np.asarray(worker_row[key]), np.asarray(plain_row[key]), rtol=1e-6, err_msg=key)
     assert [model.last_rollout_in_workers for model in models] == [False, True]
-    np.testing.assert_allclose(b._last_obs["local"], a._last_obs["local"], atol=1e-5)
+    np.testing.assert_allclose(b.last_obs["local"], a.last_obs["local"], atol=1e-5)
 
 
 def test_worker_processes_train_and_take_the_new_policy_after_loading(tmp_path) -> None:
@@ -144,7 +144,7 @@ def test_a_callback_can_stop_a_worker_rollout() -> None:
     assert model.num_timesteps == 20  # 10 steps of 2 envs
     for index, env in enumerate(model.get_env().envs):
         for key, value in env.observation.items():
-            np.testing.assert_array_equal(model._last_obs[key][index], value)
+            np.testing.assert_array_equal(model.last_obs[key][index], value)
 
 
 def test_a_non_finite_observation_is_named_by_its_key() -> None:
