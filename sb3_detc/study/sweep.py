@@ -12,6 +12,8 @@ settings a job trains with into the job, so that a changed setting is a new job.
 The benchmark scripts that train one model per job (``benchmarks/linear_learning.py`` and
 others) run their jobs this way::
 
+    from pathlib import Path
+
     from sb3_detc.study.sweep import run_rows
 
     def run(job: dict) -> dict:  # a module-level function: it is pickled to the worker processes
