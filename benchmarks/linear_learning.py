@@ -36,7 +36,6 @@ from typing import Any
 
 import gymnasium as gym
 import torch as th
-from resumable import OutError, check_at_least_one, run_rows
 from rl_zoo3.utils import get_callback_list
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.env_util import make_vec_env
@@ -48,6 +47,7 @@ from sb3_detc.cli import ZOO_KEYS, check_hyperparams_file
 from sb3_detc.envs.linear import LinearSystem, lqr_episode_cost
 from sb3_detc.evaluation import evaluate_communication
 from sb3_detc.mappoc.critics import CRITICS
+from sb3_detc.study.sweep import OutError, check_at_least_one, run_rows
 from sb3_detc.triggers import RandomTrigger
 
 #: MAPPOC settings for the linear env (the paper's are for Multiwalker).

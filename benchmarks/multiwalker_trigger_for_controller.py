@@ -25,7 +25,7 @@ trial's, unchanged, so the value of information sweep of the same study
 
 One job per seed, one after another (each trains with the entry's two rollout-worker
 processes); every finished seed's row is written to ``--out`` at once and a seed already there
-is not trained again (``resumable.py``; a job is its settings and the digest of the trial's
+is not trained again (:mod:`sb3_detc.study.sweep`; a job is its settings and the digest of the trial's
 policy). ``--save-dir`` keeps the trained policies (policy only; each row names its file).
 
     python benchmarks/multiwalker_trigger_for_controller.py benchmarks/studies/multiwalker_paper \\
@@ -40,19 +40,20 @@ import json
 import math
 import tempfile
 import time
+from functools import partial
 from pathlib import Path
 from typing import Any
 
 import gymnasium as gym
 import numpy as np
 import torch as th
-from resumable import OutError, check_at_least_one, job_key, run_rows
 from stable_baselines3.common.callbacks import BaseCallback
 
 from sb3_detc.evaluation import evaluate_episodes
 from sb3_detc.mappoc.policies import MlpHybridPolicy
 from sb3_detc.study.report import interval_estimates, interval_text
 from sb3_detc.study.spec import StudyError, Trial, load_folder_study
+from sb3_detc.study.sweep import OutError, check_at_least_one, job_key, run_rows
 from sb3_detc.study.trial import (
     evaluate_policy_modes,
     read_status,
@@ -66,6 +67,8 @@ from sb3_detc.triggers import PeriodicTrigger
 TIMESTEPS = 1_024_000
 #: Steps at the start in which only the critic learns (50 iterations).
 WARM_UP = 102_400
+#: Rollouts between two lines of progress.
+PROGRESS_EVERY = 25
 
 
 class Progress(BaseCallback):
@@ -75,7 +78,7 @@ class Progress(BaseCallback):
     :param every: rollouts between two lines
     """
 
-    def __init__(self, label: str, every: int = 25) -> None:
+    def __init__(self, label: str, every: int = PROGRESS_EVERY) -> None:
         super().__init__()
         self.label = label
         self.every = every
@@ -148,12 +151,12 @@ def build(job: dict[str, Any], log_folder: Path) -> tuple[Any, dict[str, Any]]:
     hyperparams = {**algorithm.hyperparams, **changes, "env_kwargs": env_kwargs, "callback": []}
     model, _ = trial_manager(spec, trial, log_folder, job["timesteps"], hyperparams).setup_experiment()
     saved = MlpHybridPolicy.load(str(path), device="cpu")
+    entry = model.policy.constructor_parameters()
     differ = sorted(
         key
-        for key, value in saved._get_constructor_parameters().items()
+        for key, value in saved.constructor_parameters().items()
         # sample_options says how the trigger is evaluated, not how the networks are built
-        if key not in ("observation_space", "action_space", "lr_schedule", "sample_options")
-        and model.policy._get_constructor_parameters().get(key) != value
+        if key not in ("observation_space", "action_space", "lr_schedule", "sample_options") and entry.get(key) != value
     )
     if differ:
         model.env.close()
@@ -178,7 +181,7 @@ def nearest_period(savings: float) -> int | None:
     return min({max(1, math.floor(exact)), math.ceil(exact)}, key=lambda k: abs(1 - 1 / k - savings))
 
 
-def run(job: dict[str, Any]) -> dict[str, Any]:
+def run(job: dict[str, Any], progress_every: int = PROGRESS_EVERY) -> dict[str, Any]:
     """Train the policies over options for one seed's controller and evaluate them; one table row.
 
     The critic learns alone first (``warm_up`` steps, options from the untrained ``mu``: it learned
@@ -188,6 +191,7 @@ def run(job: dict[str, Any]) -> dict[str, Any]:
     :param job: as :func:`build` takes it, ``warm_up`` (steps, part of ``timesteps``), ``policy``
         (the trial's policy's digest: a retrained trial is a new job) and ``save_dir`` (where to keep
         the trained policy; None: not kept)
+    :param progress_every: rollouts between two lines of progress (:class:`Progress`)
     :return: the seed, the training seconds, the study protocol's metrics of the learned trigger
         (:func:`~sb3_detc.study.trial.evaluate_policy_modes`), the control return, package travel (None
         where the env reports none), fall rate and savings of a message every ``k`` steps at the nearest
@@ -200,10 +204,10 @@ def run(job: dict[str, Any]) -> dict[str, Any]:
         model, env_kwargs = build(job, Path(log_folder))
         began = time.monotonic()
         try:
-            model.learn(job["warm_up"], callback=Progress(f"{label}, critic alone"))
+            model.learn(job["warm_up"], callback=Progress(f"{label}, critic alone", progress_every))
             model.set_trained_policies(control_policy=False, broadcast_policy=True)
             rest = job["timesteps"] - job["warm_up"]
-            model.learn(rest, callback=Progress(label), reset_num_timesteps=False)
+            model.learn(rest, callback=Progress(label, progress_every), reset_num_timesteps=False)
         finally:
             model.env.close()
         seconds = time.monotonic() - began
@@ -303,8 +307,11 @@ def main() -> None:
         help="rows (JSON); seeds already in it with the same settings are not trained again",
     )
     parser.add_argument("--save-dir", type=Path, help="folder for the trained policies (default: not kept)")
+    parser.add_argument(
+        "--progress-every", type=int, default=PROGRESS_EVERY, help="rollouts between two lines of progress"
+    )
     args = parser.parse_args()
-    check_at_least_one(parser, args, "timesteps")
+    check_at_least_one(parser, args, "timesteps", "progress_every")
     if not 0 <= args.warm_up < args.timesteps:
         parser.error("--warm-up must be >= 0 and below --timesteps")
     if args.broadcast_cost is not None and not args.broadcast_cost >= 0:
@@ -338,7 +345,7 @@ def main() -> None:
         {**job, "seed": seed, "policy": hashlib.sha256(policies[seed].read_bytes()).hexdigest()[:16]} for seed in seeds
     ]
     try:
-        rows = run_rows(run, jobs, args.out, workers=1)
+        rows = run_rows(partial(run, progress_every=args.progress_every), jobs, args.out, workers=1)
     except OutError as error:
         parser.error(str(error))
     print(

@@ -35,11 +35,11 @@ from typing import Any
 
 import numpy as np
 import torch as th
-from resumable import OutError, check_at_least_one, run_rows
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.env_util import make_vec_env
 
 from sb3_detc import MAPPOC
+from sb3_detc.study.sweep import OutError, check_at_least_one, run_rows
 from sb3_detc.triggers import FixedControl, SendOnDelta
 
 #: MAPPOC settings of ``benchmarks/linear_learning.py`` (lr 3e-4 to let the critic settle quickly).
@@ -75,7 +75,8 @@ class OptionValueProbe(BaseCallback):
         self._rewards: list[np.ndarray] = []
 
     def _on_step(self) -> bool:
-        # the learner's rewards of this step, before a truncation's bootstrap is added to them
+        # the learner's rewards of this step (n_envs, N), before a truncation's bootstrap is added to
+        # them: MAPPOC hands them to the callbacks as SB3's on-policy algorithms do, as ``rewards``
         self._rewards.append(np.array(self.locals["rewards"]))
         return True
 

@@ -36,13 +36,13 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 import torch as th
-from resumable import check_at_least_one
 from stable_baselines3.common.env_util import make_vec_env
 
 import sb3_detc  # noqa: F401  (registers the env ids)
 from sb3_detc import MAPPOC
 from sb3_detc.mappoc.critics import CRITICS
 from sb3_detc.renamed import renamed_keys
+from sb3_detc.study.sweep import check_at_least_one
 from sb3_detc.study.trial import replace_atomically
 from sb3_detc.triggers import FixedControl, SendOnDelta
 

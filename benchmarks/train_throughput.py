@@ -62,7 +62,6 @@ from typing import Any
 import numpy as np
 import torch as th
 from pettingzoo.sisl import multiwalker_v9
-from resumable import check_at_least_one
 from stable_baselines3 import PPO
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.callbacks import BaseCallback
@@ -71,17 +70,22 @@ from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
 
 from sb3_detc import MAPPOC
 from sb3_detc.mappoc.workers import RolloutWorker
+from sb3_detc.study.sweep import check_at_least_one
 
 N_WALKERS = 3
 
 
 class PhaseTimer(BaseCallback):
-    """Accumulate wall time spent collecting rollouts and updating."""
+    """Accumulate wall time spent collecting rollouts and updating, and count the updates.
+
+    Every rollout is followed by one update (``train``), which starts when the rollout ends.
+    """
 
     def __init__(self) -> None:
         super().__init__()
         self.rollout = 0.0
         self.update = 0.0
+        self.updates = 0
         self._mark = 0.0
 
     def _on_training_start(self) -> None:
@@ -95,6 +99,7 @@ class PhaseTimer(BaseCallback):
     def _on_rollout_end(self) -> None:
         now = time.perf_counter()
         self.rollout += now - self._mark
+        self.updates += 1
         self._mark = now
 
     def _on_training_end(self) -> None:
@@ -212,13 +217,15 @@ def measure(name: str, model: BaseAlgorithm, iterations: int, agent_steps_per_en
     :param agent_steps_per_env_step: the model's timesteps per environment step (the number of walkers
         under SuperSuit, which counts agent steps; 1 for MAPPOC)
     :return: the warm-up seconds, timed env steps, seconds, env steps/s, rollout and update seconds,
-        epochs (the model's update count) and ms per minibatch gradient step
+        epochs and ms per minibatch gradient step
+    :raises ValueError: if the model may stop an update's epochs early (``target_kl``): its epochs are not counted
     """
+    if model.target_kl is not None:
+        raise ValueError(f"{name}: every update must run all its epochs (target_kl None), got {model.target_kl}")
     per_iteration = model.n_steps * model.n_envs
     start = time.perf_counter()
     model.learn(per_iteration)
     warm_up = time.perf_counter() - start
-    warm_up_updates = model._n_updates
     minibatches = -(-model.n_steps * model.n_envs // model.batch_size)  # per epoch
     timer = PhaseTimer()
     start = time.perf_counter()
@@ -234,8 +241,8 @@ def measure(name: str, model: BaseAlgorithm, iterations: int, agent_steps_per_en
         "steps_per_s": env_steps / total,
         "rollout_s": timer.rollout,
         "update_s": timer.update,
-        "epochs": model._n_updates - warm_up_updates,
-        "ms_per_gradient_step": 1e3 * timer.update / ((model._n_updates - warm_up_updates) * minibatches),
+        "epochs": timer.updates * model.n_epochs,
+        "ms_per_gradient_step": 1e3 * timer.update / (timer.updates * model.n_epochs * minibatches),
     }
 
 

@@ -41,13 +41,13 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 import torch as th
-from resumable import OutError, check_at_least_one, run_rows
 from stable_baselines3.common.env_util import make_vec_env
 
 from sb3_detc import MAPPOC
 from sb3_detc.callbacks import BroadcastEntropySchedule
 from sb3_detc.envs.linear import LinearSystem, lqr_episode_cost
 from sb3_detc.evaluation import evaluate_communication
+from sb3_detc.study.sweep import OutError, check_at_least_one, run_rows
 from sb3_detc.triggers import FixedControl, RandomTrigger, TriggerPoint, lqr_on_held_states, sweep_send_on_delta
 
 BASE = {

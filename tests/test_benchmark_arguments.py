@@ -2,14 +2,9 @@
 
 from __future__ import annotations
 
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
-
-ROOT = Path(__file__).resolve().parents[1]
-SCRIPT = ROOT / "benchmarks" / "evaluate_run.py"
 
 
 @pytest.mark.parametrize(
@@ -20,11 +15,11 @@ SCRIPT = ROOT / "benchmarks" / "evaluate_run.py"
         ([], "no saved model"),
     ],
 )
-def test_bad_input_is_a_usage_error(tmp_path: Path, arguments: list[str], message: str) -> None:
-    command = [sys.executable, str(SCRIPT), str(tmp_path), "--env", "sb3_detc/LinearETC-v0", *arguments]
-    done = subprocess.run(command, capture_output=True, text=True)
+def test_bad_input_is_a_usage_error(tmp_path: Path, arguments: list[str], message: str, run_benchmark) -> None:
+    options = ["--env", "sb3_detc/LinearETC-v0", *arguments]
+    done = run_benchmark("evaluate_run.py", str(tmp_path), *options)
     assert done.returncode == 2 and message in done.stderr and "Traceback" not in done.stderr
-    missing = subprocess.run([*command[:2], str(tmp_path / "none"), *command[3:]], capture_output=True, text=True)
+    missing = run_benchmark("evaluate_run.py", str(tmp_path / "none"), *options)
     assert missing.returncode == 2 and ("no run folder" in missing.stderr or "--episodes" in missing.stderr)
 
 
@@ -44,17 +39,17 @@ def test_bad_input_is_a_usage_error(tmp_path: Path, arguments: list[str], messag
         ("train_throughput.py", ["--repeats", "0"], "--repeats must be at least 1"),
     ],
 )
-def test_other_benchmarks_check_their_numbers_first(script: str, arguments: list[str], message: str) -> None:
-    command = [sys.executable, str(ROOT / "benchmarks" / script), *arguments]
-    done = subprocess.run(command, capture_output=True, text=True)
+def test_other_benchmarks_check_their_numbers_first(
+    script: str, arguments: list[str], message: str, run_benchmark
+) -> None:
+    done = run_benchmark(script, *arguments)
     assert done.returncode == 2 and message in done.stderr and "Traceback" not in done.stderr
 
 
 @pytest.mark.parametrize("script", ["linear_learning.py", "trigger_learning.py", "option_value_estimation.py"])
-def test_sweeps_refuse_a_results_file_of_something_else(tmp_path: Path, script: str) -> None:
+def test_sweeps_refuse_a_results_file_of_something_else(tmp_path: Path, script: str, run_benchmark) -> None:
     out = tmp_path / "results.json"
     out.write_text('{"a": "run of another script"}')
-    command = [sys.executable, str(ROOT / "benchmarks" / script), "--timesteps", "2048", "--out", str(out)]
-    done = subprocess.run(command, capture_output=True, text=True)
+    done = run_benchmark(script, "--timesteps", "2048", "--out", str(out))
     assert done.returncode == 2 and "not the JSON rows of an earlier run" in done.stderr
     assert out.read_text() == '{"a": "run of another script"}'

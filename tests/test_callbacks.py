@@ -668,7 +668,7 @@ def test_package_travel_starts_from_each_episodes_own_reset(workers: bool) -> No
     model = MAPPOC("MlpHybridPolicy", envs, n_steps=40, n_epochs=1, seed=0, policy_kwargs=TINY)
     capture = capture_logger(model)
     model.learn(80, callback=CommMetricsCallback())
-    assert model.last_rollout_in_workers is workers
+    assert model.sampler.last_in_workers is workers
     assert len(capture.rows) == 1  # one rollout of 2 x 40 steps
     assert all(row["comm/episodes"] >= 6 for row in capture.rows)
     assert all(abs(row["comm/package_travel"]) < 0.5 for row in capture.rows)

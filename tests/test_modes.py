@@ -84,7 +84,7 @@ def test_envs_built_from_an_id_on_request(tmp_path) -> None:
     model = MAPPOC("MlpHybridPolicy", ENV_ID, n_envs=1, n_steps=16, batch_size=16, n_epochs=1, policy_kwargs=TINY)
     assert isinstance(model.get_env(), DummyVecEnv) and has_rollout_workers(model.get_env())
     model.learn(16)
-    assert model.last_rollout_in_workers
+    assert model.sampler.last_in_workers
     model.save(tmp_path / "model.zip")
     loaded = MAPPOC.load(tmp_path / "model.zip", env=ENV_ID)  # as many workers as it was trained with
     assert loaded.n_envs == 1 and has_rollout_workers(loaded.get_env())
@@ -132,7 +132,7 @@ def test_under_a_fixed_trigger_the_rollout_ends_are_valued_under_its_probabiliti
     model.learn(16)  # one rollout of 16 steps; the episodes of 20 steps go on after it
     buffer = model.rollout_buffer
     assert not buffer.episode_starts[1:].any()
-    obs = obs_as_tensor(model._last_obs, model.device)
+    obs = obs_as_tensor(model.last_obs, model.device)
     price = th.as_tensor(buffer.broadcast_price[-1], device=model.device)
     with th.no_grad():
         q = model.policy.evaluate_actions(obs, th.ones((1, 2)), th.zeros((1, 2, 1)), price).option_values

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import shutil
 from pathlib import Path
@@ -10,15 +9,28 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from sb3_detc.study.spec import StudyError
-
 ROOT = Path(__file__).resolve().parents[1]
 STUDY = ROOT / "benchmarks" / "studies" / "multiwalker_paper"
 LABELS = ("mappoc_paper", "random_skip_paper", "control_first")
 
-_spec = importlib.util.spec_from_file_location("paper_claims", ROOT / "benchmarks" / "paper_claims.py")
-paper_claims = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(paper_claims)
+
+class ClaimsRefused(Exception):
+    """The script refused the study folder (its message)."""
+
+
+@pytest.fixture
+def claims(run_benchmark):
+    """The claims table the script prints for a study folder, or its usage error."""
+
+    def table(folder: Path, mappoc: str, baseline: str, recipe: str | None) -> str:
+        arguments = [str(folder), "--mappoc", mappoc, "--baseline", baseline, "--recipe", recipe or ""]
+        done = run_benchmark("paper_claims.py", *arguments)
+        if done.returncode == 2 and done.stderr.startswith("error: "):
+            raise ClaimsRefused(done.stderr)
+        assert done.returncode == 0, done.stderr
+        return done.stdout
+
+    return table
 
 
 def study_copy(tmp_path: Path, entropies: dict[int, float], labels: tuple[str, ...] = LABELS) -> Path:
@@ -54,9 +66,9 @@ def rows(table: str) -> dict[str, tuple[str, str]]:
     return {claim.strip(): (result, verdict.strip()) for claim, result, verdict in cells[1:]}
 
 
-def test_the_claims_of_two_seeds_follow_their_evaluations(tmp_path: Path) -> None:
+def test_the_claims_of_two_seeds_follow_their_evaluations(tmp_path: Path, claims) -> None:
     folder = study_copy(tmp_path, {0: 0.692, 1: 0.3})
-    table = rows(paper_claims.claims(folder, "mappoc_paper", "random_skip_paper", "control_first"))
+    table = rows(claims(folder, "mappoc_paper", "random_skip_paper", "control_first"))
     paper = [metrics(folder, "mappoc_paper", seed) for seed in (0, 1)]
     differences = [m["learned_minus_random_control_return"] for m in paper]
     result, verdict = table["learned timing beats random timing at the same rate"]
@@ -85,27 +97,27 @@ def test_the_claims_of_two_seeds_follow_their_evaluations(tmp_path: Path) -> Non
         ({"savings": [0.9, 0.95]}, "... with about 55 % savings, learned", "savings no, learned in 0 of 2 seeds"),
     ],
 )
-def test_verdicts_follow_their_rules(tmp_path: Path, changes: dict, claim: str, verdict: str) -> None:
+def test_verdicts_follow_their_rules(tmp_path: Path, changes: dict, claim: str, verdict: str, claims) -> None:
     folder = study_copy(tmp_path, {0: 0.692, 1: 0.692}, LABELS[:2])
     for metric, values in changes.items():
         for seed, value in enumerate(values):
             set_metrics(folder, "mappoc_paper", seed, **{metric: value})
-    table = rows(paper_claims.claims(folder, "mappoc_paper", "random_skip_paper", None))
+    table = rows(claims(folder, "mappoc_paper", "random_skip_paper", None))
     (found,) = [v for c, (_, v) in table.items() if c.startswith(claim)]
     assert found.startswith(verdict)
 
 
-def test_a_study_without_the_named_algorithms_or_package_travel_is_refused(tmp_path: Path) -> None:
+def test_a_study_without_the_named_algorithms_or_package_travel_is_refused(tmp_path: Path, claims) -> None:
     folder = study_copy(tmp_path, {0: 0.692, 1: 0.692}, LABELS[:2])
-    with pytest.raises(StudyError, match="no finished seed of 'mappoc_paper_overlap'"):
-        paper_claims.claims(folder, "mappoc_paper_overlap", "random_skip_paper", None)
+    with pytest.raises(ClaimsRefused, match="no finished seed of 'mappoc_paper_overlap'"):
+        claims(folder, "mappoc_paper_overlap", "random_skip_paper", None)
     for seed in (0, 1):
         path = folder / "trials" / "mappoc_paper" / f"seed{seed}" / "evaluation.json"
         evaluation = json.loads(path.read_text())
         del evaluation["metrics"]["package_travel"]
         path.write_text(json.dumps(evaluation))
-    with pytest.raises(StudyError, match="no package travel"):
-        paper_claims.claims(folder, "mappoc_paper", "random_skip_paper", None)
+    with pytest.raises(ClaimsRefused, match="no package travel"):
+        claims(folder, "mappoc_paper", "random_skip_paper", None)
 
 
 @pytest.mark.parametrize(
@@ -118,19 +130,19 @@ def test_a_study_without_the_named_algorithms_or_package_travel_is_refused(tmp_p
     ],
 )
 def test_the_baseline_and_recipe_verdicts_follow_their_rules(
-    tmp_path: Path, label: str, changes: dict, claim: str, verdict: str
+    tmp_path: Path, label: str, changes: dict, claim: str, verdict: str, claims
 ) -> None:
     folder = study_copy(tmp_path, {0: 0.692, 1: 0.692})
     for metric, values in changes.items():
         for seed, value in enumerate(values):
             set_metrics(folder, label, seed, **{metric: value})
-    table = rows(paper_claims.claims(folder, "mappoc_paper", "random_skip_paper", "control_first"))
+    table = rows(claims(folder, "mappoc_paper", "random_skip_paper", "control_first"))
     (found,) = [v for c, (_, v) in table.items() if c.startswith(claim)]
     assert found.startswith(verdict)
 
 
-def test_a_finished_trial_without_its_progress_is_refused(tmp_path: Path) -> None:
+def test_a_finished_trial_without_its_progress_is_refused(tmp_path: Path, claims) -> None:
     folder = study_copy(tmp_path, {0: 0.692, 1: 0.692}, LABELS[:2])
     (folder / "trials" / "mappoc_paper" / "seed1" / "progress.csv").unlink()
-    with pytest.raises(StudyError, match="seed1: finished, but its progress.csv is missing"):
-        paper_claims.claims(folder, "mappoc_paper", "random_skip_paper", None)
+    with pytest.raises(ClaimsRefused, match="seed1: finished, but its progress.csv is missing"):
+        claims(folder, "mappoc_paper", "random_skip_paper", None)

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import contextlib
-import importlib.util
 import json
 import lzma
 import os
@@ -434,26 +433,31 @@ def test_a_compressed_log_reads_as_the_plain_one(tmp_path):
         np.testing.assert_array_equal(columns[key], values)
 
 
-_voi_spec = importlib.util.spec_from_file_location("voi", ROOT / "benchmarks" / "multiwalker_value_of_information.py")
-voi = importlib.util.module_from_spec(_voi_spec)
-_voi_spec.loader.exec_module(voi)
+VOI = "multiwalker_value_of_information.py"
+#: A results page: the marks between which the value of information sweep puts its table, text around them.
+VOI_PAGE = (
+    "above\n<!-- multiwalker_value_of_information.py: start -->\n<!-- multiwalker_value_of_information.py: end -->\n"
+    "below\n"
+)
 
 
-def test_the_value_of_information_sweep_refuses_a_results_file_it_cannot_read(tmp_path):
-    assert voi.read_results(tmp_path / "none.json") == {}
+def test_the_value_of_information_sweep_refuses_a_results_file_it_cannot_read(tmp_path, run_benchmark):
+    write_study(tmp_path, TINY)  # a study folder without trials
     for text in ("{half", "[1, 2]"):
         (tmp_path / "broken.json").write_text(text)
-        with pytest.raises(StudyError, match="not the JSON of an earlier sweep"):
-            voi.read_results(tmp_path / "broken.json")
+        done = run_benchmark(VOI, str(tmp_path), "--out", str(tmp_path / "broken.json"))
+        assert done.returncode == 2 and "not the JSON of an earlier sweep" in done.stderr
+        assert "Traceback" not in done.stderr and (tmp_path / "broken.json").read_text() == text
 
 
-def test_the_value_of_information_sweep_runs_fixed_triggers_and_the_mode_of_learned_options(finished_study, tmp_path):
+def test_the_value_of_information_sweep_runs_fixed_triggers_and_the_mode_of_learned_options(
+    finished_study, tmp_path, run_benchmark
+):
     _, out, _ = finished_study
-    script = ROOT / "benchmarks" / "multiwalker_value_of_information.py"
     results_file = tmp_path / "results" / "voi.json"  # a folder that does not exist yet
-    command = [sys.executable, str(script), str(out), "--out", str(results_file), "--rates", "0.5", "--periods", "2"]
+    command = [str(out), "--out", str(results_file), "--rates", "0.5", "--periods", "2"]
     command += ["--deltas", "0", "1e9"]  # send-on-delta at every change and never
-    printed = subprocess.run(command, check=True, capture_output=True, text=True, cwd=ROOT).stdout
+    printed = run_benchmark(VOI, *command, check=True).stdout
     results = json.loads(results_file.read_text())
     spec = load_study(out / "study.yml")
     assert set(results) == {trial.name for trial in spec.trials()}
@@ -472,20 +476,25 @@ def test_the_value_of_information_sweep_runs_fixed_triggers_and_the_mode_of_lear
             assert rows["mode of mu"]["savings"] == pytest.approx(episodes.savings)
             assert rows["mode of mu"]["control_return"] == pytest.approx(np.mean(episodes.control_returns))
     assert "### learned" in printed and "| mode of mu | 2 |" in printed
-    # A trigger that only a later seed has still counts, over the seeds that have it
+    # A trigger that only a later seed has still counts, over the seeds that have it (the study's
+    # file alone: no trial finished there, nothing evaluated)
     first = next(trial.name for trial in spec.trials() if trial.algorithm.label == "learned")
     partial = {
         name: {t: m for t, m in rows.items() if name != first or t != "periodic 2"} for name, rows in results.items()
     }
-    assert voi.summary(out, partial)["learned"]["periodic 2"]["seeds"] == [1.0]
+    (tmp_path / "bare").mkdir()
+    (tmp_path / "bare" / "study.yml").write_text((out / "study.yml").read_text())
+    (tmp_path / "partial.json").write_text(json.dumps(partial))
+    summary = run_benchmark(VOI, str(tmp_path / "bare"), "--out", str(tmp_path / "partial.json"), "--deltas")
+    assert summary.returncode == 0, summary.stderr
+    learned_table = summary.stdout.split("### learned")[1].split("###")[0]
+    assert "| periodic 2 | 1 |" in learned_table and "| random 0.5 | 2 |" in learned_table
+    assert json.loads((tmp_path / "partial.json").read_text()) == partial
     # Run again: nothing left to evaluate, the same results; the algorithms side by side on a page.
     page = tmp_path / "README.md"
-    page.write_text(
-        "above\n<!-- multiwalker_value_of_information.py: start -->\n"
-        "<!-- multiwalker_value_of_information.py: end -->\nbelow\n"
-    )
+    page.write_text(VOI_PAGE)
     side_by_side = [*command, "--plot", "--splice", str(page), "--columns", "random", "learned"]
-    again = subprocess.run(side_by_side, check=True, capture_output=True, text=True, cwd=ROOT).stdout
+    again = run_benchmark(VOI, *side_by_side, check=True).stdout
     assert "control return" not in again.split("### ")[0] and json.loads(results_file.read_text()) == results
     assert (
         results_file.with_suffix(".png").stat().st_size > 0 and f"Figure: {results_file.with_suffix('.png')}" in again
@@ -515,34 +524,57 @@ def test_the_value_of_information_sweep_runs_fixed_triggers_and_the_mode_of_lear
         (["--splice", str(page), "--columns", "random", "nobody"], "no algorithm nobody in the study"),
         (["--splice", str(tmp_path / "missing.md")], "cannot be read as a text page"),
     ):
-        refused = subprocess.run([*command, *extra], capture_output=True, text=True, cwd=ROOT)
+        refused = run_benchmark(VOI, *command, *extra)
         assert refused.returncode == 2 and message in refused.stderr and refused.stdout == "", refused.stderr
     for extra in (["--columns", "random"], ["--deltas", "-1"], ["--rates", "2"], ["--periods", "0"]):
-        refused = subprocess.run([*command, *extra], capture_output=True, text=True, cwd=ROOT)
+        refused = run_benchmark(VOI, *command, *extra)
         assert refused.returncode == 2 and "error: " in refused.stderr and refused.stdout == "", extra
     assert page.read_text() == text
 
 
-def test_the_side_by_side_table_shows_each_algorithms_savings_where_a_trigger_saves_differently():
-    def entry(savings: float, control: float, seeds: int = 2) -> dict[str, list[float]]:
-        return {
-            "control_return": [control, control - 1, control + 1],
-            "package_travel": [1.0, 0.5, 1.5],
-            "fall_rate": [0.1, 0.0, 0.2],
-            "savings": [savings, savings, savings],
-            "seeds": [float(seeds)],
-        }
+def test_the_side_by_side_table_shows_each_algorithms_savings_where_a_trigger_saves_differently(
+    tmp_path, run_benchmark
+):
+    """The page of a study whose trials' results are given (no trial finished in the folder: nothing evaluated)."""
+    labels = ("a", "b", "c", "d")
+    write_study(
+        tmp_path, {**TINY, "evaluation": {"episodes": 7}, "algorithms": {x: {"algo": "mappoc"} for x in labels}}
+    )
 
-    table = {
-        "a": {"learned": entry(0.6, 10.0), "periodic 2": entry(0.5, 20.0), "send-on-delta 0.1": entry(0.9, 30.0)},
+    def seeds(savings: float, control: float, both: bool = True) -> list[dict[str, float]]:
+        """Every seed's metrics: seed 0 and, if ``both``, seed 1."""
+        rows = [
+            {"control_return": control - 1, "package_travel": 0.5, "fall_rate": 0.0, "savings": savings},
+            {"control_return": control + 1, "package_travel": 1.5, "fall_rate": 0.2, "savings": savings},
+        ]
+        return rows if both else rows[:1]
+
+    triggers = {
+        "a": {"learned": seeds(0.6, 10.0), "periodic 2": seeds(0.5, 20.0), "send-on-delta 0.1": seeds(0.9, 30.0)},
         "b": {
-            "periodic 2": entry(0.5, 40.0),
-            "send-on-delta 0.1": entry(0.7, 50.0, seeds=1),
-            "learned": entry(0.95, 60.0),
+            "periodic 2": seeds(0.5, 40.0),
+            "send-on-delta 0.1": seeds(0.7, 50.0, both=False),
+            "learned": seeds(0.95, 60.0),
         },
-        "c": {"periodic 2": entry(0.5, float("nan"), seeds=1)},
+        "c": {"periodic 2": [{**seeds(0.5, 70.0)[1], "package_travel": float("nan")}]},  # no package travel
     }
-    text = voi.page_table(table, ["a", "b"], episodes=7)
+    results: dict[str, dict] = {}
+    for label, rows in triggers.items():
+        for trigger, per_seed in rows.items():
+            for seed, metrics in enumerate(per_seed):
+                results.setdefault(f"{label}/seed{seed}", {})[trigger] = metrics
+    out = tmp_path / "voi.json"
+
+    def page(*arguments: str) -> tuple[subprocess.CompletedProcess, str]:
+        out.write_text(json.dumps(results))
+        (tmp_path / "README.md").write_text(VOI_PAGE)
+        done = run_benchmark(
+            VOI, str(tmp_path), "--out", str(out), "--deltas", "--splice", str(tmp_path / "README.md"), *arguments
+        )
+        return done, (tmp_path / "README.md").read_text()
+
+    done, text = page("--columns", "a", "b")
+    assert done.returncode == 0, done.stderr
     assert "on the same 7 episodes" in text
     lines = [line for line in text.splitlines() if line.startswith("| ") and "---" not in line]
     assert lines == [
@@ -550,15 +582,17 @@ def test_the_side_by_side_table_shows_each_algorithms_savings_where_a_trigger_sa
         "| periodic 2 | 0.500 | 20.0 [19.0, 21.0] (1.00, 0.10) | 40.0 [39.0, 41.0] (1.00, 0.10) |",
         "| learned (a) | 0.600 | 10.0 [9.0, 11.0] (1.00, 0.10) |  |",
         "| send-on-delta 0.1 | 0.800 | 30.0 [29.0, 31.0] (1.00, 0.10, savings 0.900) "
-        "| 50.0 [49.0, 51.0] (1.00, 0.10, savings 0.700, 1 seed) |",
+        "| 49.0 [49.0, 49.0] (0.50, 0.00, savings 0.700, 1 seed) |",
         "| learned (b) | 0.950 |  | 60.0 [59.0, 61.0] (1.00, 0.10) |",  # its own savings: in the savings column
     ]
-    table["c"]["periodic 2"]["package_travel"] = [float("nan")] * 3  # an env without package travel
-    assert "| `c` (1 seed) |" in voi.page_table(table, ["c"], episodes=7)
-    assert "(n/a, 0.10) |" in voi.page_table(table, ["c"], episodes=7)
-    for labels, message in (([], "no results to put"), (["a", "a"], "named twice"), (["a", "d"], "no results of d")):
-        with pytest.raises(StudyError, match=message):
-            voi.page_table(table, labels, episodes=7)
+    done, text = page("--columns", "c")
+    assert done.returncode == 0 and "| `c` (1 seed) |" in text and "(n/a, 0.20) |" in text
+    for arguments, message in ((["a", "a"], "named twice"), (["a", "d"], "no results of d"), ([], "no results to put")):
+        if not arguments:
+            results.clear()  # all algorithms (none given) of no results
+        done, text = page(*(["--columns", *arguments] if arguments else []))
+        assert done.returncode == 2 and message in done.stderr and "Traceback" not in done.stderr
+        assert text == VOI_PAGE
 
 
 def test_a_failing_trial_is_kept_with_its_traceback_and_the_others_go_on(tmp_path):

@@ -283,7 +283,7 @@ def test_a_fixed_trigger_decides_in_the_rollout_workers(trigger):
     )
     model = MAPPOC("MlpHybridPolicy", env, n_steps=16, batch_size=16, n_epochs=1, seed=0, fixed_trigger=trigger)
     model.learn(32)
-    assert model.last_rollout_in_workers
+    assert model.sampler.last_in_workers
     buffer = model.rollout_buffer
     # Stateless: the options of every row of the buffer are the trigger's on that row's observation.
     rows = {key: value.reshape(-1, *value.shape[2:]) for key, value in buffer.observations.items()}

@@ -81,21 +81,21 @@ def test_worker_rollouts_fill_the_buffer_like_rollouts_in_the_learner(normalize_
         assert {key for key in worker_row if key.startswith("comm/")} == comm
         for key in comm:
             np.testing.assert_allclose(np.asarray(worker_row[key]), np.asarray(plain_row[key]), rtol=1e-6, err_msg=key)
-    assert [model.last_rollout_in_workers for model in models] == [False, True]
-    np.testing.assert_allclose(b._last_obs["local"], a._last_obs["local"], atol=1e-5)
+    assert [model.sampler.last_in_workers for model in models] == [False, True]
+    np.testing.assert_allclose(b.last_obs["local"], a.last_obs["local"], atol=1e-5)
 
 
 def test_worker_processes_train_and_take_the_new_policy_after_loading(tmp_path) -> None:
     """In SubprocVecEnv workers: training runs, and a loaded model sends its own policy to the workers."""
     model = make(True, vec_env_cls=SubprocVecEnv, policy_kwargs={"net_arch": [16, 16]})
     model.learn(96)
-    assert model.last_rollout_in_workers
+    assert model.sampler.last_in_workers
     model.save(tmp_path / "model.zip")
     loaded = MAPPOC.load(tmp_path / "model.zip", env=model.get_env(), learning_rate=0.0)
     with th.no_grad():  # the loaded policy always broadcasts, the workers' copy of the saved one does not
         loaded.policy.net_parameters("mu")[-1][..., 1] = 30.0
     loaded.learn(96, reset_num_timesteps=False)
-    assert loaded.last_rollout_in_workers and loaded.rollout_buffer.broadcast.all()
+    assert loaded.sampler.last_in_workers and loaded.rollout_buffer.broadcast.all()
     assert loaded.num_timesteps == 2 * 96  # one more iteration of 2 x 48 steps
     model.get_env().close()
 
@@ -108,7 +108,7 @@ def test_random_skips_run_in_the_workers_with_one_fork_per_env_and_rollout() -> 
     for _ in range(2):
         model.learn(96, reset_num_timesteps=False)
         rollout_broadcasts.append(model.rollout_buffer.broadcast.copy())
-    assert model.last_rollout_in_workers
+    assert model.sampler.last_in_workers
     assert not np.array_equal(rollout_broadcasts[0][:, 0], rollout_broadcasts[0][:, 1])  # the two envs
     assert not np.array_equal(rollout_broadcasts[0], rollout_broadcasts[1])  # the two rollouts
     assert 0.35 < np.mean(rollout_broadcasts) < 0.65
@@ -119,7 +119,7 @@ def test_other_triggers_and_vec_env_wrappers_keep_the_rollout_in_the_learner() -
     model = make(True)
     model.set_fixed_trigger(always_broadcast)
     model.learn(48)
-    assert model.last_rollout_in_workers is False and model.rollout_buffer.broadcast.all()
+    assert model.sampler.last_in_workers is False and model.rollout_buffer.broadcast.all()
     assert not has_rollout_workers(VecNormalize(model.get_env()))
 
 
@@ -144,7 +144,7 @@ def test_a_callback_can_stop_a_worker_rollout() -> None:
     assert model.num_timesteps == 20  # 10 steps of 2 envs
     for index, env in enumerate(model.get_env().envs):
         for key, value in env.observation.items():
-            np.testing.assert_array_equal(model._last_obs[key][index], value)
+            np.testing.assert_array_equal(model.last_obs[key][index], value)
 
 
 def test_a_non_finite_observation_is_named_by_its_key() -> None:

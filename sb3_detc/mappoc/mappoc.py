@@ -336,9 +336,9 @@ class MAPPOC(OnPolicyAlgorithm):
         return self._n_updates
 
     @property
-    def last_rollout_in_workers(self) -> bool | None:
-        """Whether the last rollout was sampled inside rollout workers (None: no rollout yet)."""
-        return self.sampler.last_in_workers
+    def last_obs(self) -> dict[str, np.ndarray] | None:
+        """The joint observation of every env that the next rollout starts from (None before ``learn`` sets up)."""
+        return self._last_obs  # type: ignore[return-value]
 
     # ------------------------------------------------------------------ modes
     def set_fixed_trigger(self, trigger: FixedTrigger | None) -> None:
@@ -415,13 +415,14 @@ class MAPPOC(OnPolicyAlgorithm):
     ) -> bool:
         """Collect ``n_rollout_steps`` steps per environment with the current policies.
 
-        The steps are sampled first (:mod:`sb3_detc.mappoc.sampling`: options from ``mu`` or the
-        fixed trigger, the broadcasts delivered, then the controls, with :attr:`action_noise_std`
-        extra noise), inside rollout workers where the env has them; then the learner goes through
-        them in order (:meth:`_take_steps`) and stores them with their values (:meth:`_store_rollout`).
+        The steps are sampled first (:mod:`sb3_detc.mappoc.sampling`), inside rollout workers where the
+        env has them; the learner then goes through them in order (:meth:`_take_steps`) and stores them
+        with their values (:meth:`_store_rollout`).
 
         :param env: the training environment
-        :param callback: callback called at each step (and at the beginning and end of the rollout)
+        :param callback: called at every step with SB3's locals ``infos``, ``dones``, ``new_obs`` and
+            ``rewards`` (the learner's per-agent rewards (n_envs, N) with the rate target's price, before a
+            truncation's bootstrap), and at the beginning and end of the rollout
         :param rollout_buffer: the buffer to fill (a :class:`HybridRolloutBuffer`)
         :param n_rollout_steps: number of steps to collect per environment
         :return: True if the rollout was completed, False if a callback stopped it

@@ -160,6 +160,9 @@ class MlpHybridPolicy(BasePolicy):
         (default ``eps=1e-5`` as in the paper's code, and PyTorch's fused Adam kernel)
     :param normalize_images: unused (no image inputs); present for SB3 compatibility, it is
         among the constructor parameters that SB3 saves with a policy
+
+    :ivar chains: the agent-batched networks of ``mu``, ``q`` and ``pi``
+        (:class:`~sb3_detc.mappoc.batched.AgentBatchedNetworks`)
     """
 
     def __init__(
@@ -317,6 +320,13 @@ class MlpHybridPolicy(BasePolicy):
             optimizer_kwargs=self.optimizer_kwargs,
         )
         return data
+
+    def constructor_parameters(self) -> dict[str, Any]:
+        """The arguments this policy was built with, as :meth:`save` stores them and :meth:`load` rebuilds it from.
+
+        :return: the constructor's keyword arguments by name (the spaces and the learning-rate schedule included)
+        """
+        return self._get_constructor_parameters()
 
     def net_parameters(self, net: str) -> list[th.Tensor]:
         """Every agent's parameters of one network: views into the batched chain (``pi`` includes ``log_std``).

@@ -1,14 +1,26 @@
-"""Sweeps of independent training jobs that keep every finished row and go on where they stopped.
+"""Sweeps of independent jobs that keep every finished row and go on where they stopped.
 
-The benchmark scripts that train one model per job (``linear_learning.py``,
-``trigger_learning.py``, ``option_value_estimation.py``, ``multiwalker_trigger_for_controller.py``)
-run their jobs through :func:`run_rows`: jobs run in parallel processes, every finished job's rows
-are written to the results file at once (atomically), and a job whose rows are already in the file
-is not run again. An interruption (Ctrl-C, a killed job) loses only the jobs that were running; the
-same command then runs only what is missing. A failing job's traceback is printed at once; the
-jobs running beside it finish and write their rows, no other job starts, and the sweep then raises
-the job's error. A job is identified by everything it is given (:func:`job_key`): the scripts put
-the settings they train with into their jobs, so a changed setting is a new job.
+A sweep runs a function over a list of jobs (JSON-like dicts), one job per process, and keeps
+the rows the jobs return in one JSON file. :func:`run_rows` writes every finished job's rows to
+the file at once (atomically), and a job whose rows are already in the file is not run again:
+an interruption (Ctrl-C, a killed process) loses only the jobs that were running, and the same
+call then runs only what is missing. A failing job's traceback is printed at once; the jobs
+running beside it finish and write their rows, no other job starts, and the sweep then raises
+the job's error. A job is identified by everything it is given (:func:`job_key`): put the
+settings a job trains with into the job, so that a changed setting is a new job.
+
+The benchmark scripts that train one model per job (``benchmarks/linear_learning.py`` and
+others) run their jobs this way::
+
+    from pathlib import Path
+
+    from sb3_detc.study.sweep import run_rows
+
+    def run(job: dict) -> dict:  # a module-level function: it is pickled to the worker processes
+        return {"seed": job["seed"], "square": job["seed"] ** 2}
+
+    if __name__ == "__main__":
+        rows = run_rows(run, [{"seed": seed} for seed in range(5)], Path("rows.json"), workers=2)
 """
 
 from __future__ import annotations
@@ -163,12 +175,18 @@ def run_rows(
 
 
 def _write(rows: Rows, path: Path) -> None:
-    """Write rows as indented JSON."""
+    """Write rows as indented JSON.
+
+    :param rows: the rows
+    :param path: the file
+    """
     path.write_text(json.dumps(rows, indent=1))
 
 
 def check_at_least_one(parser: argparse.ArgumentParser, args: argparse.Namespace, *names: str) -> None:
-    """Refuse integer arguments below 1 with a usage error (arguments left at None are not checked).
+    """Refuse integer arguments below 1 (counts of jobs, workers, steps) with a usage error.
+
+    Arguments left at None are not checked.
 
     :param parser: the command's parser
     :param args: its parsed arguments

@@ -1,4 +1,4 @@
-"""``benchmarks/resumable.py``: sweeps keep every finished job's rows and rerun only what is missing."""
+"""``sb3_detc.study.sweep``: sweeps keep every finished job's rows and rerun only what is missing."""
 
 from __future__ import annotations
 
@@ -8,7 +8,9 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from resumable import JOB, OutError, job_key, run_rows  # benchmarks/, on the path in conftest.py
+
+from sb3_detc.study.sweep import JOB, OutError, job_key, run_rows
+from sb3_detc.study.trial import exclusive
 
 
 def square(job: dict[str, Any]) -> dict[str, Any] | list[dict[str, Any]]:
@@ -73,8 +75,6 @@ def test_a_file_of_something_else_is_refused_untouched(tmp_path: Path, content: 
 
 
 def test_a_second_sweep_on_the_same_file_is_refused(tmp_path: Path) -> None:
-    from sb3_detc.study.trial import exclusive
-
     out = tmp_path / "rows.json"
     with exclusive(tmp_path / "rows.json.lock"), pytest.raises(OutError, match="another sweep is writing to"):
         run_rows(square, [{"x": 1, "marks": str(tmp_path)}], out, workers=1)
