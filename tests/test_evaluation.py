@@ -223,3 +223,42 @@ def test_the_callback_counts_the_episodes_as_the_evaluation_does() -> None:
     assert logged["comm/ep_control_return"] == pytest.approx(episodes.control_returns.mean())
     cost = xi * episodes.broadcasts.sum() / episodes.broadcasts.size  # per agent and episode
     assert logged["comm/ep_control_return"] - logged["comm/ep_return"] == pytest.approx(cost)
+
+
+def test_the_protocol_compares_fixed_families_tuned_to_the_learned_rate() -> None:
+    """A trial trained with every 4th step's broadcasts: every family reaches its 75 % on the same episodes."""
+    env = gym.make("sb3_detc/LinearETC-LQR-v0", n_agents=3, max_cycles=40)
+    policy = MAPPOC("MlpHybridPolicy", env, policy_kwargs={"net_arch": [8]}, seed=0).policy
+    families = ("periodic", "periodic_staggered", "send_on_delta_max_age", "predictive")
+    result = evaluation.evaluate_policy_modes(
+        policy, env, 6, 100, own_trigger=PeriodicTrigger(4), fixed_families=families, tune_episodes=3
+    )
+    metrics, modes = result["metrics"], result["modes"]
+    assert metrics["savings"] == pytest.approx(0.75, abs=0.02)
+    assert result["fixed"]["periodic"] == "PeriodicTrigger(period=4, staggered=False)"
+    for family in families:
+        assert abs(metrics[f"fixed_{family}_savings"] - metrics["savings"]) < 0.1, family
+    # the in-phase family is the trial's own trigger: the same episodes, the same control returns
+    assert modes["fixed_periodic"]["control_return"] == modes["learned"]["control_return"]
+    best = result["best_fixed"]
+    assert metrics["best_fixed_control_return"] == max(metrics[f"fixed_{f}_control_return"] for f in families)
+    paired = np.subtract(modes["learned"]["control_return"], modes[f"fixed_{best}"]["control_return"])
+    assert metrics["learned_minus_best_fixed_control_return"] == pytest.approx(paired.mean())
+
+
+def test_a_family_that_cannot_reach_the_rate_or_run_in_the_env_is_left_out_with_its_reason() -> None:
+    env = gym.make(ENV_ID, **SETTINGS)
+    policy = MAPPOC("MlpHybridPolicy", env, policy_kwargs={"net_arch": [8]}, seed=0).policy
+    result = evaluation.evaluate_policy_modes(
+        policy, env, 4, 7, own_trigger=RandomTrigger(0.6, seed=1), fixed_families=("periodic",), tune_episodes=2
+    )
+    savings = result["metrics"]["savings"]
+    assert 0.51 < savings < 0.656  # between the savings of periods 2 and 3, further than 0.01 from both
+    assert result["fixed"]["periodic"].startswith("left out:")
+    assert "fixed_periodic_control_return" not in result["metrics"] and result["best_fixed"] is None
+    with pytest.raises(ValueError, match="fixed_families must be names from"):
+        evaluation.evaluate_policy_modes(policy, env, 2, 7, fixed_families=("sometimes",))
+    multiwalker = gym.make("sb3_detc/MultiwalkerETC-v0")
+    with pytest.raises(ValueError):
+        evaluation.fixed_family_env(multiwalker, "predictive")  # no linear system to predict with
+    assert evaluation.fixed_family_env(multiwalker, "periodic") is multiwalker

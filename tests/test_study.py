@@ -186,13 +186,16 @@ def test_the_shipped_study_files_load():
         "control_first": 2,
         "mappoc_paper_overlap": 2,
     }
-    # only the variant overlaps rollouts (the entries' default is rollouts in turn)
-    overlap = {a.label: a.hyperparams["overlap_rollouts"] for a in paper.algorithms}
-    assert overlap == {
-        **dict.fromkeys(("mappoc_paper", "random_skip_paper", "control_first"), False),
-        "mappoc_paper_overlap": True,
-    }
+    assert all("overlap_rollouts" not in a.hyperparams for a in paper.algorithms)  # removed in 0.2.0
     assert all(paper.budget(a) == 6_144_000 for a in paper.algorithms)
+    rate = load_study(ROOT / "sb3_detc" / "studies" / "linear_lqr_rate.yml")
+    assert rate.fixed_families == ("periodic", "periodic_staggered", "send_on_delta_max_age", "predictive")
+    assert {a.label: a.hyperparams["target_savings"] for a in rate.algorithms} == {
+        "target_80": 0.8,
+        "target_90": 0.9,
+        "target_95": 0.95,
+        "predicted_90": 0.9,
+    }
 
 
 def test_command_line_bad_input_is_one_line_with_exit_code_2(tmp_path):
