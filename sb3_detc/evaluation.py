@@ -388,7 +388,9 @@ def evaluate_episodes(
     otherwise one after another in ``env``. Episode
     ``k`` is reset with ``seeds[k]`` either way, and the results are in the order of ``seeds``.
     The copies have the settings of ``env.spec``: what was changed in ``env`` after it was
-    made (e.g. its broadcast cost set by hand) does not carry over. Where every episode has its
+    made (e.g. its broadcast cost set by hand, or a wrapper put around it by hand whose arguments
+    the spec does not record, such as a :class:`~sb3_detc.triggers.FixedControl` with another
+    control law) does not carry over; give such an env without a spec. Where every episode has its
     seed, the policy's draws (options sampled from ``mu``, controls unless ``deterministic``)
     are seeded with the first (PyTorch's CPU generator, left as it was afterwards; a policy on
     a GPU draws from the GPU's): the same policy, env and seeds give the same episodes.
@@ -545,19 +547,30 @@ def _episodes_json(episodes: Episodes) -> dict[str, Any]:
     }
 
 
+#: The linear system's ids, whose settings the env of predictive triggering (:data:`PREDICTED_ID`) takes.
+LINEAR_IDS = ("sb3_detc/LinearETC-v0", "sb3_detc/LinearETC-LQR-v0")
+#: The id of the linear system with LQR controls, which ``prediction=True`` puts on the predicted states.
+PREDICTED_ID = "sb3_detc/LinearETC-LQR-v0"
+
+
 def fixed_family_env(env: gym.Env, family: str) -> gym.Env:
     """The env in which a fixed trigger family runs: predictive triggering with LQR on the predicted states.
 
     :param env: the evaluation env (a joint env)
     :param family: a name from :data:`~sb3_detc.triggers.TRIGGER_FAMILIES`
-    :return: ``env`` itself, or for ``"predictive"`` its joint env with the controls of
-        :func:`~sb3_detc.triggers.lqr_on_predicted_states` (the model-based anchor on the linear system)
+    :return: ``env`` itself, or for ``"predictive"`` the linear system with its settings and the
+        controls of :func:`~sb3_detc.triggers.lqr_on_predicted_states` (the model-based anchor)
     :raises ValueError: for ``"predictive"`` on an env without a linear system
     """
     if family != "predictive":
         return env
-    joint = env.unwrapped
-    return FixedControl(joint, lqr_on_predicted_states(joint))
+    spec = env.spec
+    if spec is None:  # run one episode after another: nothing to copy
+        joint = env.unwrapped
+        return FixedControl(joint, lqr_on_predicted_states(joint))
+    if spec.id not in LINEAR_IDS:
+        raise ValueError(f"predictive triggering needs the linear system ({', '.join(LINEAR_IDS)}), got {spec.id!r}.")
+    return gym.make(PREDICTED_ID, **{**spec.kwargs, "prediction": True})  # copies made from its spec run it too
 
 
 def evaluate_fixed_family(

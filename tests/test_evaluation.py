@@ -15,7 +15,14 @@ from sb3_detc.callbacks import CommMetricsCallback
 from sb3_detc.envs.linear_etc_v0 import joint_env
 from sb3_detc.evaluation import evaluate_episodes
 from sb3_detc.mappoc import MAPPOC
-from sb3_detc.triggers import PeriodicTrigger, RandomTrigger, SendOnDelta
+from sb3_detc.triggers import (
+    FixedControl,
+    PeriodicTrigger,
+    PredictiveTrigger,
+    RandomTrigger,
+    SendOnDelta,
+    lqr_on_predicted_states,
+)
 
 ENV_ID = "sb3_detc/LinearETC-v0"
 SETTINGS = {"n_agents": 2, "max_cycles": 15}
@@ -262,3 +269,21 @@ def test_a_family_that_cannot_reach_the_rate_or_run_in_the_env_is_left_out_with_
     with pytest.raises(ValueError):
         evaluation.fixed_family_env(multiwalker, "predictive")  # no linear system to predict with
     assert evaluation.fixed_family_env(multiwalker, "periodic") is multiwalker
+
+
+def test_predictive_triggering_runs_with_lqr_on_the_predicted_states_in_every_copy() -> None:
+    """Side by side, the copies of the predictive family's env act on the predicted states too."""
+    env = gym.make("sb3_detc/LinearETC-LQR-v0", n_agents=3, max_cycles=30)
+    policy = MAPPOC("MlpHybridPolicy", env, policy_kwargs={"net_arch": [8]}, seed=0).policy
+    trigger = PredictiveTrigger(env, 0.3)
+    seeds = [5, 6, 7, 8]
+    side_by_side = evaluate_episodes(
+        policy, evaluation.fixed_family_env(env, "predictive"), seeds, fixed_trigger=trigger
+    )
+    joint = joint_env(n_agents=3, max_cycles=30)  # no spec: one episode after another
+    one_by_one = evaluate_episodes(
+        policy, FixedControl(joint, lqr_on_predicted_states(joint)), seeds, fixed_trigger=trigger
+    )
+    np.testing.assert_allclose(side_by_side.control_returns, one_by_one.control_returns, rtol=1e-6)
+    held = evaluate_episodes(policy, env, seeds, fixed_trigger=trigger)
+    assert not np.allclose(held.control_returns, one_by_one.control_returns)  # the controllers differ
