@@ -17,10 +17,11 @@ the entry's setting stays. The entry's callbacks (random skips, the action noise
 noise has ended by the end of training) are left out.
 
 The trained policy then runs the study's evaluation protocol on the study's seeded episodes
-(:func:`~sb3_detc.study.trial.evaluate_policy_modes`: learned options sampled from ``mu``,
-random options at the learned rate, every step, never) and a message every ``k`` steps at the
-``k`` whose savings ``1 - 1/k`` lie closest to the learned savings. The control policy is the
-trial's, unchanged, so the value of information sweep of the same study
+(:func:`~sb3_detc.evaluation.evaluate_policy_modes`: the learned options, sampled from ``mu`` or
+its most likely ones as the policy's ``sample_options`` says (the entry's setting), the most
+likely options, random options at the learned rate, every step, never) and a message every
+``k`` steps at the ``k`` whose savings ``1 - 1/k`` lie closest to the learned savings. The control
+policy is the trial's, unchanged, so the value of information sweep of the same study
 (``multiwalker_value_of_information.py``) shows the same controller under fixed triggers.
 
 One job per seed, one after another (each trains with the entry's two rollout-worker
@@ -193,7 +194,7 @@ def run(job: dict[str, Any], progress_every: int = PROGRESS_EVERY) -> dict[str, 
         the trained policy; None: not kept)
     :param progress_every: rollouts between two lines of progress (:class:`Progress`)
     :return: the seed, the training seconds, the study protocol's metrics of the learned trigger
-        (:func:`~sb3_detc.study.trial.evaluate_policy_modes`), the control return, package travel (None
+        (:func:`~sb3_detc.evaluation.evaluate_policy_modes`), the control return, package travel (None
         where the env reports none), fall rate and savings of a message every ``k`` steps at the nearest
         savings (None if the trigger never broadcasts), and the file of the saved policy
     """

@@ -8,7 +8,7 @@ finished seeds, 95 % stratified-bootstrap interval, every seed) and a verdict by
 listed under the table:
 
 * a seed *carries the package* when its package travel is at least half of the travel with
-  communication at every step (the same controllers) (:func:`sb3_detc.study.trial.carries_package`, the
+  communication at every step (the same controllers) (:func:`sb3_detc.evaluation.carries_package`, the
   travel part of the study's success criterion); a claim about learning to carry holds when more
   than half of the seeds carry;
 * savings are *learned* when the policy over options ends (last logged ``train/entropy_mu``)
@@ -99,7 +99,7 @@ def estimate(entry: dict[str, Any], metric: str, scale: float = 1.0, digits: int
 
 
 def carriers(entry: dict[str, Any]) -> int:
-    """The number of seeds that carry the package (:func:`~sb3_detc.study.trial.carries_package`).
+    """The number of seeds that carry the package (:func:`~sb3_detc.evaluation.carries_package`).
 
     :param entry: an algorithm's entry of :func:`~sb3_detc.study.report.summarise`
     :return: how many of its seeds carry
