@@ -2,7 +2,7 @@
 
 It reads only the trials' files (``evaluation.json``, ``status.json``, ``progress.csv.xz``), so
 anyone with a copy of the folder can make it. Per algorithm label, every metric of
-:func:`~sb3_detc.study.trial.evaluate_policy_modes` is summarised over the finished seeds by
+:func:`~sb3_detc.evaluation.evaluate_policy_modes` is summarised over the finished seeds by
 its mean and a 95 % stratified-bootstrap percentile interval of the mean (rliable's
 ``get_interval_estimates``, 10,000 resamples, fixed random state); the interquartile mean
 and the probability that one algorithm's control return beats another's (rliable's

@@ -25,10 +25,7 @@ The entry of ``env`` is taken from the package's hyperparameter file of the algo
 (``sb3_detc/hyperparams/<algo>.yml``) unless ``conf`` names another one. A trial uses as
 many cores as its entry's rollout workers (``n_envs`` with
 :class:`~sb3_detc.mappoc.workers.RolloutWorker` envs), otherwise one; its learner uses as many
-torch threads. Without MAPPOC's ``overlap_rollouts`` the workers wait while the learner updates,
-and it waits while they collect; with it (on in the Multiwalker entries of the package's
-hyperparameter files, e.g. ``sb3_detc/hyperparams/mappoc.yml``) the workers sample the next
-rollout during the update, at a lower scheduling priority, while the learner updates with one thread.
+torch threads: the workers wait while the learner updates, and it waits while they collect.
 """
 
 from __future__ import annotations
