@@ -93,13 +93,15 @@ def main() -> None:
     last = np.array(rates.rates[-30:])
     print(
         f"target {args.target} price lr {args.price_lr} normalised advantages {not args.raw_advantages}: "
-        f"{seconds:.0f} s; last 30 rollouts' rate {last.mean():.3f} (sd {last.std():.3f}); price {model.broadcast_price:.3f}"
+        f"{seconds:.0f} s; last 30 rollouts' rate {last.mean():.3f} (sd {last.std():.3f}); "
+        f"price {model.broadcast_price:.3f}"
     )
     print("rate every 5th rollout:", np.round(rates.rates[::5], 2).tolist())
     with gym.make(ENV_ID) as evaluation_env:
         episodes = evaluate_episodes(model.policy, evaluation_env, list(range(EVAL_SEED, EVAL_SEED + 50)))
     print(
-        f"final policy on 50 episodes: savings {episodes.savings:.3f}, control return {np.mean(episodes.control_returns):.3f}"
+        f"final policy on 50 episodes: savings {episodes.savings:.3f}, "
+        f"control return {np.mean(episodes.control_returns):.3f}"
     )
 
 

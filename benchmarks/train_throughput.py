@@ -364,13 +364,15 @@ def main() -> None:
     parser.add_argument(
         "--baseline",
         type=Path,
-        help="also measure the one-liner with the package of this source tree (e.g. a git worktree of an earlier "
-        "commit), right after this tree's in every repeat",
+        help="also measure the one-liner with this source tree's package and its own train_throughput.py (e.g. a "
+        "git worktree of an earlier commit), right after this tree's in every repeat",
     )
     args = parser.parse_args()
     check_at_least_one(parser, args, "iterations", "ppo_iterations", "repeats")
-    if args.baseline is not None and not (args.baseline / "sb3_detc" / "__init__.py").is_file():
-        parser.error(f"--baseline {args.baseline} is not a source tree of the package (no sb3_detc/__init__.py).")
+    if args.baseline is not None and not (args.baseline / "benchmarks" / "train_throughput.py").is_file():
+        parser.error(
+            f"--baseline {args.baseline} is not a source tree of the package (no benchmarks/train_throughput.py)."
+        )
     if args.one is not None:
         print(json.dumps(measure_one(args.one, args.seed, args.iterations, args.ppo_iterations)))
         return
@@ -382,9 +384,10 @@ def main() -> None:
     results: dict[str, list[dict[str, Any]]] = {name: [] for name, _ in runs}
     for repeat in range(args.repeats):
         for name, tree in runs:
+            script = tree / "benchmarks" / "train_throughput.py" if tree else Path(__file__)  # the tree's own script
             command = [
                 sys.executable,
-                __file__,
+                str(script),
                 "--one",
                 ONE_LINER if tree else name,
                 "--seed",
@@ -393,7 +396,8 @@ def main() -> None:
             command += ["--iterations", str(args.iterations), "--ppo-iterations", str(args.ppo_iterations)]
             environment = dict(os.environ, PYTHONPATH=str(tree)) if tree else None  # the other tree's package
             print(f"[repeat {repeat + 1} of {args.repeats}] {name}", file=sys.stderr, flush=True)
-            done = subprocess.run(command, stdout=subprocess.PIPE, text=True, env=environment)  # stderr shows
+            # in the tree: worker processes start from a fork server that looks in its working directory first
+            done = subprocess.run(command, stdout=subprocess.PIPE, text=True, env=environment, cwd=tree)  # stderr shows
             if done.returncode != 0:
                 sys.exit(f"measuring {name} failed (exit status {done.returncode}; its error is above): {command}")
             results[name].append({**json.loads(done.stdout.strip().splitlines()[-1]), "name": name})

@@ -42,6 +42,7 @@ __all__ = [
     "open_progress",
     "outlier_symlog_threshold",
     "plot_estimates",
+    "plot_front",
     "plot_runs",
     "progress_file",
     "read_progress",
@@ -315,6 +316,63 @@ def plot_estimates(
     :return: the written file
     """
     return _save(estimates_figure(estimates, panels, title), out)
+
+
+def plot_front(rows: Sequence[dict], out: str | Path, title: str = "") -> Path:
+    """Control return against savings: learned triggers as points with intervals, fixed families as curves.
+
+    Algorithms with the same environment settings (``settings``) share a panel, in which every
+    family's points at the algorithms' rates are joined in the order of their savings.
+
+    :param rows: the study's front (:func:`sb3_detc.study.report.front`)
+    :param out: the PNG file
+    :param title: the figure's title
+    :return: the written file
+    """
+    panels = list(dict.fromkeys(row["settings"] for row in rows))
+    fig, axes = plt.subplots(1, len(panels), figsize=(5.2 * len(panels), 4.0), squeeze=False)
+    colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    for ax, settings in zip(axes[0], panels, strict=True):
+        group = [row for row in rows if row["settings"] == settings]
+        families = list(dict.fromkeys(name for row in group for name in row["points"] if name != "learned"))
+        for k, family in enumerate(families):
+            points = sorted(row["points"][family] for row in group if family in row["points"])
+            x, y = [p[0] for p in points], [p[1] for p in points]
+            errors = np.array([[p[1] - p[2][0], p[2][1] - p[1]] for p in points]).T
+            ax.errorbar(
+                x,
+                y,
+                yerr=errors,
+                color=colors[(k + 1) % len(colors)],
+                marker="s",
+                markersize=4,
+                capsize=2,
+                linewidth=1.2,
+                label=family,
+            )
+        for row in group:
+            savings, mean, (low, high) = row["points"]["learned"]
+            ax.errorbar(
+                [savings],
+                [mean],
+                yerr=[[mean - low], [high - mean]],
+                color=colors[0],
+                marker="o",
+                markersize=7,
+                capsize=3,
+                linestyle="none",
+            )
+            ax.annotate(row["label"], (savings, mean), textcoords="offset points", xytext=(5, 5), fontsize="small")
+        ax.plot([], [], "o", color=colors[0], label="learned (per algorithm)")
+        ax.set_xlabel("communication savings")
+        ax.set_ylabel("control return (mean over seeds, 95 % interval)")
+        ax.set_title(settings if settings != "{}" else "entry settings", fontsize="small")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize="small")
+    fig.suptitle(
+        f"{title}{': ' if title else ''}learned triggers and fixed families at the same savings", fontsize="medium"
+    )
+    return _save(fig, out)
 
 
 def estimates_figure(

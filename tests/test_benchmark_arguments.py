@@ -37,6 +37,9 @@ def test_bad_input_is_a_usage_error(tmp_path: Path, arguments: list[str], messag
         ("option_value_estimation.py", ["--horizon", "512"], "--horizon must be below the rollout's 512 steps"),
         ("option_value_truth.py", ["--every", "0"], "--every must be at least 1"),
         ("train_throughput.py", ["--repeats", "0"], "--repeats must be at least 1"),
+        ("train_throughput.py", ["--baseline", "/no/such/tree"], "is not a source tree of the package"),
+        ("rate_target_stability.py", ["--target", "1.5"], "target_savings must be a number in (0, 1)"),
+        ("rate_target_stability.py", ["--price-lr", "0"], "broadcast_price_lr must be > 0"),
     ],
 )
 def test_other_benchmarks_check_their_numbers_first(

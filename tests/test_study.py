@@ -18,9 +18,11 @@ import pytest
 import yaml
 
 import sb3_detc
+from sb3_detc import plot
 from sb3_detc.evaluation import evaluate_episodes
 from sb3_detc.mappoc.policies import MlpHybridPolicy
 from sb3_detc.plot import PROGRESS_XZ, progress_file, read_progress
+from sb3_detc.study import report
 from sb3_detc.study.__main__ import main as study_main
 from sb3_detc.study.report import report_study, splice, summarise
 from sb3_detc.study.runner import prepare_folder, run_study
@@ -905,3 +907,39 @@ def test_a_file_replaced_atomically_is_whole_or_as_it_was(tmp_path):
     assert target.read_text() == "old"  # readers never see the half
     replace_atomically(target, lambda path: path.write_text("new"), "policy.tmp.pt")
     assert target.read_text() == "new" and sorted(p.name for p in tmp_path.iterdir()) == ["policy.pt"]
+
+
+def test_the_front_puts_each_learned_trigger_beside_the_fixed_families_at_its_rate(tmp_path):
+    families = ["periodic", "send_on_delta_max_age"]
+    content = {**TINY, "evaluation": {**TINY["evaluation"], "fixed_families": families}}
+    spec = load_study(write_study(tmp_path, content))
+    assert spec.fixed_families == tuple(families)
+
+    def entry(savings: float, learned: float, periodic: float, delta: float) -> dict:
+        mean = {
+            "savings": savings,
+            "control_return": learned,
+            "fixed_periodic_savings": savings,
+            "fixed_periodic_control_return": periodic,
+            "fixed_send_on_delta_max_age_savings": savings + 0.004,
+            "fixed_send_on_delta_max_age_control_return": delta,
+            "best_fixed_control_return": max(periodic, delta),
+            "learned_minus_best_fixed_control_return": learned - max(periodic, delta),
+        }
+        return {"mean": mean, "ci95": {name: [value - 0.5, value + 0.5] for name, value in mean.items()}}
+
+    summary = {"learned": entry(0.9, -8.0, -12.0, -8.5), "random": {"mean": {"savings": 0.5}, "ci95": {}}}
+    rows = report.front(spec, summary)
+    assert [row["label"] for row in rows] == ["learned"]  # the baseline compared no families
+    assert rows[0]["points"] == {
+        "learned": (0.9, -8.0, (-8.5, -7.5)),
+        "periodic": (0.9, -12.0, (-12.5, -11.5)),
+        "send_on_delta_max_age": (0.904, -8.5, (-9.0, -8.0)),
+    }
+    assert rows[0]["difference"] == (0.5, (0.0, 1.0))
+    table = report.front_markdown(rows)
+    assert table.splitlines()[2] == (
+        "| learned | -8.00 [-8.50, -7.50] at 0.900 | -12.00 [-12.50, -11.50] at 0.900 "
+        "| -8.50 [-9.00, -8.00] at 0.904 | 0.50 [0.00, 1.00] |"
+    )
+    assert plot.plot_front(rows, tmp_path / "front.png").stat().st_size > 0

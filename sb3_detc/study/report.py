@@ -23,7 +23,7 @@ import numpy as np
 from rliable import library as rly
 from rliable import metrics as rly_metrics
 
-from sb3_detc.plot import open_progress, plot_estimates, plot_runs, progress_file
+from sb3_detc.plot import open_progress, plot_estimates, plot_front, plot_runs, progress_file
 from sb3_detc.study.spec import StudyError, load_folder_study
 from sb3_detc.study.trial import read_status, replace_atomically, trial_folder
 
@@ -32,6 +32,8 @@ __all__ = [
     "CURVE_PANELS",
     "ESTIMATE_PANELS",
     "METRICS",
+    "front",
+    "front_markdown",
     "interval_estimates",
     "interval_text",
     "mark_lines",
@@ -320,6 +322,64 @@ def _logged_iterations(run: Path) -> int:
         return max(0, sum(1 for line in file if line.strip()) - 1)
 
 
+def front(spec: Any, summary: dict[str, Any]) -> list[dict[str, Any]]:
+    """Control return against savings: every learned trigger and every fixed family at its rate (mean and interval).
+
+    From the evaluations that compared fixed families (``evaluation: fixed_families`` of the study):
+    per algorithm, the learned trigger's point and each family's point at the learned rate, the same
+    episodes, means over seeds with their 95 % intervals. Algorithms that train with the same
+    environment settings share their families' curves.
+
+    :param spec: the study (:class:`~sb3_detc.study.spec.StudySpec`)
+    :param summary: the study's statistics (:func:`summarise`)
+    :return: one row per algorithm with finished seeds that compared families: ``label``, ``settings``
+        (its environment settings, as text), ``points`` (``"learned"`` and every family ->
+        ``(savings, control return, (low, high))``), and ``difference`` (learned minus the best family:
+        mean and interval), in the order of the study
+    """
+    rows = []
+    for algorithm in spec.algorithms:
+        entry = summary[algorithm.label]
+        mean, ci = entry["mean"], entry["ci95"]
+        if "best_fixed_control_return" not in mean:
+            continue
+        points = {"learned": (mean["savings"], mean["control_return"], tuple(ci["control_return"]))}
+        for family in spec.fixed_families:
+            name = f"fixed_{family}_control_return"
+            if name in mean:
+                points[family] = (mean[f"fixed_{family}_savings"], mean[name], tuple(ci[name]))
+        difference = "learned_minus_best_fixed_control_return"
+        rows.append(
+            {
+                "label": algorithm.label,
+                "settings": json.dumps(algorithm.entry.get("env_kwargs") or {}, sort_keys=True),
+                "points": points,
+                "difference": (mean[difference], tuple(ci[difference])),
+            }
+        )
+    return rows
+
+
+def front_markdown(rows: list[dict[str, Any]]) -> str:
+    """The front as a Markdown table: control return (95 % interval) and savings, learned and every family.
+
+    :param rows: :func:`front`'s rows
+    :return: the table, with the learned minus the best family's control return per algorithm
+    """
+    families = list(dict.fromkeys(name for row in rows for name in row["points"] if name != "learned"))
+    header = ["algorithm", "learned", *families, "learned minus best fixed"]
+    lines = ["| " + " | ".join(header) + " |", "|---" * len(header) + "|"]
+    for row in rows:
+        cells = [row["label"]]
+        for name in ["learned", *families]:
+            point = row["points"].get(name)
+            cells.append("-" if point is None else f"{interval_text(point[1], *point[2])} at {point[0]:.3f}")
+        mean, (low, high) = row["difference"]
+        cells.append(interval_text(mean, low, high))
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
 def report_study(directory: str | Path, plot: bool = True) -> str:
     """Write ``summary.json`` (and the figures) into a study folder and return the Markdown report.
 
@@ -335,6 +395,16 @@ def report_study(directory: str | Path, plot: bool = True) -> str:
     summary = summarise(directory)
     (directory / "summary.json").write_text(json.dumps(summary, indent=1, default=str) + "\n")
     text = _markdown(directory, spec, summary)
+    rows = front(spec, summary)
+    if rows:
+        text += (
+            "\n## Front: control return against savings\n\nMean control return over seeds [95 % interval] at the "
+            "mean savings, the learned trigger and every fixed family tuned to its rate on the same episodes.\n\n"
+            + front_markdown(rows)
+            + "\n"
+        )
+        if plot:
+            text += f"\nFront: {plot_front(rows, directory / 'front.png', title=spec.env)}\n"
     if plot:
         groups, single = {}, []
         for algorithm in spec.algorithms:
