@@ -24,6 +24,10 @@ likely options, random options at the learned rate, every step, never) and a mes
 policy is the trial's, unchanged, so the value of information sweep of the same study
 (``multiwalker_value_of_information.py``) shows the same controller under fixed triggers.
 
+With ``--fixed-families`` the evaluation also compares fixed trigger families tuned to the learned
+rate on the same episodes (:func:`~sb3_detc.evaluation.evaluate_policy_modes`), the learned options
+sampled from ``mu``; a rate target comes with ``--set '{"target_savings": 0.875}'``.
+
 One job per seed, one after another (each trains with the entry's two rollout-worker
 processes); every finished seed's row is written to ``--out`` at once and a seed already there
 is not trained again (:mod:`sb3_detc.study.sweep`; a job is its settings and the digest of the trial's
@@ -62,7 +66,7 @@ from sb3_detc.study.trial import (
     trial_folder,
     trial_manager,
 )
-from sb3_detc.triggers import PeriodicTrigger
+from sb3_detc.triggers import TRIGGER_FAMILIES, PeriodicTrigger
 
 #: Training steps of the policies over options (500 of the paper's iterations of 2048 steps).
 TIMESTEPS = 1_024_000
@@ -189,7 +193,8 @@ def run(job: dict[str, Any], progress_every: int = PROGRESS_EVERY) -> dict[str, 
     for random options, and the baseline trained without the communication cost), then the critic
     and ``mu`` together for the rest of ``timesteps``.
 
-    :param job: as :func:`build` takes it, ``warm_up`` (steps, part of ``timesteps``), ``policy``
+    :param job: as :func:`build` takes it, ``warm_up`` (steps, part of ``timesteps``), ``fixed_families``
+        (optional: the families the evaluation compares, with the learned options sampled), ``policy``
         (the trial's policy's digest: a retrained trial is a new job) and ``save_dir`` (where to keep
         the trained policy; None: not kept)
     :param progress_every: rollouts between two lines of progress (:class:`Progress`)
@@ -221,7 +226,16 @@ def run(job: dict[str, Any], progress_every: int = PROGRESS_EVERY) -> dict[str, 
         saved = path.name
     env = gym.make(spec.env, **env_kwargs)
     try:
-        evaluation = evaluate_policy_modes(policy, env, spec.episodes, spec.eval_seed)
+        families = job.get("fixed_families", [])
+        # with families compared, the learned row samples mu's options as they were trained (the mode has its own row)
+        evaluation = evaluate_policy_modes(
+            policy,
+            env,
+            spec.episodes,
+            spec.eval_seed,
+            sample_options=True if families else None,
+            fixed_families=families,
+        )
         period, periodic = nearest_period(evaluation["metrics"]["savings"]), None
         if period is not None:
             seeds = [spec.eval_seed + k for k in range(spec.episodes)]
@@ -311,6 +325,13 @@ def main() -> None:
     parser.add_argument(
         "--progress-every", type=int, default=PROGRESS_EVERY, help="rollouts between two lines of progress"
     )
+    parser.add_argument(
+        "--fixed-families",
+        nargs="+",
+        choices=TRIGGER_FAMILIES,
+        default=[],
+        help="fixed trigger families the evaluation compares at the learned rate (the learned options sampled)",
+    )
     args = parser.parse_args()
     check_at_least_one(parser, args, "timesteps", "progress_every")
     if not 0 <= args.warm_up < args.timesteps:
@@ -342,6 +363,8 @@ def main() -> None:
         "normalize_reward": args.normalize_reward,
         "save_dir": None if args.save_dir is None else str(args.save_dir),
     }
+    if args.fixed_families:  # only then part of the key: rows of earlier runs keep theirs
+        job["fixed_families"] = args.fixed_families
     jobs = [
         {**job, "seed": seed, "policy": hashlib.sha256(policies[seed].read_bytes()).hexdigest()[:16]} for seed in seeds
     ]
