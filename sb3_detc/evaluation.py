@@ -532,19 +532,32 @@ def evaluate_communication(
 def _episodes_json(episodes: Episodes) -> dict[str, Any]:
     """One evaluation mode's episodes as JSON lists, one entry per episode.
 
+    The returns and the package travel are written at the precision the envs compute them in
+    (float32, the shortest decimal that reads back as the same float32); the metrics of the
+    protocol are computed before, at full precision.
+
     :param episodes: the mode's episodes
     :return: ``return``, ``control_return``, ``length``, ``broadcasts`` (of all agents), ``failed`` and
         ``package_travel`` (None where not reported) per episode, and ``savings`` over all of them
     """
     return {
-        "return": episodes.returns.tolist(),
-        "control_return": episodes.control_returns.tolist(),
+        "return": float32_list(episodes.returns),
+        "control_return": float32_list(episodes.control_returns),
         "length": episodes.lengths.tolist(),
         "broadcasts": episodes.broadcasts.sum(axis=1).tolist(),
         "failed": episodes.failed.tolist(),
-        "package_travel": [None if math.isnan(x) else x for x in episodes.package_travel.tolist()],
+        "package_travel": [None if math.isnan(x) else x for x in float32_list(episodes.package_travel)],
         "savings": episodes.savings,
     }
+
+
+def float32_list(values: np.ndarray) -> list[float]:
+    """Numbers as the shortest decimals that read back as the same float32 values.
+
+    :param values: the numbers (any float array)
+    :return: a list of Python floats, e.g. ``-9.123457`` for ``-9.123456789``
+    """
+    return [float(np.format_float_positional(x)) for x in np.asarray(values, dtype=np.float32)]
 
 
 #: The linear system's ids, whose settings the env of predictive triggering (:data:`PREDICTED_ID`) takes.

@@ -26,6 +26,7 @@ from rliable import metrics as rly_metrics
 from sb3_detc.plot import open_progress, plot_estimates, plot_front, plot_runs, progress_file
 from sb3_detc.study.spec import StudyError, load_folder_study
 from sb3_detc.study.trial import read_status, replace_atomically, trial_folder
+from sb3_detc.triggers import TRIGGER_FAMILIES
 
 __all__ = [
     "BOOTSTRAP_REPS",
@@ -67,11 +68,7 @@ METRICS = (
     "mode_control_return",
     "mode_savings",
     "option_state_information",
-    "fixed_periodic_control_return",
-    "fixed_periodic_staggered_control_return",
-    "fixed_send_on_delta_control_return",
-    "fixed_send_on_delta_max_age_control_return",
-    "fixed_predictive_control_return",
+    *(f"fixed_{family}_{metric}" for family in TRIGGER_FAMILIES for metric in ("control_return", "savings")),
     "best_fixed_control_return",
     "learned_minus_best_fixed_control_return",
     "package_travel",
@@ -346,7 +343,7 @@ def front(spec: Any, summary: dict[str, Any]) -> list[dict[str, Any]]:
         points = {"learned": (mean["savings"], mean["control_return"], tuple(ci["control_return"]))}
         for family in spec.fixed_families:
             name = f"fixed_{family}_control_return"
-            if name in mean:
+            if name in mean and f"fixed_{family}_savings" in mean:
                 points[family] = (mean[f"fixed_{family}_savings"], mean[name], tuple(ci[name]))
         difference = "learned_minus_best_fixed_control_return"
         rows.append(
@@ -393,7 +390,7 @@ def report_study(directory: str | Path, plot: bool = True) -> str:
     directory = Path(directory)
     spec = load_folder_study(directory)
     summary = summarise(directory)
-    (directory / "summary.json").write_text(json.dumps(summary, indent=1, default=str) + "\n")
+    (directory / "summary.json").write_text(json.dumps(summary, separators=(",", ":"), default=str) + "\n")
     text = _markdown(directory, spec, summary)
     rows = front(spec, summary)
     if rows:

@@ -129,13 +129,15 @@ def exclusive(lock: Path) -> contextlib.AbstractContextManager[Any]:
     return contextlib.closing(handle)  # closing the file releases the lock
 
 
-def _write_json(path: Path, content: dict[str, Any]) -> None:
+def _write_json(path: Path, content: dict[str, Any], compact: bool = False) -> None:
     """Write a JSON file atomically (:func:`replace_atomically`).
 
     :param path: the file
     :param content: what it holds
+    :param compact: without spaces and line breaks (e.g. an evaluation's per-episode lists), else indented
     """
-    replace_atomically(path, lambda scratch: scratch.write_text(json.dumps(content, indent=1) + "\n"))
+    text = json.dumps(content, separators=(",", ":")) if compact else json.dumps(content, indent=1)
+    replace_atomically(path, lambda scratch: scratch.write_text(text + "\n"))
 
 
 def read_status(folder: Path) -> dict[str, Any]:
@@ -466,7 +468,7 @@ def run_trial(
         finally:
             env.close()
         evaluation["timesteps"] = read_status(folder).get("timesteps", budget)
-        _write_json(folder / "evaluation.json", evaluation)
+        _write_json(folder / "evaluation.json", evaluation, compact=True)
         for leftover in ("checkpoint.zip", "checkpoint.json", "error.txt"):
             (folder / leftover).unlink(missing_ok=True)
         shutil.rmtree(folder / "segments", ignore_errors=True)
