@@ -20,7 +20,7 @@ run: install
 	$(PY) -m sb3_detc.compare
 
 test: install
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n 2 --dist loadfile
 
 lint: install
 	$(PY) -m ruff check .
