@@ -218,3 +218,14 @@ def test_mu_with_its_own_age_can_represent_a_periodic_schedule() -> None:
         assert controller.decide(obs["trigger"][0, 0], obs["trigger_held"][0, 0], True, obs["age"][0, 0, 0]) == expected
         actions = [{"broadcast": periodic(obs)[i], "control": np.zeros((3, 1), np.float32)} for i in range(2)]
         obs, *_ = env.step(actions)
+
+
+def test_the_price_waits_while_mu_does_not_learn() -> None:
+    """A critic warming up alone (mu frozen) leaves the price where it is; it moves once mu learns."""
+    model = make(target_savings=0.9, broadcast_price_lr=0.5)
+    model.set_trained_policies(control_policy=False, broadcast_policy=False)
+    model.learn(2 * 128)
+    assert model.broadcast_price == 0.0
+    model.set_trained_policies(control_policy=False, broadcast_policy=True)
+    model.learn(128, reset_num_timesteps=False)
+    assert model.broadcast_price != 0.0

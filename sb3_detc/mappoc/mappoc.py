@@ -106,7 +106,7 @@ class MAPPOC(OnPolicyAlgorithm):
     :param target_savings: communication savings the policy over options is to settle at, in
         (0, 1) (None: no target). A price per broadcast, :attr:`broadcast_price` in the learner's
         reward units, is charged on top of the environment's cost and adapted by dual ascent after
-        every rollout whose options ``mu`` took: ``price += broadcast_price_lr * (broadcast rate -
+        every rollout whose options ``mu`` took and learns from: ``price += broadcast_price_lr * (broadcast rate -
         (1 - target_savings))``, below zero (a subsidy) if need be. Logged as
         ``train/broadcast_price``, saved with the model. Not with a fixed trigger
     :param broadcast_price_lr: step size of the price's dual ascent (> 0), in the learner's reward
@@ -578,7 +578,7 @@ class MAPPOC(OnPolicyAlgorithm):
         rate = float(buffer.broadcast.mean())
         self.logger.record("rollout/broadcast_rate", rate)
         if self.target_savings is not None:
-            if self._rollout_trigger is None:  # a rollout of mu's own options
+            if train_mu:  # mu learns from a rollout of its own options
                 self.broadcast_price += self.broadcast_price_lr * (rate - (1.0 - self.target_savings))
             self.logger.record("train/broadcast_price", self.broadcast_price)
 
