@@ -287,3 +287,10 @@ def test_predictive_triggering_runs_with_lqr_on_the_predicted_states_in_every_co
     np.testing.assert_allclose(side_by_side.control_returns, one_by_one.control_returns, rtol=1e-6)
     held = evaluate_episodes(policy, env, seeds, fixed_trigger=trigger)
     assert not np.allclose(held.control_returns, one_by_one.control_returns)  # the controllers differ
+
+
+def test_per_episode_values_are_kept_as_the_shortest_decimals_of_their_float32_values() -> None:
+    values = np.array([-9.123456789012345, 1.0, 123456.789, 1e-9, np.nan])
+    kept = evaluation.float32_list(values)
+    assert kept[:4] == [-9.123457, 1.0, 123456.79, 1e-09] and np.isnan(kept[4])
+    np.testing.assert_array_equal(np.float32(kept), np.float32(values))  # the same float32 values
