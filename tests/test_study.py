@@ -30,6 +30,7 @@ from sb3_detc.study.spec import StudyError, load_folder_study, load_study
 from sb3_detc.study.trial import (
     FINISHED_FILES,
     MODES,
+    PROGRESS_DIGITS,
     code_commit,
     drop_stale_segments,
     read_status,
@@ -820,6 +821,12 @@ def test_an_interrupted_trial_says_so_and_the_next_run_finishes_it(tmp_path):
     assert sorted(p.name for p in folder.iterdir()) == sorted(FINISHED_FILES)
     assert progress_file(folder) == folder / PROGRESS_XZ
     np.testing.assert_array_equal(read_progress(folder)["time/total_timesteps"], [1024, 2048, 3072, 4096])
+    # fractions to six significant digits, whole numbers as they are
+    text = lzma.decompress((folder / PROGRESS_XZ).read_bytes()).decode()
+    cells = [cell.lstrip("-") for line in text.splitlines()[1:] for cell in line.split(",")]
+    fractions = [cell for cell in cells if "." in cell and "e" not in cell]
+    assert fractions and max(len(cell.replace(".", "").strip("0")) for cell in fractions) <= PROGRESS_DIGITS
+    assert "4096" in cells and "4096.0" not in cells
 
 
 def test_segments_of_lost_checkpoints_are_dropped(tmp_path):

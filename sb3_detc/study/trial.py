@@ -7,8 +7,9 @@ A trial's folder (``<study dir>/trials/<label>/seed<seed>/``) holds plain files:
   its latest checkpoint) and ``attempts`` (where each attempt trained, :func:`machine_record`,
   with ``start_timesteps``, the step it started from);
 * ``progress.csv.xz``: the logger's rows of all attempts, each cut where the next one resumed
-  (:func:`merged_progress`), as CSV compressed with xz (:func:`sb3_detc.plot.read_progress`
-  reads it); rewritten at every checkpoint;
+  (:func:`merged_progress`), as CSV compressed with xz, its numbers kept to
+  :data:`PROGRESS_DIGITS` significant digits (:func:`sb3_detc.plot.read_progress` reads it); rewritten at every
+  checkpoint;
 * while it trains (never committed, see :func:`~sb3_detc.study.runner.prepare_folder`):
   ``checkpoint.zip`` and ``checkpoint.json``, the latest checkpoint (the whole model, optimizer
   included) and its step count, written atomically every ``checkpoint_interval`` steps at the
@@ -224,14 +225,30 @@ def merged_progress(folder: Path) -> pd.DataFrame:
     return pd.concat(parts, ignore_index=True) if parts else pd.DataFrame()
 
 
+#: Significant digits a trial's ``progress.csv.xz`` keeps of its fractional numbers (whole numbers,
+#: such as step counts, stay whole): the curves lose nothing one could see, and the file is half the
+#: size of one with every digit.
+PROGRESS_DIGITS = 6
+
+
+def progress_number(value: float) -> str:
+    """A logged number as ``progress.csv.xz`` keeps it: whole numbers exactly, others to :data:`PROGRESS_DIGITS`.
+
+    :param value: a logged value
+    :return: its text in the CSV
+    """
+    return str(int(value)) if value.is_integer() else f"{value:.{PROGRESS_DIGITS}g}"
+
+
 def _write_progress(folder: Path) -> None:
-    """Write the trial's ``progress.csv.xz`` (atomically): :func:`merged_progress`; nothing if nothing was logged.
+    """Write the trial's ``progress.csv.xz`` (atomically): :func:`merged_progress`, its numbers as
+    :func:`progress_number` writes them; nothing if nothing was logged.
 
     :param folder: the trial folder
     """
     rows = merged_progress(folder)
     if not rows.empty:
-        write = functools.partial(rows.to_csv, index=False, compression="xz")
+        write = functools.partial(rows.to_csv, index=False, float_format=progress_number, compression="xz")
         replace_atomically(folder / PROGRESS_XZ, write, "progress.tmp.csv.xz")
         (folder / PROGRESS_CSV).unlink(missing_ok=True)  # one log per trial: a plain one is outdated now
 
