@@ -241,8 +241,9 @@ def progress_number(value: float) -> str:
 
 
 def _write_progress(folder: Path) -> None:
-    """Write the trial's ``progress.csv.xz`` (atomically): :func:`merged_progress`, its numbers as
-    :func:`progress_number` writes them; nothing if nothing was logged.
+    """Write the trial's ``progress.csv.xz`` (atomically), nothing if nothing was logged.
+
+    The rows are :func:`merged_progress`'s, the numbers as :func:`progress_number` writes them.
 
     :param folder: the trial folder
     """
