@@ -504,6 +504,39 @@ class FixedControl(gym.Wrapper):
         return self._obs, reward, terminated, truncated, info
 
 
+class PredictedTriggerHeld(gym.ObservationWrapper):
+    """A joint env on the linear system whose ``trigger_held`` is what the receivers predict, not what they hold.
+
+    Every agent's ``trigger_held`` (its state at its last broadcast) is replaced by the
+    receivers' prediction of its state if it stays silent now: the prediction that
+    :class:`PredictiveTrigger` compares with (:class:`~sb3_detc.envs.linear.HeldStatePredictor`,
+    held broadcast and age + 1), which the agent can compute from what it last broadcast and
+    when. A policy over options then reads how far its receivers' belief is off, as
+    predictive triggering does, instead of having to learn the model's prediction from the
+    age; :class:`SendOnDelta` on this env triggers on the prediction error. The network
+    itself, the controls and every other key are unchanged. Use it with
+    :func:`lqr_on_predicted_states`, whose receivers predict the same way
+    (``sb3_detc/LinearETC-LQR-v0`` with ``prediction=True, predicted_held=True``).
+
+    :param env: a joint env around a :class:`~sb3_detc.envs.linear.LinearSystem` (possibly wrapped)
+    :param gain: the control law's gain (N, 2N), as for :func:`lqr_on_predicted_states`; None for the LQR gain
+    :raises ValueError: if no linear system is found, or ``gain`` has the wrong shape
+    """
+
+    def __init__(self, env: gym.Env, gain: np.ndarray | None = None) -> None:
+        super().__init__(env)
+        self.predictor = HeldStatePredictor(_linear_system(env, "PredictedTriggerHeld"), gain)
+
+    def observation(self, observation: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        """The joint observation with the receivers' predictions as ``trigger_held``.
+
+        :param observation: the env's joint observation; ``held`` (N, 2) and ``age`` (N, 1) are read
+        :return: a copy whose ``trigger_held`` (N, 2) is every agent's predicted state if it stays silent now
+        """
+        predicted = self.predictor(observation["held"], _silent_age(observation)[..., None])
+        return {**observation, "trigger_held": predicted.astype(observation["trigger_held"].dtype)}
+
+
 def sweep_send_on_delta(
     env: gym.Env,
     control: Control,

@@ -42,7 +42,7 @@ def joint_env(**kwargs) -> JointEnv:
     return JointEnv(parallel_env(**renamed_keys(kwargs)))
 
 
-def lqr_joint_env(prediction: bool = False, **kwargs) -> gym.Env:
+def lqr_joint_env(prediction: bool = False, predicted_held: bool = False, **kwargs) -> gym.Env:
     """Joint view in which every agent's control is its row of the LQR gain on its view of held broadcasts.
 
     Only *when* to communicate is left to learn (the classic event-triggered setting, in
@@ -52,14 +52,24 @@ def lqr_joint_env(prediction: bool = False, **kwargs) -> gym.Env:
     :param prediction: act on the receivers' predictions of the held states instead
         (:func:`~sb3_detc.triggers.lqr_on_predicted_states`, the controller of predictive
         triggering) rather than on the held states themselves
+    :param predicted_held: with ``prediction``, show the receivers' prediction of every agent's
+        state as its ``trigger_held`` (:class:`~sb3_detc.triggers.PredictedTriggerHeld`), so that
+        a learned trigger reads the prediction error that predictive triggering triggers on
     :param kwargs: keyword arguments of :func:`joint_env`, which passes them on to
         :func:`parallel_env` (``broadcast_cost`` and ``trigger`` for the
         :class:`EventTriggeredNetwork`, everything else for
         :class:`~sb3_detc.envs.linear.LinearSystem`; earlier names accepted)
     :return: a :class:`~sb3_detc.triggers.FixedControl` around the env of :func:`joint_env`, its
-        controls from :func:`~sb3_detc.triggers.lqr_on_held_states` (or ``lqr_on_predicted_states``)
+        controls from :func:`~sb3_detc.triggers.lqr_on_held_states` (or ``lqr_on_predicted_states``),
+        inside a :class:`~sb3_detc.triggers.PredictedTriggerHeld` with ``predicted_held``
+    :raises ValueError: if ``predicted_held`` is asked for without ``prediction``
     """
-    from sb3_detc.triggers import FixedControl, lqr_on_held_states, lqr_on_predicted_states  # builds on the envs
+    from sb3_detc import triggers  # builds on the envs
 
+    if predicted_held and not prediction:
+        raise ValueError("predicted_held=True needs prediction=True: the receivers predict only with it.")
     joint = joint_env(**kwargs)
-    return FixedControl(joint, (lqr_on_predicted_states if prediction else lqr_on_held_states)(joint))
+    env = triggers.FixedControl(
+        joint, (triggers.lqr_on_predicted_states if prediction else triggers.lqr_on_held_states)(joint)
+    )
+    return triggers.PredictedTriggerHeld(env) if predicted_held else env
