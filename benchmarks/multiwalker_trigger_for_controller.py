@@ -26,7 +26,10 @@ policy is the trial's, unchanged, so the value of information sweep of the same 
 
 With ``--fixed-families`` the evaluation also compares fixed trigger families tuned to the learned
 rate on the same episodes (:func:`~sb3_detc.evaluation.evaluate_policy_modes`), the learned options
-sampled from ``mu``; a rate target comes with ``--set '{"target_savings": 0.875}'``.
+sampled from ``mu``; a rate target comes with ``--set '{"target_savings": 0.875}'``. With
+``--option-age-scale`` the policy over options starts afresh and reads the age of its own last
+broadcast (every periodic schedule in phase then lies within what it can represent); the trial's
+controls and critic are kept.
 
 One job per seed, one after another (each trains with the entry's two rollout-worker
 processes); every finished seed's row is written to ``--out`` at once and a seed already there
@@ -129,6 +132,27 @@ def env_settings(entry: dict[str, Any], job: dict[str, Any]) -> dict[str, Any]:
     return env_kwargs
 
 
+def load_all_but_mu(policy: MlpHybridPolicy, saved: MlpHybridPolicy) -> None:
+    """Load a saved policy's controls and critic into ``policy`` and leave its ``mu`` as initialised.
+
+    For a ``mu`` with other inputs than the saved one's (e.g. the own age): the networks that
+    share a batched chain with it are copied over their common part (the rest is zero padding).
+
+    :param policy: the policy to load into (its ``mu`` stays as it is)
+    :param saved: the trained policy whose ``pi`` and ``q`` (and every other parameter of the same shape) to take
+    """
+    fresh = [value.clone() for value in policy.net_parameters("mu")]
+    own = policy.state_dict()
+    policy.load_state_dict({**own, **{k: v for k, v in saved.state_dict().items() if v.shape == own[k].shape}})
+    with th.no_grad():
+        for net in ("q", "pi"):
+            for new, old in zip(policy.net_parameters(net), saved.net_parameters(net), strict=True):
+                common = tuple(slice(0, min(a, b)) for a, b in zip(new.shape, old.shape, strict=True))
+                new[common] = old[common]
+        for new, value in zip(policy.net_parameters("mu"), fresh, strict=True):
+            new.copy_(value)
+
+
 def build(job: dict[str, Any], log_folder: Path) -> tuple[Any, dict[str, Any]]:
     """MAPPOC of the trial's entry on its training envs, with the trial's final policy loaded and ``pi`` frozen.
 
@@ -139,7 +163,9 @@ def build(job: dict[str, Any], log_folder: Path) -> tuple[Any, dict[str, Any]]:
 
     :param job: ``folder`` (the study folder), ``algorithm`` (its label), ``seed``, ``broadcast_cost``
         (None: the entry's), ``timesteps``, ``changes`` (entry settings to change) and ``normalize_reward``
-        (normalise the learner's rewards with fresh statistics)
+        (normalise the learner's rewards with fresh statistics); optionally ``option_age_scale``: ``mu``
+        starts afresh and reads the age of its own last broadcast with this factor (the trial's ``mu``
+        is dropped; its controls and critic are kept, :func:`load_all_but_mu`)
     :param log_folder: where rl-zoo3's experiment manager may write
     :return: the model, options from ``mu``, only the critic learning; and the env's keyword arguments
     :raises StudyError: if the trial has not finished, or its policy was built with other settings
@@ -154,19 +180,28 @@ def build(job: dict[str, Any], log_folder: Path) -> tuple[Any, dict[str, Any]]:
     env_kwargs = env_settings(algorithm.entry, job)
     changes = {key: value for key, value in job["changes"].items() if key != "env_kwargs"}
     hyperparams = {**algorithm.hyperparams, **changes, "env_kwargs": env_kwargs, "callback": []}
+    # sample_options says how the trigger is evaluated, not how the networks are built
+    free = {"observation_space", "action_space", "lr_schedule", "sample_options"}
+    fresh_mu = job.get("option_age_scale") is not None
+    if fresh_mu:
+        policy_kwargs = hyperparams.get("policy_kwargs", algorithm.entry.get("policy_kwargs")) or {}
+        if isinstance(policy_kwargs, str):
+            policy_kwargs = eval(policy_kwargs)  # as rl-zoo3 reads an entry's policy_kwargs
+        hyperparams["policy_kwargs"] = {**policy_kwargs, "option_age_scale": job["option_age_scale"]}
+        free.add("option_age_scale")
     model, _ = trial_manager(spec, trial, log_folder, job["timesteps"], hyperparams).setup_experiment()
     saved = MlpHybridPolicy.load(str(path), device="cpu")
     entry = model.policy.constructor_parameters()
     differ = sorted(
-        key
-        for key, value in saved.constructor_parameters().items()
-        # sample_options says how the trigger is evaluated, not how the networks are built
-        if key not in ("observation_space", "action_space", "lr_schedule", "sample_options") and entry.get(key) != value
+        key for key, value in saved.constructor_parameters().items() if key not in free and entry.get(key) != value
     )
     if differ:
         model.env.close()
         raise StudyError(f"{path} was built with other policy settings than the entry gives now: {differ}")
-    model.policy.load_state_dict(saved.state_dict())
+    if fresh_mu:
+        load_all_but_mu(model.policy, saved)
+    else:
+        model.policy.load_state_dict(saved.state_dict())
     model.set_fixed_trigger(None)
     model.set_trained_policies(control_policy=False, broadcast_policy=False)
     if job["normalize_reward"]:
@@ -326,6 +361,11 @@ def main() -> None:
         "--progress-every", type=int, default=PROGRESS_EVERY, help="rollouts between two lines of progress"
     )
     parser.add_argument(
+        "--option-age-scale",
+        type=float,
+        help="start mu afresh, reading the age of its own last broadcast times this factor (default: the trial's mu)",
+    )
+    parser.add_argument(
         "--fixed-families",
         nargs="+",
         choices=TRIGGER_FAMILIES,
@@ -338,6 +378,8 @@ def main() -> None:
         parser.error("--warm-up must be >= 0 and below --timesteps")
     if args.broadcast_cost is not None and not args.broadcast_cost >= 0:
         parser.error("--broadcast-cost must be >= 0")
+    if args.option_age_scale is not None and not (math.isfinite(args.option_age_scale) and args.option_age_scale > 0):
+        parser.error("--option-age-scale must be a finite number > 0")
     if not isinstance(args.set, dict) or not isinstance(args.set.get("env_kwargs", {}), dict) or "callback" in args.set:
         parser.error("--set takes a JSON object of entry settings (env_kwargs an object; no callback)")
     try:
@@ -365,6 +407,8 @@ def main() -> None:
     }
     if args.fixed_families:  # only then part of the key: rows of earlier runs keep theirs
         job["fixed_families"] = args.fixed_families
+    if args.option_age_scale is not None:
+        job["option_age_scale"] = args.option_age_scale
     jobs = [
         {**job, "seed": seed, "policy": hashlib.sha256(policies[seed].read_bytes()).hexdigest()[:16]} for seed in seeds
     ]

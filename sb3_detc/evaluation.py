@@ -572,7 +572,8 @@ def fixed_family_env(env: gym.Env, family: str) -> gym.Env:
     :param env: the evaluation env (a joint env)
     :param family: a name from :data:`~sb3_detc.triggers.TRIGGER_FAMILIES`
     :return: ``env`` itself, or for ``"predictive"`` the linear system with its settings and the
-        controls of :func:`~sb3_detc.triggers.lqr_on_predicted_states` (the model-based anchor)
+        controls of :func:`~sb3_detc.triggers.lqr_on_predicted_states` (the model-based anchor),
+        its observations the held broadcasts (not :class:`~sb3_detc.triggers.ReceiverPredictions`)
     :raises ValueError: for ``"predictive"`` on an env without a linear system
     """
     if family != "predictive":
@@ -583,7 +584,9 @@ def fixed_family_env(env: gym.Env, family: str) -> gym.Env:
         return FixedControl(joint, lqr_on_predicted_states(joint))
     if spec.id not in LINEAR_IDS:
         raise ValueError(f"predictive triggering needs the linear system ({', '.join(LINEAR_IDS)}), got {spec.id!r}.")
-    return gym.make(PREDICTED_ID, **{**spec.kwargs, "prediction": True})  # copies made from its spec run it too
+    # PredictiveTrigger predicts from the held broadcasts themselves: not on the env that shows the predictions
+    kwargs = {**spec.kwargs, "prediction": True, "predicted_held": False}
+    return gym.make(PREDICTED_ID, **kwargs)  # copies made from its spec run it too
 
 
 def evaluate_fixed_family(

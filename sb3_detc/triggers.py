@@ -504,19 +504,22 @@ class FixedControl(gym.Wrapper):
         return self._obs, reward, terminated, truncated, info
 
 
-class PredictedTriggerHeld(gym.ObservationWrapper):
-    """A joint env on the linear system whose ``trigger_held`` is what the receivers predict, not what they hold.
+class ReceiverPredictions(gym.ObservationWrapper):
+    """A joint env on the linear system in which what the receivers hold of an agent is their prediction of it.
 
-    Every agent's ``trigger_held`` (its state at its last broadcast) is replaced by the
-    receivers' prediction of its state if it stays silent now: the prediction that
-    :class:`PredictiveTrigger` compares with (:class:`~sb3_detc.envs.linear.HeldStatePredictor`,
-    held broadcast and age + 1), which the agent can compute from what it last broadcast and
-    when. A policy over options then reads how far its receivers' belief is off, as
-    predictive triggering does, instead of having to learn the model's prediction from the
-    age; :class:`SendOnDelta` on this env triggers on the prediction error. The network
-    itself, the controls and every other key are unchanged. Use it with
-    :func:`lqr_on_predicted_states`, whose receivers predict the same way
-    (``sb3_detc/LinearETC-LQR-v0`` with ``prediction=True, predicted_held=True``).
+    Every agent's held broadcast (``held``, as every receiver and the critic see it) and its own
+    ``trigger_held`` are replaced by the receivers' prediction of its state if it stays silent now:
+    the prediction that :class:`PredictiveTrigger` compares with and :func:`lqr_on_predicted_states`
+    acts on (:class:`~sb3_detc.envs.linear.HeldStatePredictor`, held broadcast and age + 1), which
+    the agent can compute from what it last broadcast and when. After this step's options the
+    network's rule (a broadcast replaces what is held) then gives exactly what the receivers
+    believe: a policy over options reads how far that belief is off, as predictive triggering
+    does, and a critic values the belief itself, instead of both having to learn the model's
+    prediction from the age. :class:`SendOnDelta` on this env is predictive triggering;
+    :class:`PredictiveTrigger` itself runs on the env without this wrapper (it predicts from the
+    held broadcasts). The network, the controls (a :class:`FixedControl` inside reads the env's own
+    observations) and ``local``, ``message``, ``age`` and ``trigger`` are unchanged.
+    ``sb3_detc/LinearETC-LQR-v0`` with ``prediction=True, predicted_held=True`` is this env.
 
     :param env: a joint env around a :class:`~sb3_detc.envs.linear.LinearSystem` (possibly wrapped)
     :param gain: the control law's gain (N, 2N), as for :func:`lqr_on_predicted_states`; None for the LQR gain
@@ -525,16 +528,18 @@ class PredictedTriggerHeld(gym.ObservationWrapper):
 
     def __init__(self, env: gym.Env, gain: np.ndarray | None = None) -> None:
         super().__init__(env)
-        self.predictor = HeldStatePredictor(_linear_system(env, "PredictedTriggerHeld"), gain)
+        self.predictor = HeldStatePredictor(_linear_system(env, "ReceiverPredictions"), gain)
 
     def observation(self, observation: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-        """The joint observation with the receivers' predictions as ``trigger_held``.
+        """The joint observation with the receivers' predictions as ``held`` and ``trigger_held``.
 
         :param observation: the env's joint observation; ``held`` (N, 2) and ``age`` (N, 1) are read
-        :return: a copy whose ``trigger_held`` (N, 2) is every agent's predicted state if it stays silent now
+        :return: a copy whose ``held`` and ``trigger_held`` (N, 2) are every agent's predicted state if it
+            stays silent now
         """
         predicted = self.predictor(observation["held"], _silent_age(observation)[..., None])
-        return {**observation, "trigger_held": predicted.astype(observation["trigger_held"].dtype)}
+        held = predicted.astype(observation["held"].dtype)
+        return {**observation, "held": held, "trigger_held": held.astype(observation["trigger_held"].dtype)}
 
 
 def sweep_send_on_delta(

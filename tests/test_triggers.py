@@ -195,7 +195,7 @@ def test_lqr_on_predicted_states_with_broadcasts_every_step_is_lqr_on_held_state
     assert predicted.cost == pytest.approx(held.cost, rel=1e-9)
 
 
-def test_predicted_trigger_held_shows_the_receivers_prediction_and_turns_send_on_delta_into_predictive_triggering():
+def test_receiver_predictions_show_what_the_receivers_believe_and_turn_send_on_delta_into_predictive_triggering():
     plain = gymnasium.make("sb3_detc/LinearETC-LQR-v0", prediction=True)
     shown = gymnasium.make("sb3_detc/LinearETC-LQR-v0", prediction=True, predicted_held=True)
     predictor = HeldStatePredictor(SYSTEM)
@@ -204,14 +204,14 @@ def test_predicted_trigger_held_shows_the_receivers_prediction_and_turns_send_on
     (obs, _), (seen, _) = plain.reset(seed=4), shown.reset(seed=4)
     decided = []
     for _ in range(40):
-        # every key as without the wrapper but trigger_held: the prediction if the agent stays silent now
-        for key in obs:
-            if key != "trigger_held":
-                np.testing.assert_array_equal(seen[key], obs[key])
-        np.testing.assert_allclose(seen["trigger_held"], predictor(obs["held"], obs["age"] + 1), atol=1e-6)
+        # every key as without the wrapper but what is held: the prediction if the agent stays silent now
+        for key in ("local", "message", "age", "trigger"):
+            np.testing.assert_array_equal(seen[key], obs[key])
+        for key in ("held", "trigger_held"):
+            np.testing.assert_allclose(seen[key], predictor(obs["held"], obs["age"] + 1), atol=1e-6)
         batch = {key: value[None] for key, value in seen.items()}
-        np.testing.assert_array_equal(on_delta(batch), predictive(batch))
-        decided.append(predictive(batch)[0])
+        decided.append(predictive({key: value[None] for key, value in obs.items()})[0])
+        np.testing.assert_array_equal(on_delta(batch)[0], decided[-1])
         n = len(obs["held"])
         action = {"broadcast": rng.integers(0, 2, n), "control": np.zeros((n, 1), np.float32)}
         (obs, *_), (seen, *_) = plain.step(action), shown.step(action)

@@ -53,15 +53,16 @@ def lqr_joint_env(prediction: bool = False, predicted_held: bool = False, **kwar
         (:func:`~sb3_detc.triggers.lqr_on_predicted_states`, the controller of predictive
         triggering) rather than on the held states themselves
     :param predicted_held: with ``prediction``, show the receivers' prediction of every agent's
-        state as its ``trigger_held`` (:class:`~sb3_detc.triggers.PredictedTriggerHeld`), so that
-        a learned trigger reads the prediction error that predictive triggering triggers on
+        state as what they hold of it (``held`` and ``trigger_held``,
+        :class:`~sb3_detc.triggers.ReceiverPredictions`), so that a learned trigger reads the
+        prediction error that predictive triggering triggers on, and a critic the belief itself
     :param kwargs: keyword arguments of :func:`joint_env`, which passes them on to
         :func:`parallel_env` (``broadcast_cost`` and ``trigger`` for the
         :class:`EventTriggeredNetwork`, everything else for
         :class:`~sb3_detc.envs.linear.LinearSystem`; earlier names accepted)
     :return: a :class:`~sb3_detc.triggers.FixedControl` around the env of :func:`joint_env`, its
         controls from :func:`~sb3_detc.triggers.lqr_on_held_states` (or ``lqr_on_predicted_states``),
-        inside a :class:`~sb3_detc.triggers.PredictedTriggerHeld` with ``predicted_held``
+        inside a :class:`~sb3_detc.triggers.ReceiverPredictions` with ``predicted_held``
     :raises ValueError: if ``predicted_held`` is asked for without ``prediction``
     """
     from sb3_detc import triggers  # builds on the envs
@@ -72,4 +73,4 @@ def lqr_joint_env(prediction: bool = False, predicted_held: bool = False, **kwar
     env = triggers.FixedControl(
         joint, (triggers.lqr_on_predicted_states if prediction else triggers.lqr_on_held_states)(joint)
     )
-    return triggers.PredictedTriggerHeld(env) if predicted_held else env
+    return triggers.ReceiverPredictions(env) if predicted_held else env
