@@ -165,7 +165,8 @@ def build(job: dict[str, Any], log_folder: Path) -> tuple[Any, dict[str, Any]]:
         (None: the entry's), ``timesteps``, ``changes`` (entry settings to change) and ``normalize_reward``
         (normalise the learner's rewards with fresh statistics); optionally ``option_age_scale``: ``mu``
         starts afresh and reads the age of its own last broadcast with this factor (the trial's ``mu``
-        is dropped; its controls and critic are kept, :func:`load_all_but_mu`)
+        is dropped; its controls and critic are kept, :func:`load_all_but_mu`; ``broadcast_prob_init``
+        in the changed ``policy_kwargs`` sets where it starts)
     :param log_folder: where rl-zoo3's experiment manager may write
     :return: the model, options from ``mu``, only the critic learning; and the env's keyword arguments
     :raises StudyError: if the trial has not finished, or its policy was built with other settings
@@ -188,7 +189,7 @@ def build(job: dict[str, Any], log_folder: Path) -> tuple[Any, dict[str, Any]]:
         if isinstance(policy_kwargs, str):
             policy_kwargs = eval(policy_kwargs)  # as rl-zoo3 reads an entry's policy_kwargs
         hyperparams["policy_kwargs"] = {**policy_kwargs, "option_age_scale": job["option_age_scale"]}
-        free.add("option_age_scale")
+        free |= {"option_age_scale", "broadcast_prob_init"}  # mu's inputs and initialisation
     model, _ = trial_manager(spec, trial, log_folder, job["timesteps"], hyperparams).setup_experiment()
     saved = MlpHybridPolicy.load(str(path), device="cpu")
     entry = model.policy.constructor_parameters()
