@@ -198,7 +198,13 @@ def test_the_shipped_study_files_load():
         "target_90": 0.9,
         "target_95": 0.95,
         "predicted_90": 0.9,
+        "predicted_held_90": 0.9,
+        "predicted_held_90_short": 0.9,
     }
+    # the receivers' predictions shown, at five times the others' budget and at the same
+    held = {a.label: a for a in rate.algorithms if a.label.startswith("predicted_held")}
+    assert all(a.hyperparams["env_kwargs"]["predicted_held"] for a in held.values())
+    assert rate.budget(held["predicted_held_90"]) == 5 * rate.budget(held["predicted_held_90_short"]) == 500_000
 
 
 def test_command_line_bad_input_is_one_line_with_exit_code_2(tmp_path):
