@@ -57,6 +57,7 @@ import numpy as np
 import torch as th
 from stable_baselines3.common.callbacks import BaseCallback
 
+from sb3_detc.cli import python_value
 from sb3_detc.evaluation import evaluate_episodes
 from sb3_detc.mappoc.policies import MlpHybridPolicy
 from sb3_detc.study.report import interval_estimates, interval_text
@@ -185,9 +186,8 @@ def build(job: dict[str, Any], log_folder: Path) -> tuple[Any, dict[str, Any]]:
     free = {"observation_space", "action_space", "lr_schedule", "sample_options"}
     fresh_mu = job.get("option_age_scale") is not None
     if fresh_mu:
-        policy_kwargs = hyperparams.get("policy_kwargs", algorithm.entry.get("policy_kwargs")) or {}
-        if isinstance(policy_kwargs, str):
-            policy_kwargs = eval(policy_kwargs)  # as rl-zoo3 reads an entry's policy_kwargs
+        policy_kwargs = hyperparams.get("policy_kwargs", algorithm.entry.get("policy_kwargs"))
+        policy_kwargs = python_value(policy_kwargs, "policy_kwargs", f"{folder} {trial.name}") or {}
         hyperparams["policy_kwargs"] = {**policy_kwargs, "option_age_scale": job["option_age_scale"]}
         free |= {"option_age_scale", "broadcast_prob_init"}  # mu's inputs and initialisation
     model, _ = trial_manager(spec, trial, log_folder, job["timesteps"], hyperparams).setup_experiment()

@@ -45,6 +45,7 @@ __all__ = [
     "check_model_arguments",
     "check_train_arguments",
     "import_gym_packages",
+    "python_value",
     "render_modes",
     "run_cli",
 ]
@@ -249,7 +250,7 @@ def _policy_class(policy: Any, algo: str, where: str) -> type:
     return aliases[policy]
 
 
-def _python_value(value: Any, key: str, where: str) -> Any:
+def python_value(value: Any, key: str, where: str) -> Any:
     """A value rl-zoo3 evaluates as Python if it is a string (``policy_kwargs``, ``normalize``).
 
     :param value: the entry's value
@@ -285,7 +286,7 @@ def _check_values(entry: dict[str, Any], algo: str, where: str) -> None:
             needs = "a number or a linear schedule 'lin_<initial value>'"
             raise InputError(f"{where}: {key} must be {needs}, got {entry[key]!r}")
     policy_class = _policy_class(entry["policy"], algo, where)
-    policy_kwargs = _python_value(entry.get("policy_kwargs"), "policy_kwargs", where)
+    policy_kwargs = python_value(entry.get("policy_kwargs"), "policy_kwargs", where)
     if policy_kwargs is not None:
         if not isinstance(policy_kwargs, dict):
             raise InputError(f"{where}: policy_kwargs must be a mapping, got {policy_kwargs!r}")
@@ -303,7 +304,7 @@ def _check_values(entry: dict[str, Any], algo: str, where: str) -> None:
             _check_classes(entry[key], where, key.replace("_", " "), build=False)
     if "callback" in entry:
         _check_classes(entry["callback"], where, "callback", build=True)
-    normalize = _python_value(entry.get("normalize", False), "normalize", where)
+    normalize = python_value(entry.get("normalize", False), "normalize", where)
     algorithm = algorithm_class(algo)
     if issubclass(algorithm, MAPPOC):
         defaults = {name: p.default for name, p in inspect.signature(algorithm.__init__).parameters.items()}

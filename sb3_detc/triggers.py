@@ -263,13 +263,25 @@ class SendOnDelta(_StatelessTrigger):
 
 
 def _linear_system(system_or_env: LinearSystem | gym.Env, name: str) -> LinearSystem:
-    """The linear system itself, or the one inside a joint env.
+    """The linear system itself, or the one inside a joint env whose ``held`` are the held broadcasts.
+
+    Every caller reads ``held`` as the broadcasts themselves (and predicts from them, or acts on
+    them): an env that shows the receivers' predictions in their place
+    (:class:`ReceiverPredictions`) is refused rather than predicted from twice.
 
     :param system_or_env: a :class:`~sb3_detc.envs.linear.LinearSystem` or a joint env around one
     :param name: the caller's name, for the message
     :return: the linear system
-    :raises ValueError: if no linear system is found
+    :raises ValueError: if no linear system is found, or the env shows predictions as ``held``
     """
+    wrapper = system_or_env
+    while isinstance(wrapper, gym.Wrapper):
+        if isinstance(wrapper, ReceiverPredictions):
+            raise ValueError(
+                f"{name} reads the held broadcasts, but {system_or_env} shows the receivers' predictions in their "
+                "place (ReceiverPredictions): pass the env without it (predicted_held=False)."
+            )
+        wrapper = wrapper.env
     system = system_or_env
     if not isinstance(system, LinearSystem):
         network = getattr(getattr(system_or_env, "unwrapped", None), "network", None)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import pickle
+from functools import partial
 
 import gymnasium
 import numpy as np
@@ -19,6 +20,7 @@ from sb3_detc.triggers import (
     TRIGGER_FAMILIES,
     PeriodicTrigger,
     PredictiveTrigger,
+    ReceiverPredictions,
     SavingsNotReached,
     SendOnDelta,
     evaluate_trigger,
@@ -218,6 +220,15 @@ def test_receiver_predictions_show_what_the_receivers_believe_and_turn_send_on_d
     assert 0 < np.mean(decided) < 1  # both options were compared
     with pytest.raises(ValueError, match="predicted_held=True needs prediction=True"):
         gymnasium.make("sb3_detc/LinearETC-LQR-v0", predicted_held=True)
+    # what reads held as the broadcasts refuses the env that shows predictions there (no prediction twice)
+    for reads_held in (
+        partial(PredictiveTrigger, delta=0.1),
+        lqr_on_predicted_states,
+        lqr_on_held_states,
+        ReceiverPredictions,
+    ):
+        with pytest.raises(ValueError, match="shows the receivers' predictions in their place"):
+            reads_held(shown)
 
 
 # ------------------------------------------------------------------ tuner

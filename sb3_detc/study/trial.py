@@ -57,6 +57,7 @@ from sb3_detc.zoo import ExperimentManager
 __all__ = [
     "FINISHED_FILES",
     "MODES",
+    "PROGRESS_DIGITS",
     "SUCCESS_NO_FALL",
     "SUCCESS_TRAVEL",
     "TrialCheckpoint",
@@ -67,6 +68,7 @@ __all__ = [
     "exclusive",
     "machine_record",
     "merged_progress",
+    "progress_number",
     "read_status",
     "replace_atomically",
     "run_trial",
