@@ -287,6 +287,12 @@ def test_predictive_triggering_runs_with_lqr_on_the_predicted_states_in_every_co
     np.testing.assert_allclose(side_by_side.control_returns, one_by_one.control_returns, rtol=1e-6)
     held = evaluate_episodes(policy, env, seeds, fixed_trigger=trigger)
     assert not np.allclose(held.control_returns, one_by_one.control_returns)  # the controllers differ
+    # from the env that shows the receivers' predictions as held, the family runs on the held broadcasts
+    shown = gym.make("sb3_detc/LinearETC-LQR-v0", n_agents=3, max_cycles=30, prediction=True, predicted_held=True)
+    from_shown = evaluate_episodes(
+        policy, evaluation.fixed_family_env(shown, "predictive"), seeds, fixed_trigger=trigger
+    )
+    np.testing.assert_allclose(from_shown.control_returns, one_by_one.control_returns, rtol=1e-6)
 
 
 def test_per_episode_values_are_kept_as_the_shortest_decimals_of_their_float32_values() -> None:
