@@ -3,6 +3,10 @@
 from __future__ import annotations
 
 import json
+import signal
+import subprocess
+import sys
+import textwrap
 import time
 from pathlib import Path
 from typing import Any
@@ -79,3 +83,56 @@ def test_a_second_sweep_on_the_same_file_is_refused(tmp_path: Path) -> None:
     with exclusive(tmp_path / "rows.json.lock"), pytest.raises(OutError, match="another sweep is writing to"):
         run_rows(square, [{"x": 1, "marks": str(tmp_path)}], out, workers=1)
     assert not out.exists()
+
+
+def alive(pid: int) -> bool:
+    """Whether process ``pid`` runs (a zombie, ended but not yet reaped, does not)."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except (FileNotFoundError, ProcessLookupError):
+        return False
+
+
+def wait_for(condition: Any, seconds: float) -> bool:
+    """Poll ``condition()`` every 0.1 s for up to ``seconds``; whether it came true."""
+    for _ in range(int(seconds * 10)):
+        if condition():
+            return True
+        time.sleep(0.1)
+    return condition()
+
+
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="reads the process table in /proc")
+def test_a_killed_sweep_interrupts_its_workers_job_which_cleans_up_and_ends(tmp_path: Path) -> None:
+    (tmp_path / "sweep_jobs.py").write_text(
+        textwrap.dedent(
+            """
+            import os
+            import time
+            from pathlib import Path
+
+            def wait(job):
+                Path(job["pid"]).write_text(str(os.getpid()))
+                try:
+                    time.sleep(120)
+                finally:
+                    Path(job["closed"]).touch()  # what a job opened is closed
+                return {}
+            """
+        )
+    )
+    job = {"pid": str(tmp_path / "pid"), "closed": str(tmp_path / "closed")}
+    out = str(tmp_path / "rows.json")
+    script = (
+        f"import sys; sys.path.insert(0, {str(tmp_path)!r}); from pathlib import Path; from sweep_jobs import wait; "
+        f"from sb3_detc.study.sweep import run_rows; run_rows(wait, [{job!r}], Path({out!r}), 1)"
+    )
+    sweep = subprocess.Popen([sys.executable, "-c", script])
+    try:
+        assert wait_for(lambda: (tmp_path / "pid").is_file() and (tmp_path / "pid").read_text(), 60)
+    finally:
+        sweep.send_signal(signal.SIGTERM)  # the sweep's process alone, as `kill` does
+        sweep.wait(10)
+    worker = int((tmp_path / "pid").read_text())
+    assert wait_for(lambda: (tmp_path / "closed").is_file(), 20)
+    assert wait_for(lambda: not alive(worker), 20)

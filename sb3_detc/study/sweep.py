@@ -28,6 +28,11 @@ from __future__ import annotations
 import argparse
 import json
 import multiprocessing
+import multiprocessing.connection
+import os
+import signal
+import threading
+import time
 import traceback
 from collections.abc import Callable
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
@@ -79,15 +84,51 @@ def read_rows(out: Path) -> Rows:
 
 #: In a worker process: the sweep's event that tells the jobs queued to it not to start.
 _stop: Any = None
+#: In a worker process: set once the sweep's process has ended.
+_orphaned = threading.Event()
+#: Seconds a worker whose sweep died gives its running job to clean up before the worker exits.
+ORPHAN_GRACE = 30.0
 
 
-def _remember_stop(stop: Any) -> None:
-    """Keep the sweep's stop event in a worker process (the pool's initializer).
+def _start_worker(stop: Any) -> None:
+    """Keep the sweep's stop event in a worker process and watch the sweep (the pool's initializer).
+
+    A worker must not outlive its sweep: if the sweep's process dies (a ``kill``, which unlike
+    Ctrl-C reaches it alone), the worker interrupts its running job as Ctrl-C would (a
+    ``KeyboardInterrupt``, also when the worker was started with Ctrl-C ignored), so the job's
+    ``finally`` blocks close what it opened (e.g. a model's rollout workers), and exits once they
+    have run, after at most :data:`ORPHAN_GRACE` seconds. A ``SIGTERM`` to the worker interrupts it the same way.
 
     :param stop: the event
     """
     global _stop
     _stop = stop
+    signal.signal(signal.SIGTERM, _interrupt)
+    parent = multiprocessing.parent_process()
+    if parent is not None:
+        threading.Thread(target=_leave_with, args=(parent.sentinel,), daemon=True).start()
+
+
+def _interrupt(signum: int, frame: Any) -> None:
+    """The worker's ``SIGTERM`` handler: interrupt the running job as Ctrl-C would.
+
+    :param signum: the signal
+    :param frame: the interrupted frame
+    :raises KeyboardInterrupt: always
+    """
+    raise KeyboardInterrupt(f"signal {signum}: the sweep ended")
+
+
+def _leave_with(sentinel: int) -> None:
+    """Wait until the sweep's process ends, then interrupt this worker's job and exit.
+
+    :param sentinel: the sweep process's sentinel (ready once it has ended)
+    """
+    multiprocessing.connection.wait([sentinel])
+    _orphaned.set()
+    os.kill(os.getpid(), signal.SIGTERM)
+    time.sleep(ORPHAN_GRACE)
+    os._exit(1)
 
 
 def _keyed(run: Callable[[dict[str, Any]], dict[str, Any] | Rows], job: dict[str, Any]) -> tuple[str, Rows | None]:
@@ -99,7 +140,11 @@ def _keyed(run: Callable[[dict[str, Any]], dict[str, Any] | Rows], job: dict[str
     """
     if _stop is not None and _stop.is_set():
         return job_key(job), None
-    result = run(job)
+    try:
+        result = run(job)
+    finally:
+        if _orphaned.is_set():  # the job has cleaned up and nobody waits for its rows
+            os._exit(1)
     return job_key(job), result if isinstance(result, list) else [result]
 
 
@@ -143,7 +188,7 @@ def run_rows(
             stop = context.Event()
             failure: BaseException | None = None
             with ProcessPoolExecutor(
-                min(workers, len(pending)), mp_context=context, initializer=_remember_stop, initargs=(stop,)
+                min(workers, len(pending)), mp_context=context, initializer=_start_worker, initargs=(stop,)
             ) as pool:
                 running = {pool.submit(_keyed, run, job) for job in pending}
                 try:
