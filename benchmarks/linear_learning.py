@@ -40,15 +40,15 @@ from rl_zoo3.utils import get_callback_list
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.env_util import make_vec_env
 
-import sb3_detc
 from sb3_detc import MAPPOC
 from sb3_detc.callbacks import BroadcastEntropySchedule, ControlFirstCallback
-from sb3_detc.cli import ZOO_KEYS, check_hyperparams_file
+from sb3_detc.cli import ZOO_KEYS, algorithm_arguments, check_hyperparams_file
 from sb3_detc.envs.linear import LinearSystem, lqr_episode_cost
 from sb3_detc.evaluation import evaluate_communication
 from sb3_detc.mappoc.critics import CRITICS
 from sb3_detc.study.sweep import OutError, check_at_least_one, run_rows
 from sb3_detc.triggers import RandomTrigger
+from sb3_detc.zoo import HYPERPARAMS_DIR
 
 #: MAPPOC settings for the linear env (the paper's are for Multiwalker).
 HYPERPARAMS = {
@@ -77,7 +77,7 @@ def zoo_recipe() -> dict[str, Any]:
     :raises ValueError: if the entry uses rl-zoo3 settings the script does not reproduce (e.g. ``normalize``)
         or another policy than ``MlpHybridPolicy``
     """
-    path = Path(sb3_detc.__file__).parent / "hyperparams" / "mappoc.yml"
+    path = HYPERPARAMS_DIR / "mappoc.yml"
     entry = dict(check_hyperparams_file(path, "mappoc", ENV_ID))
     unknown = sorted((ZOO_KEYS - REPRODUCED) & entry.keys())
     if unknown:
@@ -86,11 +86,8 @@ def zoo_recipe() -> dict[str, Any]:
         raise ValueError(
             f"the {ENV_ID} entry of {path} names the policy {entry['policy']!r}; the script trains MlpHybridPolicy"
         )
-    settings = {key: value for key, value in entry.items() if key not in ZOO_KEYS | {"policy"}}
-    if isinstance(settings.get("policy_kwargs"), str):  # rl-zoo3 writes them as "dict(...)"
-        settings["policy_kwargs"] = eval(settings["policy_kwargs"])  # the package's own file
     return {
-        "settings": settings,
+        "settings": algorithm_arguments(entry, f"{path} [{ENV_ID}]"),
         "n_envs": entry.get("n_envs", 1),
         "env_kwargs": entry.get("env_kwargs", {}),
         "n_timesteps": int(entry["n_timesteps"]),

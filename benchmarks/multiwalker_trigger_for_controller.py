@@ -301,6 +301,8 @@ def run(job: dict[str, Any], progress_every: int = PROGRESS_EVERY) -> dict[str, 
 def print_table(rows: list[dict[str, Any]]) -> None:
     """Print one line per seed and the means over seeds with 95 % bootstrap intervals.
 
+    The means include every fixed family that all rows compared, and the learned minus the best of them.
+
     :param rows: the rows of :func:`run`
     """
     print(
@@ -329,6 +331,11 @@ def print_table(rows: list[dict[str, Any]]) -> None:
         "control return random, same rate": "random_same_rate_control_return",
         "learned minus random": "learned_minus_random_control_return",
     }
+    families = [f for f in TRIGGER_FAMILIES if all(f"fixed_{f}_control_return" in row["metrics"] for row in rows)]
+    for family in families:
+        names[f"control return {family.replace('_', ' ')}"] = f"fixed_{family}_control_return"
+    if families:
+        names["learned minus best family"] = "learned_minus_best_fixed_control_return"
     values = np.array([[row["metrics"][key] for key in names.values()] for row in rows])
     means, intervals = interval_estimates({"x": values})
     print()
@@ -336,6 +343,27 @@ def print_table(rows: list[dict[str, Any]]) -> None:
     for k, name in enumerate(names):
         digits = 3 if name == "savings" else 1
         print(f"- {name}: {interval_text(means['x'][k], intervals['x'][0, k], intervals['x'][1, k], digits)}")
+
+
+def print_families(rows: list[dict[str, Any]]) -> None:
+    """Print, per seed, every compared fixed family's savings and control return and the learned minus the best.
+
+    :param rows: the rows of :func:`run` (rows without compared families print nothing)
+    """
+    families = [f for f in TRIGGER_FAMILIES if any(f"fixed_{f}_control_return" in row["metrics"] for row in rows)]
+    if not families:
+        return
+    print()
+    print("| seed | learned | " + " | ".join(f.replace("_", " ") for f in families) + " | learned minus best family |")
+    print("|---|" + "---|" * (len(families) + 2))
+    for row in rows:
+        m = row["metrics"]
+        cells = [f"{m['savings']:.3f}, {m['control_return']:.1f}"]
+        for family in families:
+            savings, value = m.get(f"fixed_{family}_savings"), m.get(f"fixed_{family}_control_return")
+            cells.append("" if value is None else f"{savings:.3f}, {value:.1f}")
+        cells.append(f"{m['learned_minus_best_fixed_control_return']:+.1f}")
+        print(f"| {row['seed']} | " + " | ".join(cells) + " |")
 
 
 def main() -> None:
@@ -424,6 +452,7 @@ def main() -> None:
     )
     print()
     print_table(rows)
+    print_families(rows)
 
 
 if __name__ == "__main__":

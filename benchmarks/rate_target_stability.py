@@ -3,11 +3,12 @@
 MAPPOC's ``target_savings`` adapts a price per broadcast by dual ascent after every rollout. Where a
 broadcast is worth little, the policy over options answers a small change of the price with a large
 change of its rate, and the two can chase each other. This script trains the package's
-``sb3_detc/LinearETC-LQR-v0`` entry (8 envs x 128 steps, 100,000 steps, one torch thread) with a
-target and the given step size of the price, with or without the normalised option advantages of
-the entry, and prints every fifth rollout's broadcast rate, the mean and standard deviation of the
-last 30 rollouts' rates, the final price, and the savings and control return of the final policy
-on 50 seeded episodes (seeds 10000 to 10049, options sampled from the policy over options).
+``sb3_detc/LinearETC-LQR-v0`` entry of ``hyperparams/mappoc.yml`` (its settings, envs and steps, one
+torch thread; the policy over options reads its own age) with a target and the given step size of
+the price, with or without the normalised option advantages of the entry, and prints every fifth
+rollout's broadcast rate, the mean and standard deviation of the last 30 rollouts' rates, the final
+price, and the savings and control return of the final policy on 50 seeded episodes (seeds 10000 to
+10049, options sampled from the policy over options).
 
     python benchmarks/rate_target_stability.py --target 0.8 --price-lr 0.02
 """
@@ -25,8 +26,10 @@ from stable_baselines3.common.env_util import make_vec_env
 
 import sb3_detc  # noqa: F401  (registers the env ids)
 from sb3_detc import MAPPOC
+from sb3_detc.cli import algorithm_arguments, check_hyperparams_file
 from sb3_detc.evaluation import EVAL_SEED, evaluate_episodes
 from sb3_detc.mappoc.workers import RolloutWorker
+from sb3_detc.zoo import HYPERPARAMS_DIR
 
 ENV_ID = "sb3_detc/LinearETC-LQR-v0"
 
@@ -56,30 +59,19 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
     th.set_num_threads(1)
+    path = HYPERPARAMS_DIR / "mappoc.yml"
+    entry = check_hyperparams_file(path, "mappoc", ENV_ID)
+    arguments = algorithm_arguments(entry, f"{path} [{ENV_ID}]")
+    # mu reads its own age, as in the study files with rate targets
+    arguments["policy_kwargs"] = {**arguments["policy_kwargs"], "option_age_scale": 0.1, "sample_options": True}
     env = make_vec_env(
-        ENV_ID, n_envs=8, seed=args.seed, wrapper_class=RolloutWorker, env_kwargs={"broadcast_cost": 0.03}
+        ENV_ID, n_envs=entry["n_envs"], seed=args.seed, wrapper_class=RolloutWorker, env_kwargs=entry["env_kwargs"]
     )
     try:
         model = MAPPOC(
-            "MlpHybridPolicy",
+            entry["policy"],
             env,
-            n_steps=128,
-            batch_size=256,
-            learning_rate=1e-3,
-            max_grad_norm=0.5,
-            gamma=0.95,
-            normalize_reward=True,
-            reward_scale=1.0,
-            team_reward=True,
-            broadcast_ent_coef=0.03,
-            normalize_broadcast_advantage=not args.raw_advantages,
-            policy_kwargs={
-                "net_arch": [32, 32],
-                "broadcast_prob_init": 0.1,
-                "critic": "afterstate",
-                "option_age_scale": 0.1,
-                "sample_options": True,
-            },
+            **{**arguments, "normalize_broadcast_advantage": not args.raw_advantages},
             target_savings=args.target,
             broadcast_price_lr=args.price_lr,
             seed=args.seed,
@@ -88,7 +80,7 @@ def main() -> None:
         parser.error(str(error))
     rates = Rates()
     start = time.perf_counter()
-    model.learn(100_000, callback=rates)
+    model.learn(int(entry["n_timesteps"]), callback=rates)
     seconds = time.perf_counter() - start
     last = np.array(rates.rates[-30:])
     print(

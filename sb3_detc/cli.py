@@ -38,6 +38,7 @@ from sb3_detc.zoo import ALGORITHMS, HYPERPARAMS_DIR, register
 __all__ = [
     "ZOO_KEYS",
     "InputError",
+    "algorithm_arguments",
     "algorithm_class",
     "check_algorithm",
     "check_env",
@@ -265,6 +266,20 @@ def python_value(value: Any, key: str, where: str) -> Any:
         return eval(value, dict(vars(rl_zoo3.exp_manager)))
     except Exception as error:  # any error of evaluating the user's expression
         raise InputError(f"{where}: {key} {value!r} is not a Python expression ({_what(error)})") from None
+
+
+def algorithm_arguments(entry: dict[str, Any], where: str) -> dict[str, Any]:
+    """What an entry gives the algorithm's constructor, as rl-zoo3 passes it: every key rl-zoo3 does not consume.
+
+    :param entry: the entry (e.g. from :func:`check_hyperparams_file`)
+    :param where: file and entry, for messages
+    :return: the entry without :data:`ZOO_KEYS` and ``policy``, ``policy_kwargs`` evaluated (:func:`python_value`)
+    :raises InputError: if ``policy_kwargs`` is a string that is not a Python expression
+    """
+    arguments = {key: value for key, value in entry.items() if key not in ZOO_KEYS | {"policy"}}
+    if "policy_kwargs" in arguments:
+        arguments["policy_kwargs"] = python_value(arguments["policy_kwargs"], "policy_kwargs", where) or {}
+    return arguments
 
 
 def _check_values(entry: dict[str, Any], algo: str, where: str) -> None:

@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 
 import gymnasium as gym
+import pytest
 
 import sb3_detc  # noqa: F401  (registers the ids)
 
@@ -107,3 +108,18 @@ def test_gym_packages_that_cannot_be_imported(tmp_path: Path) -> None:
     for module in ("sb3_detc.train", "sb3_detc.enjoy", "sb3_detc.record_video"):
         line = one_line(cli(module, "--gym-packages", "no_such_team", "-f", str(tmp_path / "logs"), cwd=tmp_path))
         assert "--gym-packages: cannot import 'no_such_team'" in line
+
+
+def test_algorithm_arguments_are_what_rl_zoo3_passes_to_the_algorithm() -> None:
+    from sb3_detc import MAPPOC
+    from sb3_detc.cli import InputError, algorithm_arguments, check_hyperparams_file
+    from sb3_detc.zoo import HYPERPARAMS_DIR
+
+    entry = check_hyperparams_file(HYPERPARAMS_DIR / "mappoc.yml", "mappoc", "sb3_detc/LinearETC-LQR-v0")
+    arguments = algorithm_arguments(entry, "mappoc.yml")
+    assert not arguments.keys() & {"n_timesteps", "n_envs", "env_kwargs", "callback", "policy"}
+    assert arguments["policy_kwargs"]["critic"] == "afterstate"  # the entry's "dict(...)" evaluated
+    model = MAPPOC(entry["policy"], gym.make("sb3_detc/LinearETC-LQR-v0"), **arguments)
+    assert model.n_steps == entry["n_steps"] and model.policy.critic == "afterstate"
+    with pytest.raises(InputError, match=r"^a\.yml \[x\]: policy_kwargs"):
+        algorithm_arguments({"policy_kwargs": "dict(net_arch="}, "a.yml [x]")
