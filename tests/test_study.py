@@ -200,11 +200,20 @@ def test_the_shipped_study_files_load():
         "predicted_90": 0.9,
         "predicted_held_90": 0.9,
         "predicted_held_90_short": 0.9,
+        "predicted_held_90_long": 0.9,
     }
-    # the receivers' predictions shown, at five times the others' budget and at the same
+    # the receivers' predictions shown, at five times the others' budget, at the same and at twenty times
     held = {a.label: a for a in rate.algorithms if a.label.startswith("predicted_held")}
     assert all(a.hyperparams["env_kwargs"]["predicted_held"] for a in held.values())
     assert rate.budget(held["predicted_held_90"]) == 5 * rate.budget(held["predicted_held_90_short"]) == 500_000
+    assert rate.budget(held["predicted_held_90_long"]) == 2_000_000
+    assert held["predicted_held_90_long"].hyperparams["broadcast_ent_coef"] == 0.01
+    joint = load_study(ROOT / "sb3_detc" / "studies" / "multiwalker_rate.yml")
+    assert joint.fixed_families == ("periodic", "periodic_staggered", "send_on_delta_max_age")
+    assert joint.episodes >= 50
+    (learned,) = joint.algorithms
+    assert learned.hyperparams["target_savings"] == 0.9375 and learned.cpus == 2
+    assert joint.budget(learned) == 6_144_000 and len(learned.seeds) == 5  # the paper's budget
 
 
 def test_command_line_bad_input_is_one_line_with_exit_code_2(tmp_path):
