@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import pytest
@@ -40,6 +41,8 @@ def test_bad_input_is_a_usage_error(tmp_path: Path, arguments: list[str], messag
         ("train_throughput.py", ["--baseline", "/no/such/tree"], "is not a source tree of the package"),
         ("rate_target_stability.py", ["--target", "1.5"], "target_savings must be a number in (0, 1)"),
         ("rate_target_stability.py", ["--price-lr", "0"], "broadcast_price_lr must be > 0"),
+        ("option_age_profile.py", ["README.md", "--episodes", "0"], "--episodes must be at least 1"),
+        ("option_age_profile.py", ["README.md"], "README.md is not a saved MAPPOC model"),
     ],
 )
 def test_other_benchmarks_check_their_numbers_first(
@@ -56,3 +59,18 @@ def test_sweeps_refuse_a_results_file_of_something_else(tmp_path: Path, script: 
     done = run_benchmark(script, "--timesteps", "2048", "--out", str(out))
     assert done.returncode == 2 and "not the JSON rows of an earlier run" in done.stderr
     assert out.read_text() == '{"a": "run of another script"}'
+
+
+def test_the_age_profile_bands_a_policys_probabilities_by_its_own_age(tmp_path: Path, run_benchmark) -> None:
+    """A trigger trained at 90 % savings on the linear system broadcasts more often the older its information."""
+    policy = Path("benchmarks/studies/linear_lqr_rate/trials/target_90/seed0/policy.pt")
+    out = tmp_path / "profile.json"
+    arguments = [str(policy), "--episodes", "2", "--broadcast-prob", "0.1", "--out", str(out)]
+    done = run_benchmark("option_age_profile.py", *arguments, check=True)  # the env from the study
+    assert "sb3_detc/LinearETC-LQR-v0" in done.stdout
+    assert "| 0 to 3 |" in done.stdout and "Correlation of the option gap with the own age" in done.stdout
+    result = json.loads(out.read_text())
+    bands = result["bands"]
+    assert [band["low"] for band in bands] == [0, 4, 8, 16, 32][: len(bands)] and len(bands) >= 3
+    assert sum(band["n"] for band in bands) == 2 * 3 * 100  # 2 episodes of 100 steps, 3 agents
+    assert bands[-1]["probability"] > bands[0]["probability"]
