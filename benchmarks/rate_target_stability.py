@@ -89,7 +89,7 @@ def main() -> None:
         f"price {model.broadcast_price:.3f}"
     )
     print("rate every 5th rollout:", np.round(rates.rates[::5], 2).tolist())
-    with gym.make(ENV_ID) as evaluation_env:
+    with gym.make(ENV_ID, **entry["env_kwargs"]) as evaluation_env:
         episodes = evaluate_episodes(model.policy, evaluation_env, list(range(EVAL_SEED, EVAL_SEED + 50)))
     print(
         f"final policy on 50 episodes: savings {episodes.savings:.3f}, "

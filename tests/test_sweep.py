@@ -3,10 +3,10 @@
 from __future__ import annotations
 
 import json
+import os
 import signal
 import subprocess
 import sys
-import textwrap
 import time
 from pathlib import Path
 from typing import Any
@@ -102,37 +102,61 @@ def wait_for(condition: Any, seconds: float) -> bool:
     return condition()
 
 
-@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="reads the process table in /proc")
-def test_a_killed_sweep_interrupts_its_workers_job_which_cleans_up_and_ends(tmp_path: Path) -> None:
-    (tmp_path / "sweep_jobs.py").write_text(
-        textwrap.dedent(
-            """
-            import os
-            import time
-            from pathlib import Path
+#: A job module for sweeps in a subprocess: the job writes its process id, waits, and marks its cleanup.
+WAITING_JOB = """
+import os
+import time
+from pathlib import Path
 
-            def wait(job):
-                Path(job["pid"]).write_text(str(os.getpid()))
-                try:
-                    time.sleep(120)
-                finally:
-                    Path(job["closed"]).touch()  # what a job opened is closed
-                return {}
-            """
-        )
-    )
+def wait(job):
+    Path(job["pid"]).write_text(str(os.getpid()))
+    try:
+        time.sleep(120)
+    finally:
+        Path(job["closed"]).touch()  # what a job opened is closed
+    return {}
+"""
+
+
+def start_waiting_sweep(tmp_path: Path) -> tuple[subprocess.Popen, int]:
+    """A sweep of one waiting job in a subprocess, and its worker's process id once the job runs."""
+    (tmp_path / "sweep_jobs.py").write_text(WAITING_JOB)
     job = {"pid": str(tmp_path / "pid"), "closed": str(tmp_path / "closed")}
     out = str(tmp_path / "rows.json")
     script = (
         f"import sys; sys.path.insert(0, {str(tmp_path)!r}); from pathlib import Path; from sweep_jobs import wait; "
         f"from sb3_detc.study.sweep import run_rows; run_rows(wait, [{job!r}], Path({out!r}), 1)"
     )
-    sweep = subprocess.Popen([sys.executable, "-c", script])
+    sweep = subprocess.Popen([sys.executable, "-c", script], stderr=subprocess.PIPE, text=True)
+    if not wait_for(lambda: (tmp_path / "pid").is_file() and (tmp_path / "pid").read_text(), 60):
+        sweep.kill()
+        raise AssertionError("the job did not start")
+    return sweep, int((tmp_path / "pid").read_text())
+
+
+PROC = pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="reads the process table in /proc")
+
+
+@PROC
+def test_a_killed_sweep_interrupts_its_workers_job_which_cleans_up_and_ends(tmp_path: Path) -> None:
+    sweep, worker = start_waiting_sweep(tmp_path)
+    sweep.send_signal(signal.SIGTERM)  # the sweep's process alone, as `kill` does
+    sweep.communicate(timeout=10)
     try:
-        assert wait_for(lambda: (tmp_path / "pid").is_file() and (tmp_path / "pid").read_text(), 60)
+        assert wait_for(lambda: (tmp_path / "closed").is_file(), 20)
+        assert wait_for(lambda: not alive(worker), 20)
     finally:
-        sweep.send_signal(signal.SIGTERM)  # the sweep's process alone, as `kill` does
-        sweep.wait(10)
-    worker = int((tmp_path / "pid").read_text())
-    assert wait_for(lambda: (tmp_path / "closed").is_file(), 20)
-    assert wait_for(lambda: not alive(worker), 20)
+        if alive(worker):
+            os.kill(worker, signal.SIGKILL)
+
+
+@PROC
+def test_a_terminated_worker_cleans_up_and_the_sweep_reports_its_broken_pool(tmp_path: Path) -> None:
+    sweep, worker = start_waiting_sweep(tmp_path)
+    os.kill(worker, signal.SIGTERM)  # as the pool terminates its workers, or a user the worker
+    try:
+        _, stderr = sweep.communicate(timeout=30)
+    finally:
+        sweep.kill()
+    assert sweep.returncode != 0 and "BrokenProcessPool" in stderr
+    assert (tmp_path / "closed").is_file() and wait_for(lambda: not alive(worker), 20)

@@ -84,9 +84,11 @@ def read_rows(out: Path) -> Rows:
 
 #: In a worker process: the sweep's event that tells the jobs queued to it not to start.
 _stop: Any = None
-#: In a worker process: set once the sweep's process has ended.
-_orphaned = threading.Event()
-#: Seconds a worker whose sweep died gives its running job to clean up before the worker exits.
+#: In a worker process: set while a job runs.
+_running = threading.Event()
+#: In a worker process: set once the worker was told to end (its sweep died, or a ``SIGTERM``).
+_ending = threading.Event()
+#: Seconds an ending worker gives its running job to clean up before the worker exits.
 ORPHAN_GRACE = 30.0
 
 
@@ -94,10 +96,11 @@ def _start_worker(stop: Any) -> None:
     """Keep the sweep's stop event in a worker process and watch the sweep (the pool's initializer).
 
     A worker must not outlive its sweep: if the sweep's process dies (a ``kill``, which unlike
-    Ctrl-C reaches it alone), the worker interrupts its running job as Ctrl-C would (a
-    ``KeyboardInterrupt``, also when the worker was started with Ctrl-C ignored), so the job's
-    ``finally`` blocks close what it opened (e.g. a model's rollout workers), and exits once they
-    have run, after at most :data:`ORPHAN_GRACE` seconds. A ``SIGTERM`` to the worker interrupts it the same way.
+    Ctrl-C reaches it alone), the worker ends as on a ``SIGTERM`` (:func:`_interrupt`): its running
+    job is interrupted as Ctrl-C would (a ``KeyboardInterrupt``, also when the worker was started
+    with Ctrl-C ignored), so the job's ``finally`` blocks close what it opened (e.g. a model's
+    rollout workers), and the worker exits once they have run, after at most :data:`ORPHAN_GRACE`
+    seconds; an idle worker exits at once.
 
     :param stop: the event
     """
@@ -110,25 +113,40 @@ def _start_worker(stop: Any) -> None:
 
 
 def _interrupt(signum: int, frame: Any) -> None:
-    """The worker's ``SIGTERM`` handler: interrupt the running job as Ctrl-C would.
+    """The worker's ``SIGTERM`` handler: end the worker, its running job interrupted as Ctrl-C would.
+
+    Further ``SIGTERM`` signals are ignored (the pool may send more; they must not cut the job's
+    cleanup short); the worker exits after the job's ``finally`` blocks (:func:`_keyed`) or after
+    :data:`ORPHAN_GRACE` seconds, whichever comes first.
 
     :param signum: the signal
     :param frame: the interrupted frame
-    :raises KeyboardInterrupt: always
+    :raises KeyboardInterrupt: if a job runs
     """
-    raise KeyboardInterrupt(f"signal {signum}: the sweep ended")
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    _ending.set()
+    if not _running.is_set():
+        os._exit(1)
+    threading.Thread(target=_exit_after, args=(ORPHAN_GRACE,), daemon=True).start()
+    raise KeyboardInterrupt(f"signal {signum}: the sweep's worker was told to end")
+
+
+def _exit_after(seconds: float) -> None:
+    """Exit the worker process after ``seconds``, whatever it does then.
+
+    :param seconds: the delay
+    """
+    time.sleep(seconds)
+    os._exit(1)
 
 
 def _leave_with(sentinel: int) -> None:
-    """Wait until the sweep's process ends, then interrupt this worker's job and exit.
+    """Wait until the sweep's process ends, then end this worker (:func:`_interrupt`).
 
     :param sentinel: the sweep process's sentinel (ready once it has ended)
     """
     multiprocessing.connection.wait([sentinel])
-    _orphaned.set()
     os.kill(os.getpid(), signal.SIGTERM)
-    time.sleep(ORPHAN_GRACE)
-    os._exit(1)
 
 
 def _keyed(run: Callable[[dict[str, Any]], dict[str, Any] | Rows], job: dict[str, Any]) -> tuple[str, Rows | None]:
@@ -141,10 +159,12 @@ def _keyed(run: Callable[[dict[str, Any]], dict[str, Any] | Rows], job: dict[str
     if _stop is not None and _stop.is_set():
         return job_key(job), None
     try:
+        _running.set()
         result = run(job)
     finally:
-        if _orphaned.is_set():  # the job has cleaned up and nobody waits for its rows
+        if _ending.is_set():  # the job has cleaned up; the worker ends
             os._exit(1)
+        _running.clear()
     return job_key(job), result if isinstance(result, list) else [result]
 
 
@@ -165,7 +185,8 @@ def run_rows(
     :return: the rows of the sweep's jobs, in the order of ``jobs`` (a job listed twice: once)
     :raises OutError: if ``out`` holds something else (:func:`read_rows`) or another sweep writes to it
     :raises ValueError: if ``workers`` is below 1
-    :raises concurrent.futures.process.BrokenProcessPool: if a job's process was killed
+    :raises concurrent.futures.process.BrokenProcessPool: if a job's process was killed or ended (a
+        ``SIGTERM`` to a worker interrupts its job, lets it clean up and ends the worker)
     :raises Exception: the first error a job raised, once the jobs running beside it have finished
     """
     if workers < 1:
