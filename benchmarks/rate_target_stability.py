@@ -63,7 +63,7 @@ def main() -> None:
     entry = check_hyperparams_file(path, "mappoc", ENV_ID)
     arguments = algorithm_arguments(entry, f"{path} [{ENV_ID}]")
     # mu reads its own age, as in the study files with rate targets
-    arguments["policy_kwargs"] = {**arguments["policy_kwargs"], "option_age_scale": 0.1, "sample_options": True}
+    arguments["policy_kwargs"] = {**arguments["policy_kwargs"], "option_age_scale": 0.1}
     env = make_vec_env(
         ENV_ID, n_envs=entry["n_envs"], seed=args.seed, wrapper_class=RolloutWorker, env_kwargs=entry["env_kwargs"]
     )

@@ -61,7 +61,9 @@ def test_a_fresh_mu_reads_its_own_age_and_the_fixed_families_are_compared(tmp_pa
     # where the fresh mu starts may change with it (the entry's other policy settings may not)
     kwargs = "dict(net_arch=[64, 64], learn_log_std=True, critic='afterstate', age_scale=0.0, broadcast_prob_init=0.2)"
     arguments += ["--set", json.dumps({"policy_kwargs": kwargs})]
-    run_benchmark(SCRIPT, *arguments, "--fixed-families", "send_on_delta", "send_on_delta_max_age", check=True)
+    done = run_benchmark(SCRIPT, *arguments, "--fixed-families", "send_on_delta", "send_on_delta_max_age", check=True)
+    # the families' table: every compared family per seed, and the learned minus the best
+    assert "| seed | learned | send on delta | send on delta max age | learned minus best family |" in done.stdout
     (row,) = json.loads(out.read_text())
     before = MlpHybridPolicy.load(str(TRIAL / "policy.pt"), device="cpu")
     after = MlpHybridPolicy.load(str(saved / row["saved"]), device="cpu")
