@@ -336,6 +336,9 @@ def print_table(rows: list[dict[str, Any]]) -> None:
         names[f"control return {family.replace('_', ' ')}"] = f"fixed_{family}_control_return"
     if families:
         names["learned minus best family"] = "learned_minus_best_fixed_control_return"
+    if all("thresholded_minus_best_fixed_control_return" in row["metrics"] for row in rows):
+        names["control return thresholded at the learned rate"] = "thresholded_control_return"
+        names["thresholded minus best family"] = "thresholded_minus_best_fixed_control_return"
     values = np.array([[row["metrics"][key] for key in names.values()] for row in rows])
     means, intervals = interval_estimates({"x": values})
     print()
@@ -346,23 +349,34 @@ def print_table(rows: list[dict[str, Any]]) -> None:
 
 
 def print_families(rows: list[dict[str, Any]]) -> None:
-    """Print, per seed, every compared fixed family's savings and control return and the learned minus the best.
+    """Print, per seed, the savings and control return of the learned trigger, of ``mu`` thresholded at its rate
+    and of every compared fixed family, and the learned (and thresholded) minus the best family.
 
     :param rows: the rows of :func:`run` (rows without compared families print nothing)
     """
     families = [f for f in TRIGGER_FAMILIES if any(f"fixed_{f}_control_return" in row["metrics"] for row in rows)]
     if not families:
         return
+    modes = ["thresholded"] if any("thresholded_control_return" in row["metrics"] for row in rows) else []
+    compared = [f"fixed_{family}" for family in families]
+    differences = ["learned", *modes]
     print()
-    print("| seed | learned | " + " | ".join(f.replace("_", " ") for f in families) + " | learned minus best family |")
-    print("|---|" + "---|" * (len(families) + 2))
+    print(
+        "| seed | learned | "
+        + " | ".join(name.removeprefix("fixed_").replace("_", " ") for name in modes + compared)
+        + "".join(f" | {mode} minus best family" for mode in differences)
+        + " |"
+    )
+    print("|---|" + "---|" * (1 + len(modes + compared) + len(differences)))
     for row in rows:
         m = row["metrics"]
         cells = [f"{m['savings']:.3f}, {m['control_return']:.1f}"]
-        for family in families:
-            savings, value = m.get(f"fixed_{family}_savings"), m.get(f"fixed_{family}_control_return")
+        for name in modes + compared:
+            savings, value = m.get(f"{name}_savings"), m.get(f"{name}_control_return")
             cells.append("" if value is None else f"{savings:.3f}, {value:.1f}")
-        cells.append(f"{m['learned_minus_best_fixed_control_return']:+.1f}")
+        for mode in differences:
+            value = m.get(f"{mode}_minus_best_fixed_control_return")
+            cells.append("" if value is None else f"{value:+.1f}")
         print(f"| {row['seed']} | " + " | ".join(cells) + " |")
 
 

@@ -3,17 +3,19 @@
 ``PATH`` is a saved MAPPOC model (``.zip``: a run's final model or a checkpoint) or a saved
 policy (``policy.pt``, as every study trial keeps it). The command runs the same seeded
 episodes in every mode of the protocol (:func:`~sb3_detc.evaluation.evaluate_policy_modes`:
-learned, the most likely options, random skips at the learned rate, periodic, never), prints a
-line as each mode finishes and then the modes' table: return, control return (without the
-communication cost), savings, and package travel and fall rate where the env reports them.
+learned, the most likely options, random skips at the learned rate, periodic, never; with
+``--fixed-families``, or the families of the study a policy comes from, each family tuned to
+the learned rate and ``mu`` thresholded at it), prints a line as each mode finishes and then
+the modes' table: return, control return (without the communication cost), savings, and
+package travel and fall rate where the env reports them.
 
 The env and its settings come from, in this order:
 
 * ``--env ID`` (with ``--env-kwargs key=value ...``);
 * for a policy in a study's trial folder (``<study>/trials/<label>/seed<seed>/policy.pt``), the
   study (``<study>/study.yml``): its env, the trial's hyperparameter entry (``env_kwargs``, the
-  fixed trigger a baseline trained with) and its evaluation episodes and seed, so that the
-  command evaluates the policy as the study did (``evaluation.json``);
+  fixed trigger a baseline trained with) and its evaluation episodes, seed and fixed
+  families, so that the command evaluates the policy as the study did (``evaluation.json``);
 * for a model in an rl-zoo3 run folder (``python -m sb3_detc.train``), the run's saved
   ``args.yml`` and ``config.yml``.
 
@@ -58,7 +60,7 @@ from sb3_detc.mappoc.mappoc import FixedTrigger
 from sb3_detc.mappoc.policies import MlpHybridPolicy
 from sb3_detc.study.spec import load_folder_study
 from sb3_detc.study.trial import entry_fixed_trigger
-from sb3_detc.triggers import RandomTrigger
+from sb3_detc.triggers import TRIGGER_FAMILIES, RandomTrigger
 
 __all__ = ["EPISODES", "Saved", "load_saved", "main", "modes_table", "read_policy", "record_episode"]
 
@@ -80,6 +82,7 @@ class Saved:
     :param episodes: evaluation episodes per mode (a study's, else :data:`EPISODES`)
     :param seed: seed of the first evaluation episode (a study's, else :data:`~sb3_detc.evaluation.EVAL_SEED`)
     :param source: where the env and its settings were found, for the reader
+    :param fixed_families: the fixed trigger families compared at the learned rate (a study's, else none)
     """
 
     policy: MlpHybridPolicy
@@ -89,6 +92,7 @@ class Saved:
     episodes: int = EPISODES
     seed: int = EVAL_SEED
     source: str = "--env"
+    fixed_families: tuple[str, ...] = ()
 
 
 def read_policy(path: Path) -> MlpHybridPolicy:
@@ -145,6 +149,7 @@ def _study_settings(path: Path, policy: MlpHybridPolicy) -> Saved | None:
         spec.episodes,
         spec.eval_seed,
         f"study {study}, trial {algorithm.name}/{trial.name}",
+        spec.fixed_families,
     )
 
 
@@ -232,7 +237,8 @@ def modes_table(result: dict[str, Any]) -> str:
     :param result: what :func:`~sb3_detc.evaluation.evaluate_policy_modes` returns
     :return: one row per mode (return, control return, savings, and package travel and fall
         rate where the env reports them), then the paired learned-minus-random difference and,
-        where known, the dependence of the learned options on the state
+        where known, the dependence of the learned options on the state, the compared fixed
+        families' triggers and the learned (and thresholded) minus the best family
     """
     modes = result["modes"]
     package = all(x is not None for x in modes["learned"]["package_travel"])
@@ -257,6 +263,16 @@ def modes_table(result: dict[str, Any]) -> str:
             f"dependence of the learned options on the state: {metrics['option_state_information']:.3g} bits "
             "(mutual information of options and state; 0: it ignores the state)"
         )
+    for family, trigger in result.get("fixed", {}).items():
+        lines.append(f"fixed family {family}: {trigger}")
+    if "thresholded" in result:
+        lines.append(f"mu thresholded at the learned rate: {result['thresholded']}")
+    for mode in ("learned", "thresholded"):
+        name = f"{mode}_minus_best_fixed_control_return"
+        if name in metrics:
+            lines.append(
+                f"{mode} minus the best fixed family ({result['best_fixed']}), same episodes: {metrics[name]:.2f}"
+            )
     return "\n".join(lines)
 
 
@@ -302,6 +318,15 @@ def _arguments(argv: Sequence[str]) -> argparse.Namespace:
         type=float,
         default=None,
         help="the policy trained with random skips at this rate (a baseline): its learned mode is such a trigger",
+    )
+    parser.add_argument(
+        "--fixed-families",
+        nargs="*",
+        choices=TRIGGER_FAMILIES,
+        default=None,
+        metavar="FAMILY",
+        help="fixed trigger families to compare at the learned rate, tuned to it, and mu thresholded at it "
+        f"({', '.join(TRIGGER_FAMILIES)}; default: the study's; the option alone: none)",
     )
     parser.add_argument("--video", type=Path, default=None, help="record one episode of the learned mode (MP4)")
     parser.add_argument("--out", type=Path, default=None, help="write the evaluation as JSON")
@@ -350,8 +375,16 @@ def _evaluate() -> None:
                 flush=True,
             )
 
+        families = saved.fixed_families if args.fixed_families is None else args.fixed_families
         result = evaluate_policy_modes(
-            saved.policy, env, episodes, seed, saved.trigger, sample_options=args.sample_options, on_mode=done
+            saved.policy,
+            env,
+            episodes,
+            seed,
+            saved.trigger,
+            sample_options=args.sample_options,
+            on_mode=done,
+            fixed_families=families,
         )
     finally:
         env.close()

@@ -9,6 +9,9 @@
 * :func:`evaluate_policy_modes` is the package's evaluation protocol, the one the studies
   (:mod:`sb3_detc.study`), ``python -m sb3_detc.compare`` and ``python -m sb3_detc.evaluate``
   run: the same seeded episodes in every mode of :data:`MODES`.
+* :class:`ThresholdedOptions` makes a learned policy over options deterministic at a chosen
+  rate; the protocol compares it with the fixed families at the learned rate as the mode
+  ``thresholded`` (:func:`evaluate_thresholded`).
 
 **Dependence of the trigger on the state.** A trigger that broadcasts with the same
 probability in every state is a random skip; one whose probability of broadcasting follows the
@@ -43,6 +46,7 @@ from sb3_detc.triggers import (
     TRIGGER_FAMILIES,
     FixedControl,
     RandomTrigger,
+    SavingsNotReached,
     lqr_on_predicted_states,
     tune_trigger,
 )
@@ -57,6 +61,7 @@ __all__ = [
     "EpisodeCounter",
     "EpisodeRecord",
     "Episodes",
+    "ThresholdedOptions",
     "binary_entropy",
     "carries_package",
     "evaluate_communication",
@@ -64,10 +69,11 @@ __all__ = [
     "evaluate_fixed_family",
     "fixed_family_env",
     "evaluate_policy_modes",
+    "evaluate_thresholded",
 ]
 
 #: The modes of the protocol (:func:`evaluate_policy_modes`), in its order.
-MODES = ("learned", "mode", "random_same_rate", "periodic", "never")
+MODES = ("learned", "mode", "random_same_rate", "periodic", "never", "thresholded")
 
 #: Seed of the first evaluation episode unless a study or a command says otherwise.
 EVAL_SEED = 10_000
@@ -624,6 +630,82 @@ def evaluate_fixed_family(
     return trigger, evaluate_episodes(policy, runs_in, seeds, fixed_trigger=trigger)
 
 
+class ThresholdedOptions:
+    """A learned policy over options made deterministic: broadcast where ``mu``'s probability reaches a threshold.
+
+    The most likely option of ``mu`` (the protocol's ``mode``) is the threshold 0.5; other
+    thresholds give the same ranking of states at other rates, so a policy over options that an
+    entropy bonus or a short training keeps soft (it broadcasts with some probability in
+    nearly every state) runs as a sharp rule at the rate it learned: :func:`evaluate_thresholded`
+    tunes the threshold to a savings target. Stateless (a function of the observations alone,
+    through the policy), so it serves as a fixed trigger wherever one is accepted.
+
+    :param policy: the policy whose ``mu`` decides
+    :param threshold: the probability of broadcasting from which an agent broadcasts, > 0 (above 1: never)
+    """
+
+    def __init__(self, policy: MlpHybridPolicy, threshold: float) -> None:
+        if isinstance(threshold, bool) or not (np.isfinite(threshold) and threshold > 0):
+            raise ValueError(f"threshold must be a finite number > 0, got {threshold!r}.")
+        self.policy = policy
+        self.threshold = float(threshold)
+
+    def __repr__(self) -> str:
+        return f"ThresholdedOptions(threshold={self.threshold:.6g})"
+
+    def __call__(self, obs: dict[str, np.ndarray]) -> np.ndarray:
+        """Options for a batch of joint observations, (B, N): 1 where ``mu``'s probability reaches the threshold.
+
+        :param obs: a batch of joint observations, arrays shaped (B, N, ...) by key
+        """
+        with th.no_grad():
+            probability = self.policy.broadcast_probabilities(obs_as_tensor(obs, self.policy.device))
+        return (probability >= self.threshold).long().cpu().numpy()
+
+    def fork(self, seed: int) -> ThresholdedOptions:
+        """A copy for a rollout worker: the trigger itself, which has no state.
+
+        :param seed: unused
+        :return: the trigger
+        """
+        return self
+
+
+def evaluate_thresholded(
+    policy: MlpHybridPolicy,
+    env: gym.Env,
+    savings: float,
+    seeds: Sequence[int],
+    tune_seeds: Sequence[int],
+    tolerance: float = 0.01,
+) -> tuple[ThresholdedOptions, Episodes]:
+    """The policy's ``mu`` thresholded at a given savings: tuned on some episodes, then run on the evaluation's.
+
+    The threshold (:class:`ThresholdedOptions`) is found as a fixed family's parameter is
+    (:func:`~sb3_detc.triggers.tune_trigger`, bisection from 0.5, ``mu``'s mode) on the
+    episodes ``tune_seeds``, with the policy's controls.
+
+    :param policy: the policy whose ``mu`` is thresholded and whose controls act
+    :param env: the evaluation env (a joint env)
+    :param savings: the savings to reach, in (0, 1)
+    :param seeds: the evaluation episodes' seeds
+    :param tune_seeds: the seeds of the episodes the threshold is tuned on
+    :param tolerance: the largest accepted distance of the tuned savings from ``savings``
+    :return: the tuned trigger and its episodes
+    :raises SavingsNotReached: if no threshold reaches savings within the tolerance
+    :raises ValueError: for savings outside (0, 1)
+    """
+
+    def savings_of(trigger: ThresholdedOptions) -> float:
+        return evaluate_episodes(policy, env, tune_seeds, fixed_trigger=trigger).savings
+
+    def make_trigger(threshold: float) -> ThresholdedOptions:
+        return ThresholdedOptions(policy, threshold)
+
+    trigger, _ = tune_trigger(make_trigger, savings_of, savings, tolerance, initial=0.5)
+    return trigger, evaluate_episodes(policy, env, seeds, fixed_trigger=trigger)
+
+
 def evaluate_policy_modes(
     policy: MlpHybridPolicy,
     env: gym.Env,
@@ -653,7 +735,11 @@ def evaluate_policy_modes(
       ``learned`` mode's savings on the first ``tune_episodes`` episodes
       (:func:`evaluate_fixed_family`); a family that reaches no savings within 0.01 of them, or
       that the env cannot run (``predictive`` needs the linear system), is left out and the
-      reason recorded.
+      reason recorded;
+    * ``thresholded`` with ``fixed_families``, for a policy that learned its options: ``mu``
+      made deterministic at the ``learned`` mode's savings (:class:`ThresholdedOptions`, its
+      threshold tuned as the families' parameters are: :func:`evaluate_thresholded`), left out
+      with its reason where no threshold reaches them within 0.01.
 
     :param policy: the trained policy
     :param env: a joint env with the trial's settings (communication cost included)
@@ -676,12 +762,15 @@ def evaluate_policy_modes(
         dependence on the state, :attr:`Episodes.option_state_information`, where its
         probabilities of broadcasting are known); and where the env reports the package
         (Multiwalker) ``package_travel``, ``fall_rate`` and ``success`` of the ``learned`` mode,
-        ``<mode>_package_travel`` of ``mode``, ``random_same_rate`` and ``periodic``, and
+        ``<mode>_package_travel`` of ``mode``, ``thresholded``, ``random_same_rate`` and ``periodic``, and
         ``mode_fall_rate``; with ``fixed_families`` also ``fixed`` (family -> its tuned trigger, or
         why it was left out), ``best_fixed`` (the family with the highest mean control return) and the
         metrics ``fixed_<family>_control_return``, ``fixed_<family>_savings``,
         ``best_fixed_control_return`` and ``learned_minus_best_fixed_control_return`` (the mean
-        paired difference of the learned and the best family's control returns)
+        paired difference of the learned and the best family's control returns); and where the
+        ``thresholded`` mode ran, ``thresholded`` (its tuned trigger, or why it was left out), the
+        metric ``thresholded_savings`` and, with a best family,
+        ``thresholded_minus_best_fixed_control_return`` (the mean paired difference)
     """
     unknown = [family for family in fixed_families if family not in TRIGGER_FAMILIES]
     if unknown:
@@ -721,6 +810,15 @@ def evaluate_policy_modes(
             continue
         fixed[family] = repr(tuned)
         run(f"fixed_{family}", result)
+    thresholded = None
+    if fixed_families and own_trigger is None:
+        try:
+            tuned, result = evaluate_thresholded(policy, env, learned.savings, seeds, seeds[: max(1, tune_episodes)])
+        except SavingsNotReached as reason:
+            thresholded = f"left out: {reason}"
+        else:
+            thresholded = repr(tuned)
+            run("thresholded", result)
     metrics: dict[str, float] = {
         "return": float(np.mean(learned.returns)),
         "control_return": float(np.mean(learned.control_returns)),
@@ -730,7 +828,7 @@ def evaluate_policy_modes(
     for mode in others:
         metrics[f"{mode}_return"] = float(np.mean(results[mode].returns))
         metrics[f"{mode}_control_return"] = float(np.mean(results[mode].control_returns))
-    for mode in ("mode", "random_same_rate"):
+    for mode in ("mode", "thresholded", "random_same_rate"):
         if mode in results:
             metrics[f"{mode}_savings"] = results[mode].savings
     difference = learned.control_returns - results["random_same_rate"].control_returns
@@ -741,7 +839,7 @@ def evaluate_policy_modes(
     if not np.isnan(learned.package_travel).any():
         metrics["package_travel"] = float(np.mean(learned.package_travel))
         metrics["fall_rate"] = float(np.mean(learned.failed))
-        for mode in ("mode", "random_same_rate", "periodic"):
+        for mode in ("mode", "thresholded", "random_same_rate", "periodic"):
             if mode in results:
                 metrics[f"{mode}_package_travel"] = float(np.mean(results[mode].package_travel))
         if "mode" in results:
@@ -757,6 +855,9 @@ def evaluate_policy_modes(
         metrics["best_fixed_control_return"] = float(np.mean(compared[best].control_returns))
         paired = learned.control_returns - compared[best].control_returns
         metrics["learned_minus_best_fixed_control_return"] = float(np.mean(paired))
+        if "thresholded" in results:
+            paired = results["thresholded"].control_returns - compared[best].control_returns
+            metrics["thresholded_minus_best_fixed_control_return"] = float(np.mean(paired))
     options = "fixed trigger" if own_trigger is not None else "sampled" if sample_options else "mode"
     evaluation = {
         "episodes": episodes,
@@ -767,4 +868,6 @@ def evaluate_policy_modes(
     }
     if fixed_families:
         evaluation.update(fixed=fixed, best_fixed=best)
+    if thresholded is not None:
+        evaluation["thresholded"] = thresholded
     return evaluation

@@ -321,8 +321,10 @@ def plot_estimates(
 def plot_front(rows: Sequence[dict], out: str | Path, title: str = "") -> Path:
     """Control return against savings: learned triggers as points with intervals, fixed families as curves.
 
-    Algorithms with the same environment settings (``settings``) share a panel, in which every
-    family's points at the algorithms' rates are joined in the order of their savings.
+    A learned trigger is a filled circle, and where the protocol ran it, the same trigger
+    thresholded at its rate an open diamond. Algorithms with the same environment settings
+    (``settings``) share a panel, in which every family's points at the algorithms' rates are
+    joined in the order of their savings.
 
     :param rows: the study's front (:func:`sb3_detc.study.report.front`)
     :param out: the PNG file
@@ -334,7 +336,8 @@ def plot_front(rows: Sequence[dict], out: str | Path, title: str = "") -> Path:
     colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
     for ax, settings in zip(axes[0], panels, strict=True):
         group = [row for row in rows if row["settings"] == settings]
-        families = list(dict.fromkeys(name for row in group for name in row["points"] if name != "learned"))
+        learned = ("learned", "thresholded")  # points of the learned trigger, sampled and made deterministic
+        families = list(dict.fromkeys(name for row in group for name in row["points"] if name not in learned))
         for k, family in enumerate(families):
             points = sorted(row["points"][family] for row in group if family in row["points"])
             x, y = [p[0] for p in points], [p[1] for p in points]
@@ -351,19 +354,26 @@ def plot_front(rows: Sequence[dict], out: str | Path, title: str = "") -> Path:
                 label=family,
             )
         for row in group:
-            savings, mean, (low, high) = row["points"]["learned"]
-            ax.errorbar(
-                [savings],
-                [mean],
-                yerr=[[mean - low], [high - mean]],
-                color=colors[0],
-                marker="o",
-                markersize=7,
-                capsize=3,
-                linestyle="none",
-            )
+            for name, marker in zip(learned, "oD", strict=True):
+                if name not in row["points"]:
+                    continue
+                savings, mean, (low, high) = row["points"][name]
+                ax.errorbar(
+                    [savings],
+                    [mean],
+                    yerr=[[mean - low], [high - mean]],
+                    color=colors[0],
+                    marker=marker,
+                    markersize=7,
+                    markerfacecolor=colors[0] if name == "learned" else "none",
+                    capsize=3,
+                    linestyle="none",
+                )
+            savings, mean, _ = row["points"]["learned"]
             ax.annotate(row["label"], (savings, mean), textcoords="offset points", xytext=(5, 5), fontsize="small")
         ax.plot([], [], "o", color=colors[0], label="learned (per algorithm)")
+        if any("thresholded" in row["points"] for row in group):
+            ax.plot([], [], "D", color=colors[0], markerfacecolor="none", label="learned, thresholded at its rate")
         ax.set_xlabel("communication savings")
         ax.set_ylabel("control return (mean over seeds, 95 % interval)")
         ax.set_title(settings if settings != "{}" else "entry settings", fontsize="small")

@@ -40,9 +40,10 @@ def test_a_shipped_policy_is_evaluated_as_its_study_did(tmp_path: Path, capsys: 
     result = json.loads(out.read_text())
     assert result["seed"] == 10_000 and result["episodes"] == 1  # the study's evaluation seed
     assert result["options"] == "sampled"  # as the study evaluated the paper's policies
-    assert list(result["modes"]) == list(MODES) and result["modes"]["learned"]["length"] == [8]
+    learned_modes = [mode for mode in MODES if mode != "thresholded"]  # the study compared no fixed families
+    assert list(result["modes"]) == learned_modes and result["modes"]["learned"]["length"] == [8]
     assert "broadcast_cost=0.25, max_cycles=8" in printed  # the study's settings, and the one given here
-    for mode in MODES:
+    for mode in learned_modes:
         assert f"  {mode}: control return" in printed  # a line as each mode finishes
         assert f"| {mode} | {result['metrics'].get(f'{mode}_return', result['metrics']['return']):.2f} |" in printed
     assert "| mode | return | control return | savings | package travel | fall rate |" in printed
@@ -54,6 +55,30 @@ def test_a_shipped_policy_is_evaluated_as_its_study_did(tmp_path: Path, capsys: 
     result = json.loads(out.read_text())
     assert result["options"] == "fixed trigger" and "mode" not in result["modes"]
     assert "the fixed trigger it trained with" in capsys.readouterr().out
+
+
+def test_a_policy_of_a_study_with_fixed_families_is_compared_with_them(tmp_path: Path, capsys) -> None:
+    """The study's families at the learned rate, and mu thresholded at it; ``--fixed-families`` chooses others."""
+    out = tmp_path / "evaluation.json"
+    policy = ROOT / "benchmarks" / "studies" / "linear_lqr_rate" / "trials" / "predicted_held_90" / "seed0"
+    policy = policy / "policy.pt"
+    evaluate.main([str(policy), "--episodes", "4", "--out", str(out)])
+    printed = capsys.readouterr().out
+    result = json.loads(out.read_text())
+    assert list(result["fixed"]) == ["periodic", "periodic_staggered", "send_on_delta_max_age", "predictive"]
+    assert result["thresholded"].startswith("ThresholdedOptions(threshold=")
+    assert "| thresholded |" in printed and f"mu thresholded at the learned rate: {result['thresholded']}" in printed
+    difference = result["metrics"]["thresholded_minus_best_fixed_control_return"]
+    best = result["best_fixed"]
+    assert f"thresholded minus the best fixed family ({best}), same episodes: {difference:.2f}" in printed
+    evaluate.main([str(policy), "--episodes", "4", "--fixed-families", "send_on_delta", "--out", str(out)])
+    assert list(json.loads(out.read_text())["fixed"]) == ["send_on_delta"]
+    evaluate.main([str(policy), "--episodes", "2", "--fixed-families", "--out", str(out)])
+    result = json.loads(out.read_text())
+    assert "fixed" not in result and "thresholded" not in result["modes"]
+    with pytest.raises(SystemExit) as stopped:  # argparse's own refusal, with the usage
+        evaluate.main(["--fixed-families", "sometimes", str(policy)])
+    assert stopped.value.code == 2 and "--fixed-families: invalid choice: 'sometimes'" in capsys.readouterr().err
 
 
 def test_a_saved_model_with_an_env_given_is_evaluated_with_the_protocol(tmp_path: Path) -> None:

@@ -8,6 +8,7 @@ import pytest
 import torch as th
 from logged import capture_logger  # tests/logged.py
 from stable_baselines3.common.env_util import make_vec_env
+from stable_baselines3.common.utils import obs_as_tensor
 
 import sb3_detc  # noqa: F401  (registers the env ids)
 from sb3_detc import evaluation
@@ -15,6 +16,7 @@ from sb3_detc.callbacks import CommMetricsCallback
 from sb3_detc.envs.linear_etc_v0 import joint_env
 from sb3_detc.evaluation import evaluate_episodes
 from sb3_detc.mappoc import MAPPOC
+from sb3_detc.mappoc.policies import MlpHybridPolicy
 from sb3_detc.triggers import (
     FixedControl,
     PeriodicTrigger,
@@ -165,7 +167,7 @@ def test_the_protocol_names_its_options_and_runs_the_mode_of_mu(sample_options: 
     )
     sharpened_mu(model.policy, 300)  # depends on the state, still undecided in some states
     result = evaluation.evaluate_policy_modes(model.policy, env, 3, 40)
-    assert list(result["modes"]) == list(evaluation.MODES)
+    assert list(result["modes"]) == [mode for mode in evaluation.MODES if mode != "thresholded"]  # no families
     assert result["options"] == ("sampled" if sample_options else "mode")
     # The mode of mu: the most likely options on the same episodes.
     mode = evaluate_episodes(model.policy, env, [40, 41, 42], sample_options=False)
@@ -251,6 +253,57 @@ def test_the_protocol_compares_fixed_families_tuned_to_the_learned_rate() -> Non
     assert metrics["best_fixed_control_return"] == max(metrics[f"fixed_{f}_control_return"] for f in families)
     paired = np.subtract(modes["learned"]["control_return"], modes[f"fixed_{best}"]["control_return"])
     assert metrics["learned_minus_best_fixed_control_return"] == pytest.approx(paired.mean())
+
+
+def _soft_policy(env: gym.Env) -> MlpHybridPolicy:
+    """A policy over options that broadcasts with a probability near 0.5 in every state, options sampled."""
+    kwargs = {"net_arch": [8], "sample_options": True, "option_age_scale": 0.1}
+    return MAPPOC("MlpHybridPolicy", env, policy_kwargs=kwargs, seed=0).policy
+
+
+def test_thresholded_options_broadcast_where_mu_reaches_the_threshold() -> None:
+    env = gym.make("sb3_detc/LinearETC-LQR-v0", n_agents=3, max_cycles=40)
+    policy = _soft_policy(env)
+    observations = [env.reset(seed=seed)[0] for seed in range(16)]
+    batch = {key: np.stack([obs[key] for obs in observations]) for key in observations[0]}
+    obs = obs_as_tensor(batch, policy.device)
+    with th.no_grad():
+        probability = policy.broadcast_probabilities(obs).numpy()
+        mode, _ = policy.sample_actions(obs, deterministic=True, sample_options=False)
+    threshold = float(np.median(probability))
+    options = evaluation.ThresholdedOptions(policy, threshold)(batch)
+    np.testing.assert_array_equal(options, probability >= threshold)
+    assert 0 < options.mean() < 1  # both options occur at the median
+    # the threshold 0.5 is the most likely option; above 1, never
+    np.testing.assert_array_equal(evaluation.ThresholdedOptions(policy, 0.5)(batch), mode.numpy())
+    assert not evaluation.ThresholdedOptions(policy, 1.5)(batch).any()
+    assert repr(evaluation.ThresholdedOptions(policy, 0.25)) == "ThresholdedOptions(threshold=0.25)"
+    for bad in (0.0, -0.1, float("nan"), True):
+        with pytest.raises(ValueError, match="threshold must be a finite number > 0"):
+            evaluation.ThresholdedOptions(policy, bad)
+
+
+def test_the_protocol_runs_mu_thresholded_at_the_learned_rate_beside_the_families() -> None:
+    env = gym.make("sb3_detc/LinearETC-LQR-v0", n_agents=3, max_cycles=40)
+    policy = _soft_policy(env)
+    result = evaluation.evaluate_policy_modes(policy, env, 6, 100, fixed_families=("send_on_delta",), tune_episodes=6)
+    metrics, modes = result["metrics"], result["modes"]
+    # tuned on the evaluation's six episodes: within 0.01 of the sampled options' savings, where the mode is not
+    assert abs(metrics["thresholded_savings"] - metrics["savings"]) <= 0.01
+    assert abs(metrics["mode_savings"] - metrics["savings"]) > 0.1
+    threshold = float(result["thresholded"].removeprefix("ThresholdedOptions(threshold=").removesuffix(")"))
+    again = evaluate_episodes(
+        policy, env, range(100, 106), fixed_trigger=evaluation.ThresholdedOptions(policy, threshold)
+    )
+    assert modes["thresholded"]["control_return"] == pytest.approx(again.control_returns.tolist(), rel=1e-6)
+    paired = np.subtract(modes["thresholded"]["control_return"], modes["fixed_send_on_delta"]["control_return"])
+    assert metrics["thresholded_minus_best_fixed_control_return"] == pytest.approx(paired.mean())
+    # without families, or with the fixed trigger the policy trained with, there is no mu to compare
+    assert "thresholded" not in evaluation.evaluate_policy_modes(policy, env, 2, 100)["modes"]
+    own = evaluation.evaluate_policy_modes(
+        policy, env, 2, 100, own_trigger=PeriodicTrigger(2), fixed_families=("send_on_delta",), tune_episodes=2
+    )
+    assert "thresholded" not in own and "thresholded" not in own["modes"]
 
 
 def test_a_family_that_cannot_reach_the_rate_or_run_in_the_env_is_left_out_with_its_reason() -> None:

@@ -6,6 +6,7 @@ import contextlib
 import json
 import lzma
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -340,7 +341,7 @@ def test_a_study_runs_every_trial_through_ray_and_evaluates_it(finished_study):
         assert machine["commit"] == code_commit() and machine["sb3_detc"] == sb3_detc.__version__
         evaluation = json.loads((folder / "evaluation.json").read_text())
         learns = trial.algorithm.label == "learned"  # only a policy that learned its options has their mode
-        modes = [mode for mode in MODES if learns or mode != "mode"]
+        modes = [mode for mode in MODES if mode != "thresholded" and (learns or mode != "mode")]  # no families
         assert set(evaluation["modes"]) == set(modes)
         for mode in modes:
             assert len(evaluation["modes"][mode]["control_return"]) == 3
@@ -354,6 +355,28 @@ def test_a_study_runs_every_trial_through_ray_and_evaluates_it(finished_study):
                 "control_return"
             ]
         )
+
+
+def test_evaluating_a_study_again_rewrites_the_evaluations_of_the_chosen_finished_trials(finished_study, tmp_path):
+    _, out, _ = finished_study
+    copy = tmp_path / "out"
+    shutil.copytree(out, copy)
+    learned = copy / "trials" / "learned" / "seed0" / "evaluation.json"
+    random = copy / "trials" / "random" / "seed0" / "evaluation.json"
+    learned.write_text('{"stale": true}\n')
+    random_stamp = random.stat().st_mtime_ns
+    result = run_command("evaluate", str(copy), "--algorithms", "learned")
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert "[study] evaluating 2 finished of 2 trials" in result.stdout
+    assert "[study] learned/seed0: control return" in result.stdout
+    # the protocol is seeded: the evaluation is the one the run wrote, step count included
+    assert learned.read_text() == (out / "trials" / "learned" / "seed0" / "evaluation.json").read_text()
+    assert random.stat().st_mtime_ns == random_stamp  # not chosen
+    refused = run_command("evaluate", str(copy), "--algorithms", "nope")
+    assert refused.returncode == 2
+    assert refused.stderr.strip().splitlines() == [
+        f"python -m sb3_detc.study: error: {copy} has no algorithm 'nope'; its algorithms: ['learned', 'random']"
+    ]
 
 
 def test_running_a_finished_study_again_trains_nothing(finished_study):
@@ -980,3 +1003,22 @@ def test_the_front_puts_each_learned_trigger_beside_the_fixed_families_at_its_ra
         "| -8.50 [-9.00, -8.00] at 0.904 | 0.50 [0.00, 1.00] |"
     )
     assert plot.plot_front(rows, tmp_path / "front.png").stat().st_size > 0
+    # mu thresholded at the learned rate: a learned point of its own, with its own difference
+    thresholded = {
+        "thresholded_savings": 0.905,
+        "thresholded_control_return": -7.0,
+        "thresholded_minus_best_fixed_control_return": 1.5,
+    }
+    summary["learned"]["mean"].update(thresholded)
+    summary["learned"]["ci95"].update({name: [value - 0.5, value + 0.5] for name, value in thresholded.items()})
+    [row] = report.front(spec, summary)
+    assert row["points"]["thresholded"] == (0.905, -7.0, (-7.5, -6.5))
+    assert row["thresholded_difference"] == (1.5, (1.0, 2.0)) and row["difference"] == (0.5, (0.0, 1.0))
+    header, _, line = report.front_markdown([row]).splitlines()
+    assert header == (
+        "| algorithm | learned | thresholded | periodic | send_on_delta_max_age | learned minus best fixed "
+        "| thresholded minus best fixed |"
+    )
+    assert line.startswith("| learned | -8.00 [-8.50, -7.50] at 0.900 | -7.00 [-7.50, -6.50] at 0.905 |")
+    assert line.endswith("| 0.50 [0.00, 1.00] | 1.50 [1.00, 2.00] |")
+    assert plot.plot_front([row], tmp_path / "front.png").stat().st_size > 0

@@ -62,8 +62,12 @@ def test_a_fresh_mu_reads_its_own_age_and_the_fixed_families_are_compared(tmp_pa
     kwargs = "dict(net_arch=[64, 64], learn_log_std=True, critic='afterstate', age_scale=0.0, broadcast_prob_init=0.2)"
     arguments += ["--set", json.dumps({"policy_kwargs": kwargs})]
     done = run_benchmark(SCRIPT, *arguments, "--fixed-families", "send_on_delta", "send_on_delta_max_age", check=True)
-    # the families' table: every compared family per seed, and the learned minus the best
-    assert "| seed | learned | send on delta | send on delta max age | learned minus best family |" in done.stdout
+    # the families' table: mu thresholded at the learned rate and every compared family per seed, and the
+    # learned (and thresholded) minus the best
+    assert (
+        "| seed | learned | thresholded | send on delta | send on delta max age | learned minus best family "
+        "| thresholded minus best family |"
+    ) in done.stdout
     (row,) = json.loads(out.read_text())
     before = MlpHybridPolicy.load(str(TRIAL / "policy.pt"), device="cpu")
     after = MlpHybridPolicy.load(str(saved / row["saved"]), device="cpu")
@@ -79,6 +83,7 @@ def test_a_fresh_mu_reads_its_own_age_and_the_fixed_families_are_compared(tmp_pa
     # thresholds reach any savings (a period only 1 - 1/k): both families are compared at the learned rate
     for family in ("send_on_delta", "send_on_delta_max_age"):
         assert abs(metrics[f"fixed_{family}_savings"] - metrics["savings"]) <= 0.05, family
+    assert abs(metrics["thresholded_savings"] - metrics["savings"]) <= 0.05
     assert metrics["best_fixed_control_return"] == max(
         metrics["fixed_send_on_delta_control_return"], metrics["fixed_send_on_delta_max_age_control_return"]
     )

@@ -2,7 +2,9 @@
 
 ``run`` trains and evaluates every (algorithm, seed) trial of a study file as a Ray Tune
 trial (Ray started on this machine, or ``--address`` of a running cluster); running it
-again skips finished trials and resumes interrupted ones. ``report`` prints the tables
+again skips finished trials and resumes interrupted ones. ``evaluate DIR`` evaluates the
+finished trials again with the current protocol (``--algorithms`` to choose some), rewriting
+their ``evaluation.json``. ``report`` prints the tables
 and writes ``curves.png``, ``estimates.png`` and ``summary.json`` to the study folder. Study files shipped
 with the package can be named without their path (``multiwalker_paper.yml``).
 """
@@ -34,10 +36,11 @@ def _study_path(name: str) -> Path:
 
 
 def _main() -> None:
-    """Run the ``run`` or ``report`` command given in ``sys.argv``.
+    """Run the ``run``, ``evaluate`` or ``report`` command given in ``sys.argv``.
 
     :raises SystemExit: with code 1 if ``run`` leaves a trial not done (failed, or unfinished after a stop)
-    :raises StudyError: if the folder given to ``report`` is not a study folder
+    :raises StudyError: if the folder given to ``evaluate`` or ``report`` is not a study folder (or, for
+        ``evaluate``, another run uses it or an algorithm is not the study's)
     """
     parser = argparse.ArgumentParser(prog="python -m sb3_detc.study", description=__doc__.splitlines()[0])
     commands = parser.add_subparsers(dest="command", required=True)
@@ -51,6 +54,11 @@ def _main() -> None:
         default=None,
         help="cores Ray hands out on this machine (default: all); more than it has runs more trials at once",
     )
+    evaluate = commands.add_parser(
+        "evaluate", help="evaluate the finished trials of a study folder again with the current protocol"
+    )
+    evaluate.add_argument("dir", type=Path, help="study folder")
+    evaluate.add_argument("--algorithms", nargs="+", default=None, help="labels of the algorithms (default: all)")
     report = commands.add_parser("report", help="tables, curves.png, estimates.png and summary.json of a study folder")
     report.add_argument("dir", type=Path, help="study folder")
     report.add_argument("--no-plot", action="store_true", help="do not draw curves.png and estimates.png")
@@ -62,6 +70,11 @@ def _main() -> None:
         if any(status != "done" for status in statuses.values()):
             raise SystemExit(1)
         print(f"[study] done: python -m sb3_detc.study report {args.dir}")
+    elif args.command == "evaluate":
+        from sb3_detc.study.runner import evaluate_study
+
+        evaluate_study(args.dir, args.algorithms)
+        print(f"[study] evaluated: python -m sb3_detc.study report {args.dir}")
     else:
         from sb3_detc.study.report import report_study
 

@@ -67,15 +67,27 @@ METRICS = (
     "never_control_return",
     "mode_control_return",
     "mode_savings",
+    "thresholded_control_return",
+    "thresholded_savings",
     "option_state_information",
     *(f"fixed_{family}_{metric}" for family in TRIGGER_FAMILIES for metric in ("control_return", "savings")),
     "best_fixed_control_return",
     "learned_minus_best_fixed_control_return",
+    "thresholded_minus_best_fixed_control_return",
     "package_travel",
     "random_same_rate_package_travel",
     "periodic_package_travel",
     "fall_rate",
     "success",
+)
+
+#: Points of the front that are learned triggers, not fixed families: ``mu`` made deterministic at the learned rate.
+LEARNED_POINTS = ("thresholded",)
+
+#: Differences of a front's row, learned and thresholded minus the best fixed family: (key, metric, table header).
+DIFFERENCES = (
+    ("difference", "learned_minus_best_fixed_control_return", "learned minus best fixed"),
+    ("thresholded_difference", "thresholded_minus_best_fixed_control_return", "thresholded minus best fixed"),
 )
 
 #: Panels of ``curves.png``: training control return (without the communication cost, so that
@@ -330,9 +342,10 @@ def front(spec: Any, summary: dict[str, Any]) -> list[dict[str, Any]]:
     :param spec: the study (:class:`~sb3_detc.study.spec.StudySpec`)
     :param summary: the study's statistics (:func:`summarise`)
     :return: one row per algorithm with finished seeds that compared families: ``label``, ``settings``
-        (its environment settings, as text), ``points`` (``"learned"`` and every family ->
-        ``(savings, control return, (low, high))``), and ``difference`` (learned minus the best family:
-        mean and interval), in the order of the study
+        (its environment settings, as text), ``points`` (``"learned"``, ``"thresholded"`` where every
+        seed ran that mode, and every family -> ``(savings, control return, (low, high))``), and
+        ``difference`` (learned minus the best family: mean and interval) and, with the
+        thresholded point, ``thresholded_difference`` (the same for it), in the order of the study
     """
     rows = []
     for algorithm in spec.algorithms:
@@ -341,38 +354,43 @@ def front(spec: Any, summary: dict[str, Any]) -> list[dict[str, Any]]:
         if "best_fixed_control_return" not in mean:
             continue
         points = {"learned": (mean["savings"], mean["control_return"], tuple(ci["control_return"]))}
+        if "thresholded_control_return" in mean:
+            name = "thresholded_control_return"
+            points["thresholded"] = (mean["thresholded_savings"], mean[name], tuple(ci[name]))
         for family in spec.fixed_families:
             name = f"fixed_{family}_control_return"
             if name in mean and f"fixed_{family}_savings" in mean:
                 points[family] = (mean[f"fixed_{family}_savings"], mean[name], tuple(ci[name]))
-        difference = "learned_minus_best_fixed_control_return"
-        rows.append(
-            {
-                "label": algorithm.label,
-                "settings": json.dumps(algorithm.entry.get("env_kwargs") or {}, sort_keys=True),
-                "points": points,
-                "difference": (mean[difference], tuple(ci[difference])),
-            }
-        )
+        row = {
+            "label": algorithm.label,
+            "settings": json.dumps(algorithm.entry.get("env_kwargs") or {}, sort_keys=True),
+            "points": points,
+        }
+        for key, difference, _ in DIFFERENCES:
+            if difference in mean:
+                row[key] = (mean[difference], tuple(ci[difference]))
+        rows.append(row)
     return rows
 
 
 def front_markdown(rows: list[dict[str, Any]]) -> str:
-    """The front as a Markdown table: control return (95 % interval) and savings, learned and every family.
+    """The front as a Markdown table: control return (95 % interval) and savings, learned triggers and every family.
 
     :param rows: :func:`front`'s rows
-    :return: the table, with the learned minus the best family's control return per algorithm
+    :return: the table, with the learned (and thresholded) minus the best family's control return per algorithm
     """
-    families = list(dict.fromkeys(name for row in rows for name in row["points"] if name != "learned"))
-    header = ["algorithm", "learned", *families, "learned minus best fixed"]
+    names = list(dict.fromkeys(name for row in rows for name in ["learned", *LEARNED_POINTS, *row["points"]]))
+    names = [name for name in names if any(name in row["points"] for row in rows)]
+    differences = [(key, header) for key, _, header in DIFFERENCES if any(key in row for row in rows)]
+    header = ["algorithm", *names, *(header for _, header in differences)]
     lines = ["| " + " | ".join(header) + " |", "|---" * len(header) + "|"]
     for row in rows:
         cells = [row["label"]]
-        for name in ["learned", *families]:
+        for name in names:
             point = row["points"].get(name)
             cells.append("-" if point is None else f"{interval_text(point[1], *point[2])} at {point[0]:.3f}")
-        mean, (low, high) = row["difference"]
-        cells.append(interval_text(mean, low, high))
+        for key, _ in differences:
+            cells.append("-" if key not in row else interval_text(row[key][0], *row[key][1]))
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
 

@@ -24,9 +24,9 @@ from typing import Any
 import yaml
 
 from sb3_detc.study.spec import CONF_FOLDER, StudyError, StudySpec, conf_copy, load_folder_study, same_study
-from sb3_detc.study.trial import exclusive, read_status, replace_atomically, run_trial, trial_folder
+from sb3_detc.study.trial import evaluate_trial, exclusive, read_status, replace_atomically, run_trial, trial_folder
 
-__all__ = ["StudyProgress", "prepare_folder", "run_study"]
+__all__ = ["StudyProgress", "evaluate_study", "prepare_folder", "run_study"]
 
 #: Seconds between two progress lines while nothing else happens.
 PROGRESS_EVERY = 60.0
@@ -413,6 +413,48 @@ def run_study(
     folder = prepare_folder(spec, directory).resolve()
     with _only_run_in(folder):
         return _run_locked(spec, folder, address, stream, cpus)
+
+
+def evaluate_study(
+    directory: str | os.PathLike, labels: list[str] | None = None, stream: Any = None
+) -> dict[str, dict[str, Any]]:
+    """Evaluate every finished trial of a study folder again with the current protocol, one after another.
+
+    For a protocol that gained a mode or a metric since the trials finished: each finished
+    trial's ``evaluation.json`` is rewritten (:func:`~sb3_detc.study.trial.evaluate_trial`,
+    the study's episodes, seed and fixed families), as soon as its evaluation is complete;
+    unfinished trials are left to ``run``. The folder is locked as ``run`` locks it.
+
+    :param directory: the study folder
+    :param labels: the algorithms whose trials to evaluate (None: all)
+    :param stream: where a line per trial goes (default: stdout)
+    :return: trial name -> its new evaluation
+    :raises StudyError: if the folder is not a study folder, another run uses it, or a label is not the study's
+    """
+    stream = sys.stdout if stream is None else stream
+    folder = Path(directory)
+    spec = load_folder_study(folder)
+    known = [algorithm.label for algorithm in spec.algorithms]
+    unknown = [label for label in labels or [] if label not in known]
+    if unknown:
+        raise StudyError(f"{folder} has no algorithm {', '.join(map(repr, unknown))}; its algorithms: {known}")
+    trials = [t for t in spec.trials() if labels is None or t.algorithm.label in labels]
+    finished = [t for t in trials if read_status(trial_folder(folder, t)).get("status") == "done"]
+    print(f"[study] evaluating {len(finished)} finished of {len(trials)} trials in {folder}", file=stream, flush=True)
+    evaluations = {}
+    with _only_run_in(folder.resolve()):
+        for trial in finished:
+            began = time.monotonic()
+            evaluation = evaluate_trial(spec, trial, folder)
+            metrics = evaluation["metrics"]
+            print(
+                f"[study] {trial.name}: control return {metrics['control_return']:.2f}, "
+                f"savings {metrics['savings']:.3f} ({_format_duration(time.monotonic() - began)})",
+                file=stream,
+                flush=True,
+            )
+            evaluations[trial.name] = evaluation
+    return evaluations
 
 
 def _only_run_in(folder: Path) -> contextlib.AbstractContextManager[Any]:

@@ -65,6 +65,7 @@ __all__ = [
     "code_commit",
     "entry_fixed_trigger",
     "evaluate_policy_modes",
+    "evaluate_trial",
     "exclusive",
     "machine_record",
     "merged_progress",
@@ -444,6 +445,39 @@ def drop_stale_segments(folder: Path, start: int) -> None:
                 shutil.rmtree(stale)
 
 
+def evaluate_trial(spec: StudySpec, trial: Trial, directory: str | os.PathLike) -> dict[str, Any]:
+    """Run the evaluation protocol on a trial's final policy and write its ``evaluation.json``.
+
+    The study's episodes, seed and fixed families, the trial's env settings and fixed trigger
+    (:func:`evaluate_policy_modes`); ``timesteps`` is the trial's step count. The file is
+    replaced at once when the evaluation is complete, so an interrupted evaluation leaves the
+    previous one.
+
+    :param spec: the study
+    :param trial: the trial, whose folder holds ``policy.pt``
+    :param directory: the study folder
+    :return: the evaluation
+    :raises FileNotFoundError: if the trial has no final policy
+    """
+    folder = trial_folder(directory, trial)
+    policy = MlpHybridPolicy.load(str(folder / "policy.pt"), device="cpu")
+    env = gym.make(spec.env, **(trial.algorithm.entry.get("env_kwargs") or {}))
+    try:
+        evaluation = evaluate_policy_modes(
+            policy,
+            env,
+            spec.episodes,
+            spec.eval_seed,
+            entry_fixed_trigger(trial.algorithm.entry),
+            fixed_families=spec.fixed_families,
+        )
+    finally:
+        env.close()
+    evaluation["timesteps"] = read_status(folder).get("timesteps", spec.budget(trial.algorithm))
+    _write_json(folder / "evaluation.json", evaluation, compact=True)
+    return evaluation
+
+
 def run_trial(
     spec: StudySpec,
     trial: Trial,
@@ -473,22 +507,7 @@ def run_trial(
     try:
         if not (folder / "policy.pt").is_file():
             _train(spec, trial, folder, on_progress)
-        policy = MlpHybridPolicy.load(str(folder / "policy.pt"), device="cpu")
-        env_kwargs = trial.algorithm.entry.get("env_kwargs") or {}
-        env = gym.make(spec.env, **env_kwargs)
-        try:
-            evaluation = evaluate_policy_modes(
-                policy,
-                env,
-                spec.episodes,
-                spec.eval_seed,
-                entry_fixed_trigger(trial.algorithm.entry),
-                fixed_families=spec.fixed_families,
-            )
-        finally:
-            env.close()
-        evaluation["timesteps"] = read_status(folder).get("timesteps", budget)
-        _write_json(folder / "evaluation.json", evaluation, compact=True)
+        evaluate_trial(spec, trial, directory)
         for leftover in ("checkpoint.zip", "checkpoint.json", "error.txt"):
             (folder / leftover).unlink(missing_ok=True)
         shutil.rmtree(folder / "segments", ignore_errors=True)
