@@ -18,7 +18,7 @@ from sb3_detc.cli import InputError, check_hyperparams_file
 from sb3_detc.mappoc import MAPPOC
 from sb3_detc.mappoc.critics import CRITICS
 from sb3_detc.mappoc.workers import RolloutWorker
-from sb3_detc.triggers import PeriodicTrigger
+from sb3_detc.triggers import PeriodicTrigger, SendOnDelta
 
 LQR = "sb3_detc/LinearETC-LQR-v0"
 
@@ -196,6 +196,65 @@ def test_mu_reads_its_own_age_only_where_asked(option_age_scale: float) -> None:
         th.testing.assert_close(older_features[..., -1] - features[..., -1], th.full(features.shape[:2], 7 * 0.25))
     else:
         assert th.equal(features, older_features)
+
+
+@pytest.mark.parametrize("option_age_scale", [0.0, 0.25])
+def test_mu_reads_the_distance_from_its_last_broadcast_only_where_asked(option_age_scale: float, tmp_path) -> None:
+    kwargs = {"net_arch": [8], "option_age_scale": option_age_scale, "option_distance_scale": 2.0}
+    policy = make(policy_kwargs=kwargs).policy
+    obs = {key: th.as_tensor(value) for key, value in policy.observation_space.sample().items()}
+    obs = {key: value[None] for key, value in obs.items()}  # a batch of one
+    features = policy.option_features(obs)
+    n_trig = obs["trigger"].shape[-1]
+    assert features.shape[-1] == 2 * n_trig + (option_age_scale > 0) + 1
+    assert policy.chains.specs["mu"].in_features == features.shape[-1]
+    distance = th.linalg.vector_norm(obs["trigger"] - obs["trigger_held"], dim=-1)
+    th.testing.assert_close(features[..., -1], 2.0 * distance)
+    th.testing.assert_close(th.as_tensor(SendOnDelta(0.0).distance(obs)), distance.double())  # send-on-delta's
+    if option_age_scale > 0:
+        th.testing.assert_close(features[..., -2], obs["age"][..., 0] * option_age_scale)
+    assert make(policy_kwargs={"net_arch": [8]}).policy.option_features(obs).shape[-1] == 2 * n_trig
+    policy.save(str(tmp_path / "policy.pt"))
+    loaded = type(policy).load(str(tmp_path / "policy.pt"), device="cpu")
+    assert loaded.option_distance_scale == 2.0
+    th.testing.assert_close(loaded.broadcast_probabilities(obs), policy.broadcast_probabilities(obs))
+    with pytest.raises(ValueError, match="option_distance_scale must be a finite number >= 0"):
+        make(policy_kwargs={"option_distance_scale": -1.0})
+
+
+def test_mu_with_the_distance_and_its_own_age_can_represent_send_on_delta_with_a_maximum_age() -> None:
+    """A policy over options on the distance and the own age, set by hand, is send-on-delta with a maximum age."""
+    model = make(policy_kwargs={"net_arch": [8], "option_age_scale": 1.0, "option_distance_scale": 1.0})
+    n_trig = model.observation_space["trigger"].shape[1]
+    delta, max_age, sharp = 0.3, 5, 1e4
+    hidden, out = th.nn.Linear(2 * n_trig + 2, 2), th.nn.Linear(2, 2)
+    with th.no_grad():
+        for layer in (hidden, out):
+            layer.weight.zero_()
+            layer.bias.zero_()
+        hidden.weight[0, -1], hidden.bias[0] = sharp, -sharp * delta  # +1 once the distance passes delta
+        hidden.weight[1, -2], hidden.bias[1] = sharp, -sharp * (max_age - 1.5)  # +1 from the age max_age - 1
+        out.weight[1] = 1.0
+        out.bias[1] = 1.0  # broadcast logit: +1 if either is +1, -1 if neither (silent: 0)
+    controllers = [model.policy.agent_controller(i) for i in range(model.policy.n_agents)]
+    for controller in controllers:
+        controller.option_net = th.nn.Sequential(hidden, th.nn.Tanh(), out)
+    trigger = SendOnDelta(delta, max_age=max_age)
+    env = model.get_env()
+    obs = env.reset()
+    by_distance = by_age = 0
+    for _ in range(40):
+        expected = trigger(obs)
+        for e in range(expected.shape[0]):
+            for i, controller in enumerate(controllers):
+                decided = controller.decide(obs["trigger"][e, i], obs["trigger_held"][e, i], True, obs["age"][e, i, 0])
+                assert decided == expected[e, i]
+        moved = trigger.distance(obs) > delta
+        by_distance += int(moved.sum())
+        by_age += int((expected.astype(bool) & ~moved).sum())
+        controls = np.zeros((len(controllers), 1), np.float32)
+        obs, *_ = env.step([{"broadcast": options, "control": controls} for options in expected])
+    assert by_distance > 0 and by_age > 0  # both reasons to broadcast occurred
 
 
 def test_mu_with_its_own_age_can_represent_a_periodic_schedule() -> None:

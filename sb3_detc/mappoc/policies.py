@@ -48,6 +48,31 @@ NETS = ("mu", "q", "pi")
 OUTPUT_GAINS = {"mu": 0.01, "q": 1.0, "pi": 0.01}
 
 
+def option_inputs(
+    trigger: th.Tensor, trigger_held: th.Tensor, own_age: th.Tensor, age_scale: float, distance_scale: float
+) -> th.Tensor:
+    """Inputs of a policy over options ``mu_i``, for the joint policy and the decentralised controllers alike.
+
+    The trigger features now and at the own last broadcast; with ``age_scale`` > 0 the own age
+    (steps since the own last broadcast) times it; with ``distance_scale`` > 0 the Euclidean
+    distance between both feature vectors (what send-on-delta thresholds,
+    :meth:`~sb3_detc.triggers.SendOnDelta.distance`) times it.
+
+    :param trigger: trigger features now (..., n_trig)
+    :param trigger_held: trigger features at the own last broadcast (..., n_trig)
+    :param own_age: the own age (..., 1)
+    :param age_scale: factor of the own age (0: not an input)
+    :param distance_scale: factor of the distance (0: not an input)
+    :return: (..., 2 n_trig), then the scaled age and distance where they are inputs
+    """
+    parts = [trigger, trigger_held]
+    if age_scale > 0:
+        parts.append(own_age * age_scale)
+    if distance_scale > 0:
+        parts.append(th.linalg.vector_norm(trigger - trigger_held, dim=-1, keepdim=True) * distance_scale)
+    return th.cat(parts, dim=-1)
+
+
 def broadcast_probability(logits: th.Tensor) -> th.Tensor:
     """Probability of broadcasting under ``mu`` from its logits (..., 2): ``sigmoid(logit_1 - logit_0)``.
 
@@ -133,6 +158,12 @@ class MlpHybridPolicy(BasePolicy):
         before it enters its policy over options as an extra input (>= 0; 0, the default: no such
         input, as in the paper). With it, ``mu`` can represent every periodic schedule in phase
         and every send-on-delta rule with a maximum age, not only send-on-delta
+    :param option_distance_scale: factor applied to the Euclidean distance between the agent's
+        trigger features now and at its own last broadcast before it enters its policy over
+        options as an extra input (>= 0; 0, the default: no such input). With it, a send-on-delta
+        rule is a threshold on one input; where the held features are the receivers' predictions
+        (``LinearETC-LQR-v0(prediction=True, predicted_held=True)``) the distance is the prediction
+        error, and predictive triggering is such a threshold
     :param broadcast_prob_init: probability of broadcasting of the untrained policies over
         options (through the bias of their output layer; 0.5: undecided). A low value lets
         training start where every broadcast carries information that would otherwise stay
@@ -177,6 +208,7 @@ class MlpHybridPolicy(BasePolicy):
         share_parameters: bool = False,
         age_scale: float = 0.1,
         option_age_scale: float = 0.0,
+        option_distance_scale: float = 0.0,
         broadcast_prob_init: float = 0.5,
         critic: str = "option_heads",
         ortho_init: bool = True,
@@ -196,6 +228,11 @@ class MlpHybridPolicy(BasePolicy):
         if not (np.isfinite(option_age_scale) and option_age_scale >= 0):
             raise ValueError(
                 f"option_age_scale must be a finite number >= 0 (0: mu ignores its own age), got {option_age_scale}."
+            )
+        if not (np.isfinite(option_distance_scale) and option_distance_scale >= 0):
+            raise ValueError(
+                "option_distance_scale must be a finite number >= 0 (0: mu does not read the distance), "
+                f"got {option_distance_scale}."
             )
         if critic not in CRITICS:
             raise ValueError(f"critic must be one of {tuple(CRITICS)}, got {critic!r}.")
@@ -222,6 +259,7 @@ class MlpHybridPolicy(BasePolicy):
         self.share_parameters = share_parameters
         self.age_scale = age_scale
         self.option_age_scale = float(option_age_scale)
+        self.option_distance_scale = float(option_distance_scale)
         self.broadcast_prob_init = broadcast_prob_init
         self.critic = critic
         self.option_critic: OptionCritic = CRITICS[critic]()
@@ -238,7 +276,7 @@ class MlpHybridPolicy(BasePolicy):
         self.register_buffer("control_low", th.as_tensor(action_space["control"].low), persistent=False)
         self.register_buffer("control_high", th.as_tensor(action_space["control"].high), persistent=False)
         in_features = {
-            "mu": 2 * n_trig + (self.option_age_scale > 0),
+            "mu": 2 * n_trig + (self.option_age_scale > 0) + (self.option_distance_scale > 0),
             "q": n_local + n * (n_msg + 1) + (n - 1) * n_msg,
             "pi": n_local + (n - 1) * (n_msg + 1),
         }
@@ -312,6 +350,7 @@ class MlpHybridPolicy(BasePolicy):
             share_parameters=self.share_parameters,
             age_scale=self.age_scale,
             option_age_scale=self.option_age_scale,
+            option_distance_scale=self.option_distance_scale,
             broadcast_prob_init=self.broadcast_prob_init,
             critic=self.critic,
             ortho_init=self.ortho_init,
@@ -349,15 +388,16 @@ class MlpHybridPolicy(BasePolicy):
         return hold(obs["held"], obs["message"], broadcast), advance_timer(obs["age"], broadcast)
 
     def option_features(self, obs: PyTorchObs) -> th.Tensor:
-        """Inputs of ``mu_i``: trigger features now and at the own last broadcast, and the own age if it reads it.
+        """Inputs of ``mu_i``: trigger features now and at the own last broadcast, own age and distance where read.
 
         :param obs: joint observation (B, N, ...); reads ``trigger`` and ``trigger_held`` (and ``age``
             with ``option_age_scale``)
-        :return: (B, N, 2 n_trig), or (B, N, 2 n_trig + 1) with the own age times ``option_age_scale`` last
+        :return: (B, N, 2 n_trig), then the own age times ``option_age_scale`` and the distance times
+            ``option_distance_scale`` where they are inputs (:func:`option_inputs`)
         """
-        if self.option_age_scale > 0:
-            return th.cat([obs["trigger"], obs["trigger_held"], obs["age"] * self.option_age_scale], dim=-1)
-        return th.cat([obs["trigger"], obs["trigger_held"]], dim=-1)
+        return option_inputs(
+            obs["trigger"], obs["trigger_held"], obs["age"], self.option_age_scale, self.option_distance_scale
+        )
 
     def control_features(self, obs: PyTorchObs, broadcast: th.Tensor) -> th.Tensor:
         """Inputs of ``pi_i``: networked observation ``x^_i`` after this step's broadcasts.
@@ -738,6 +778,7 @@ class MlpHybridPolicy(BasePolicy):
             n_agents=self.n_agents,
             age_scale=self.age_scale,
             option_age_scale=self.option_age_scale,
+            option_distance_scale=self.option_distance_scale,
             agent_id=self.agent_id[agent].clone() if self.share_parameters else None,
             control_low=self.control_low[agent].clone(),
             control_high=self.control_high[agent].clone(),
@@ -753,14 +794,15 @@ class AgentController(nn.Module):
     :meth:`act` on the own local state and the others' held broadcasts relative to the own
     message, with their ages. The controller keeps no state.
 
-    :param option_net: the agent's ``mu`` network (trigger features, and the own age with
-        ``option_age_scale`` -> 2 logits)
+    :param option_net: the agent's ``mu`` network (:func:`option_inputs` -> 2 logits)
     :param control_net: the agent's ``pi`` mean network
     :param log_std: log standard deviation of the control policy (m,)
     :param agent: index of the agent
     :param n_agents: number of agents N
     :param age_scale: factor applied to ages before they enter the network
     :param option_age_scale: factor applied to the own age before it enters ``mu`` (0: ``mu`` does not read it)
+    :param option_distance_scale: factor applied to the distance of the trigger features from those at
+        the own last broadcast before it enters ``mu`` (0: ``mu`` does not read it)
     :param agent_id: one-hot id input for shared-parameter policies, else None
     :param control_low: lower control bounds (m,)
     :param control_high: upper control bounds (m,)
@@ -782,10 +824,12 @@ class AgentController(nn.Module):
         control_high: th.Tensor,
         sample_options: bool = False,
         option_age_scale: float = 0.0,
+        option_distance_scale: float = 0.0,
     ) -> None:
         super().__init__()
         self.sample_options = sample_options
         self.option_age_scale = option_age_scale
+        self.option_distance_scale = option_distance_scale
         self.option_net = option_net
         self.control_net = control_net
         self.agent = agent
@@ -817,10 +861,13 @@ class AgentController(nn.Module):
             ``option_age_scale``)
         :return: True to broadcast, False to stay silent
         """
-        features = [trigger, trigger_held]
-        if self.option_age_scale > 0:
-            features.append([own_age * self.option_age_scale])
-        x = th.as_tensor(np.concatenate(features), dtype=th.float32)
+        x = option_inputs(
+            th.as_tensor(trigger, dtype=th.float32),
+            th.as_tensor(trigger_held, dtype=th.float32),
+            th.tensor([own_age], dtype=th.float32),
+            self.option_age_scale,
+            self.option_distance_scale,
+        )
         logits = self.option_net(self._with_id(x))
         if deterministic:
             return bool(logits.argmax() == 1)
