@@ -34,6 +34,7 @@ from sb3_detc.study.trial import (
     PROGRESS_DIGITS,
     code_commit,
     drop_stale_segments,
+    entry_fixed_trigger,
     read_status,
     replace_atomically,
     trial_folder,
@@ -215,9 +216,13 @@ def test_the_shipped_study_files_load():
     joint = load_study(ROOT / "sb3_detc" / "studies" / "multiwalker_rate.yml")
     assert joint.fixed_families == ("periodic", "periodic_staggered", "send_on_delta_max_age")
     assert joint.episodes >= 50
-    (learned,) = joint.algorithms
+    learned, periodic = joint.algorithms
     assert learned.hyperparams["target_savings"] == 0.9375 and learned.cpus == 2
     assert joint.budget(learned) == 6_144_000 and len(learned.seeds) == 5  # the paper's budget
+    # the schedule at the same savings, its controller trained for it with the same settings otherwise
+    assert repr(entry_fixed_trigger(periodic.entry)) == "PeriodicTrigger(period=16, staggered=False)"
+    assert "target_savings" not in periodic.hyperparams and joint.budget(periodic) == 6_144_000
+    assert periodic.hyperparams["policy_kwargs"] == learned.hyperparams["policy_kwargs"]
 
 
 def test_command_line_bad_input_is_one_line_with_exit_code_2(tmp_path):
