@@ -26,7 +26,8 @@ policy is the trial's, unchanged, so the value of information sweep of the same 
 
 With ``--fixed-families`` the evaluation also compares fixed trigger families tuned to the learned
 rate on the same episodes (:func:`~sb3_detc.evaluation.evaluate_policy_modes`), the learned options
-sampled from ``mu``; a rate target comes with ``--set '{"target_savings": 0.875}'``. With
+sampled from ``mu``, and ``mu`` made deterministic at the learned rate (the protocol's ``thresholded``,
+a column of the families' table); a rate target comes with ``--set '{"target_savings": 0.875}'``. With
 ``--option-age-scale`` the policy over options starts afresh and reads the age of its own last
 broadcast (every periodic schedule in phase then lies within what it can represent); the trial's
 controls and critic are kept.

@@ -5,7 +5,8 @@ policy (``policy.pt``, as every study trial keeps it). The command runs the same
 episodes in every mode of the protocol (:func:`~sb3_detc.evaluation.evaluate_policy_modes`:
 learned, the most likely options, random skips at the learned rate, periodic, never; with
 ``--fixed-families``, or the families of the study a policy comes from, each family tuned to
-the learned rate and ``mu`` thresholded at it), prints a line as each mode finishes and then
+the learned rate and, for a policy that learned its options (not one with a fixed trigger or
+``--skip-prob``), ``mu`` thresholded at it), prints a line as each mode finishes and then
 the modes' table: return, control return (without the communication cost), savings, and
 package travel and fall rate where the env reports them.
 

@@ -46,7 +46,6 @@ from sb3_detc.triggers import (
     TRIGGER_FAMILIES,
     FixedControl,
     RandomTrigger,
-    SavingsNotReached,
     lqr_on_predicted_states,
     tune_trigger,
 )
@@ -622,16 +621,41 @@ def evaluate_fixed_family(
     :raises ValueError: for ``"predictive"`` on an env without a linear system, or savings outside (0, 1)
     """
     runs_in = fixed_family_env(env, family)
+    return _tuned_and_run(policy, runs_in, family, savings, seeds, tune_seeds, tolerance, system_or_env=env.unwrapped)
+
+
+def _tuned_and_run(
+    policy: MlpHybridPolicy,
+    env: gym.Env,
+    family: str | Callable[[float], FixedTrigger],
+    savings: float,
+    seeds: Sequence[int],
+    tune_seeds: Sequence[int],
+    tolerance: float,
+    **tune_kwargs: Any,
+) -> tuple[FixedTrigger, Episodes]:
+    """A trigger of a family tuned to a savings on some episodes (:func:`~sb3_detc.triggers.tune_trigger`), then run.
+
+    :param policy: the policy whose controls act
+    :param env: the env the trigger runs in
+    :param family: a name from :data:`~sb3_detc.triggers.TRIGGER_FAMILIES` or a callable from a threshold to a trigger
+    :param savings: the savings to reach, in (0, 1)
+    :param seeds: the evaluation episodes' seeds
+    :param tune_seeds: the seeds of the episodes the parameter is tuned on
+    :param tolerance: the largest accepted distance of the tuned savings from ``savings``
+    :param tune_kwargs: further arguments of :func:`~sb3_detc.triggers.tune_trigger`
+    :return: the tuned trigger and its episodes
+    """
 
     def savings_of(trigger: FixedTrigger) -> float:
-        return evaluate_episodes(policy, runs_in, tune_seeds, fixed_trigger=trigger).savings
+        return evaluate_episodes(policy, env, tune_seeds, fixed_trigger=trigger).savings
 
-    trigger, _ = tune_trigger(family, savings_of, savings, tolerance, system_or_env=env.unwrapped)
-    return trigger, evaluate_episodes(policy, runs_in, seeds, fixed_trigger=trigger)
+    trigger, _ = tune_trigger(family, savings_of, savings, tolerance, **tune_kwargs)
+    return trigger, evaluate_episodes(policy, env, seeds, fixed_trigger=trigger)
 
 
 class ThresholdedOptions:
-    """A learned policy over options made deterministic: broadcast where ``mu``'s probability reaches a threshold.
+    """A learned policy over options made deterministic: broadcast where ``mu``'s probability exceeds a threshold.
 
     The most likely option of ``mu`` (the protocol's ``mode``) is the threshold 0.5; other
     thresholds give the same ranking of states at other rates, so a policy over options that an
@@ -641,7 +665,7 @@ class ThresholdedOptions:
     through the policy), so it serves as a fixed trigger wherever one is accepted.
 
     :param policy: the policy whose ``mu`` decides
-    :param threshold: the probability of broadcasting from which an agent broadcasts, > 0 (above 1: never)
+    :param threshold: the probability of broadcasting above which an agent broadcasts, > 0 (1 and above: never)
     """
 
     def __init__(self, policy: MlpHybridPolicy, threshold: float) -> None:
@@ -654,13 +678,13 @@ class ThresholdedOptions:
         return f"ThresholdedOptions(threshold={self.threshold:.6g})"
 
     def __call__(self, obs: dict[str, np.ndarray]) -> np.ndarray:
-        """Options for a batch of joint observations, (B, N): 1 where ``mu``'s probability reaches the threshold.
+        """Options for a batch of joint observations, (B, N): 1 where ``mu``'s probability exceeds the threshold.
 
         :param obs: a batch of joint observations, arrays shaped (B, N, ...) by key
         """
         with th.no_grad():
             probability = self.policy.broadcast_probabilities(obs_as_tensor(obs, self.policy.device))
-        return (probability >= self.threshold).long().cpu().numpy()
+        return (probability > self.threshold).long().cpu().numpy()
 
     def fork(self, seed: int) -> ThresholdedOptions:
         """A copy for a rollout worker: the trigger itself, which has no state.
@@ -696,14 +720,10 @@ def evaluate_thresholded(
     :raises ValueError: for savings outside (0, 1)
     """
 
-    def savings_of(trigger: ThresholdedOptions) -> float:
-        return evaluate_episodes(policy, env, tune_seeds, fixed_trigger=trigger).savings
-
     def make_trigger(threshold: float) -> ThresholdedOptions:
         return ThresholdedOptions(policy, threshold)
 
-    trigger, _ = tune_trigger(make_trigger, savings_of, savings, tolerance, initial=0.5)
-    return trigger, evaluate_episodes(policy, env, seeds, fixed_trigger=trigger)
+    return _tuned_and_run(policy, env, make_trigger, savings, seeds, tune_seeds, tolerance, initial=0.5)
 
 
 def evaluate_policy_modes(
@@ -738,8 +758,9 @@ def evaluate_policy_modes(
       reason recorded;
     * ``thresholded`` with ``fixed_families``, for a policy that learned its options: ``mu``
       made deterministic at the ``learned`` mode's savings (:class:`ThresholdedOptions`, its
-      threshold tuned as the families' parameters are: :func:`evaluate_thresholded`), left out
-      with its reason where no threshold reaches them within 0.01.
+      threshold tuned as the families' parameters are: :func:`evaluate_thresholded`; it runs only
+      when families are compared), left out with its reason where no threshold reaches them within
+      0.01 (or the learned savings are 0 or 1).
 
     :param policy: the trained policy
     :param env: a joint env with the trial's settings (communication cost included)
@@ -751,12 +772,13 @@ def evaluate_policy_modes(
     :param on_mode: called with every mode's name and episodes when they are done (e.g. to show progress)
     :param fixed_families: the fixed trigger families to compare at the learned rate, names from
         :data:`~sb3_detc.triggers.TRIGGER_FAMILIES` (default: none)
-    :param tune_episodes: episodes the families' parameters are tuned on (the first of the evaluation's)
+    :param tune_episodes: episodes the families' parameters and the ``thresholded`` mode's threshold are tuned
+        on (the first of the evaluation's)
     :return: ``episodes``, ``seed``, ``options`` (how the ``learned`` mode took its options:
         ``"sampled"``, ``"mode"`` or ``"fixed trigger"``), ``modes`` (mode -> per-episode lists
         and savings) and ``metrics``: ``return``, ``control_return`` and ``savings`` of the
         ``learned`` mode; ``<mode>_return`` and ``<mode>_control_return`` of every other mode and
-        ``<mode>_savings`` of ``mode`` and ``random_same_rate``;
+        ``<mode>_savings`` of ``mode``, ``thresholded`` and ``random_same_rate``;
         ``learned_minus_random_control_return`` (the mean paired difference of the learned and
         the random control returns); ``option_state_information`` (the ``learned`` mode's
         dependence on the state, :attr:`Episodes.option_state_information`, where its
@@ -800,11 +822,10 @@ def evaluate_policy_modes(
         trigger = RandomTrigger(float(np.clip(skip, 0.0, 1.0)), seed=seed)
         run(mode, evaluate_episodes(policy, env, seeds, deterministic=True, fixed_trigger=trigger))
     fixed: dict[str, str] = {}
+    tune_seeds = seeds[: max(1, tune_episodes)]
     for family in fixed_families:
         try:
-            tuned, result = evaluate_fixed_family(
-                policy, env, family, learned.savings, seeds, seeds[: max(1, tune_episodes)]
-            )
+            tuned, result = evaluate_fixed_family(policy, env, family, learned.savings, seeds, tune_seeds)
         except ValueError as reason:  # SavingsNotReached among them
             fixed[family] = f"left out: {reason}"
             continue
@@ -813,8 +834,8 @@ def evaluate_policy_modes(
     thresholded = None
     if fixed_families and own_trigger is None:
         try:
-            tuned, result = evaluate_thresholded(policy, env, learned.savings, seeds, seeds[: max(1, tune_episodes)])
-        except SavingsNotReached as reason:
+            tuned, result = evaluate_thresholded(policy, env, learned.savings, seeds, tune_seeds)
+        except ValueError as reason:  # SavingsNotReached, or learned savings of 0 or 1: no rate to tune to
             thresholded = f"left out: {reason}"
         else:
             thresholded = repr(tuned)

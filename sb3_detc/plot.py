@@ -34,6 +34,7 @@ from sb3_detc.cli import InputError, run_cli  # noqa: E402
 from sb3_detc.renamed import renamed_column  # noqa: E402
 
 __all__ = [
+    "LEARNED_POINTS",
     "curriculum_phases",
     "curve_label",
     "estimates_figure",
@@ -318,6 +319,11 @@ def plot_estimates(
     return _save(estimates_figure(estimates, panels, title), out)
 
 
+#: Points of a front that are learned triggers, not fixed families: sampled as learned, and made deterministic at
+#: the learned rate (the protocol's mode ``thresholded``).
+LEARNED_POINTS = ("learned", "thresholded")
+
+
 def plot_front(rows: Sequence[dict], out: str | Path, title: str = "") -> Path:
     """Control return against savings: learned triggers as points with intervals, fixed families as curves.
 
@@ -336,8 +342,7 @@ def plot_front(rows: Sequence[dict], out: str | Path, title: str = "") -> Path:
     colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
     for ax, settings in zip(axes[0], panels, strict=True):
         group = [row for row in rows if row["settings"] == settings]
-        learned = ("learned", "thresholded")  # points of the learned trigger, sampled and made deterministic
-        families = list(dict.fromkeys(name for row in group for name in row["points"] if name not in learned))
+        families = list(dict.fromkeys(name for row in group for name in row["points"] if name not in LEARNED_POINTS))
         for k, family in enumerate(families):
             points = sorted(row["points"][family] for row in group if family in row["points"])
             x, y = [p[0] for p in points], [p[1] for p in points]
@@ -354,7 +359,7 @@ def plot_front(rows: Sequence[dict], out: str | Path, title: str = "") -> Path:
                 label=family,
             )
         for row in group:
-            for name, marker in zip(learned, "oD", strict=True):
+            for name, marker in zip(LEARNED_POINTS, "oD", strict=True):
                 if name not in row["points"]:
                     continue
                 savings, mean, (low, high) = row["points"][name]

@@ -306,6 +306,17 @@ def test_the_protocol_runs_mu_thresholded_at_the_learned_rate_beside_the_familie
     assert "thresholded" not in own and "thresholded" not in own["modes"]
 
 
+def test_mu_thresholded_is_left_out_with_its_reason_where_there_is_no_rate_to_tune_to() -> None:
+    """A policy over options that never broadcasts saves everything: no threshold to tune, the rest goes on."""
+    env = gym.make("sb3_detc/LinearETC-LQR-v0", n_agents=3, max_cycles=20)
+    kwargs = {"net_arch": [8], "broadcast_prob_init": 1e-4}
+    policy = MAPPOC("MlpHybridPolicy", env, policy_kwargs=kwargs, seed=0).policy
+    result = evaluation.evaluate_policy_modes(policy, env, 2, 100, fixed_families=("send_on_delta",), tune_episodes=2)
+    assert result["metrics"]["savings"] == 1.0
+    assert result["thresholded"].startswith("left out: target_savings must be in (0, 1)")
+    assert "thresholded" not in result["modes"] and not any(k.startswith("thresholded") for k in result["metrics"])
+
+
 def test_a_family_that_cannot_reach_the_rate_or_run_in_the_env_is_left_out_with_its_reason() -> None:
     env = gym.make(ENV_ID, **SETTINGS)
     policy = MAPPOC("MlpHybridPolicy", env, policy_kwargs={"net_arch": [8]}, seed=0).policy

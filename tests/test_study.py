@@ -287,7 +287,7 @@ def test_a_folder_another_run_uses_is_refused(tmp_path, capsys):
         fcntl.flock(held, fcntl.LOCK_EX | fcntl.LOCK_NB)  # as a running study holds it
         with pytest.raises(SystemExit) as stop:
             study_main(["run", str(study), "--dir", str(folder)])
-    assert stop.value.code == 2 and "another run of a study is using" in capsys.readouterr().err
+    assert stop.value.code == 2 and "another run or evaluation of a study uses" in capsys.readouterr().err
     assert not any((folder / "trials").glob("*/*/status.json"))
 
 
@@ -380,6 +380,13 @@ def test_evaluating_a_study_again_rewrites_the_evaluations_of_the_chosen_finishe
     # the protocol is seeded: the evaluation is the one the run wrote, step count included
     assert learned.read_text() == (out / "trials" / "learned" / "seed0" / "evaluation.json").read_text()
     assert random.stat().st_mtime_ns == random_stamp  # not chosen
+    # a trial whose evaluation fails is reported with its traceback; the others go on, the exit code says so
+    (copy / "trials" / "learned" / "seed1" / "policy.pt").unlink()
+    failed = run_command("evaluate", str(copy))
+    assert failed.returncode == 1
+    assert "[study] learned/seed1: evaluation failed" in failed.stdout and "FileNotFoundError" in failed.stderr
+    assert "[study] random/seed1: control return" in failed.stdout
+    assert "[study] 1 evaluation(s) failed: learned/seed1" in failed.stdout
     refused = run_command("evaluate", str(copy), "--algorithms", "nope")
     assert refused.returncode == 2
     assert refused.stderr.strip().splitlines() == [

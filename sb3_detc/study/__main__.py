@@ -38,7 +38,8 @@ def _study_path(name: str) -> Path:
 def _main() -> None:
     """Run the ``run``, ``evaluate`` or ``report`` command given in ``sys.argv``.
 
-    :raises SystemExit: with code 1 if ``run`` leaves a trial not done (failed, or unfinished after a stop)
+    :raises SystemExit: with code 1 if ``run`` leaves a trial not done (failed, or unfinished after a stop), or
+        an evaluation of ``evaluate`` fails
     :raises StudyError: if the folder given to ``evaluate`` or ``report`` is not a study folder (or, for
         ``evaluate``, another run uses it or an algorithm is not the study's)
     """
@@ -73,7 +74,11 @@ def _main() -> None:
     elif args.command == "evaluate":
         from sb3_detc.study.runner import evaluate_study
 
-        evaluate_study(args.dir, args.algorithms)
+        evaluations = evaluate_study(args.dir, args.algorithms)
+        failed = [name for name, evaluation in evaluations.items() if evaluation is None]
+        if failed:
+            print(f"[study] {len(failed)} evaluation(s) failed: {', '.join(failed)}")
+            raise SystemExit(1)
         print(f"[study] evaluated: python -m sb3_detc.study report {args.dir}")
     else:
         from sb3_detc.study.report import report_study

@@ -23,7 +23,7 @@ import numpy as np
 from rliable import library as rly
 from rliable import metrics as rly_metrics
 
-from sb3_detc.plot import open_progress, plot_estimates, plot_front, plot_runs, progress_file
+from sb3_detc.plot import LEARNED_POINTS, open_progress, plot_estimates, plot_front, plot_runs, progress_file
 from sb3_detc.study.spec import StudyError, load_folder_study
 from sb3_detc.study.trial import read_status, replace_atomically, trial_folder
 from sb3_detc.triggers import TRIGGER_FAMILIES
@@ -75,14 +75,13 @@ METRICS = (
     "learned_minus_best_fixed_control_return",
     "thresholded_minus_best_fixed_control_return",
     "package_travel",
+    "mode_package_travel",
+    "thresholded_package_travel",
     "random_same_rate_package_travel",
     "periodic_package_travel",
     "fall_rate",
     "success",
 )
-
-#: Points of the front that are learned triggers, not fixed families: ``mu`` made deterministic at the learned rate.
-LEARNED_POINTS = ("thresholded",)
 
 #: Differences of a front's row, learned and thresholded minus the best fixed family: (key, metric, table header).
 DIFFERENCES = (
@@ -379,7 +378,7 @@ def front_markdown(rows: list[dict[str, Any]]) -> str:
     :param rows: :func:`front`'s rows
     :return: the table, with the learned (and thresholded) minus the best family's control return per algorithm
     """
-    names = list(dict.fromkeys(name for row in rows for name in ["learned", *LEARNED_POINTS, *row["points"]]))
+    names = list(dict.fromkeys(name for row in rows for name in [*LEARNED_POINTS, *row["points"]]))
     names = [name for name in names if any(name in row["points"] for row in rows)]
     differences = [(key, header) for key, _, header in DIFFERENCES if any(key in row for row in rows)]
     header = ["algorithm", *names, *(header for _, header in differences)]

@@ -17,10 +17,12 @@ import socket
 import sys
 import threading
 import time
+import traceback
 from collections import deque
 from pathlib import Path
 from typing import Any
 
+import torch as th
 import yaml
 
 from sb3_detc.study.spec import CONF_FOLDER, StudyError, StudySpec, conf_copy, load_folder_study, same_study
@@ -422,13 +424,15 @@ def evaluate_study(
 
     For a protocol that gained a mode or a metric since the trials finished: each finished
     trial's ``evaluation.json`` is rewritten (:func:`~sb3_detc.study.trial.evaluate_trial`,
-    the study's episodes, seed and fixed families), as soon as its evaluation is complete;
-    unfinished trials are left to ``run``. The folder is locked as ``run`` locks it.
+    the study's episodes, seed and fixed families, on the trial's cores), as soon as its
+    evaluation is complete; unfinished trials are left to ``run``. A trial whose evaluation
+    raises is reported with its traceback (on stderr) and keeps its file; the others go on.
+    The folder is locked as ``run`` locks it.
 
     :param directory: the study folder
     :param labels: the algorithms whose trials to evaluate (None: all)
     :param stream: where a line per trial goes (default: stdout)
-    :return: trial name -> its new evaluation
+    :return: trial name -> its new evaluation, or None where it failed
     :raises StudyError: if the folder is not a study folder, another run uses it, or a label is not the study's
     """
     stream = sys.stdout if stream is None else stream
@@ -441,11 +445,21 @@ def evaluate_study(
     trials = [t for t in spec.trials() if labels is None or t.algorithm.label in labels]
     finished = [t for t in trials if read_status(trial_folder(folder, t)).get("status") == "done"]
     print(f"[study] evaluating {len(finished)} finished of {len(trials)} trials in {folder}", file=stream, flush=True)
-    evaluations = {}
+    evaluations: dict[str, dict[str, Any] | None] = {}
+    threads = th.get_num_threads()
     with _only_run_in(folder.resolve()):
         for trial in finished:
             began = time.monotonic()
-            evaluation = evaluate_trial(spec, trial, folder)
+            th.set_num_threads(trial.algorithm.cpus)
+            try:
+                evaluation = evaluate_trial(spec, trial, folder)
+            except Exception:  # noqa: BLE001  (reported with its traceback; the other trials go on)
+                print(f"[study] {trial.name}: evaluation failed", file=stream, flush=True)
+                traceback.print_exc()
+                evaluations[trial.name] = None
+                continue
+            finally:
+                th.set_num_threads(threads)
             metrics = evaluation["metrics"]
             print(
                 f"[study] {trial.name}: control return {metrics['control_return']:.2f}, "
@@ -458,7 +472,7 @@ def evaluate_study(
 
 
 def _only_run_in(folder: Path) -> contextlib.AbstractContextManager[Any]:
-    """Hold the study folder's lock (``.lock``) while a run uses it: a second ``run`` on it is refused.
+    """Hold the study folder's lock (``.lock``) while a run uses it: a second ``run`` (or ``evaluate``) is refused.
 
     Two runs on one folder would train the same trials twice and delete each other's segments and
     stop file (:func:`~sb3_detc.study.trial.exclusive`).
@@ -470,7 +484,8 @@ def _only_run_in(folder: Path) -> contextlib.AbstractContextManager[Any]:
     try:
         return exclusive(folder / LOCK_FILE)
     except BlockingIOError:
-        raise StudyError(f"another run of a study is using {folder}; wait for it or stop it (Ctrl-C)") from None
+        message = f"another run or evaluation of a study uses {folder}; wait for it or stop it (Ctrl-C)"
+        raise StudyError(message) from None
 
 
 def _run_locked(spec: StudySpec, folder: Path, address: str | None, stream: Any, cpus: int | None) -> dict[str, str]:
