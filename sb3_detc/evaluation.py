@@ -40,12 +40,13 @@ from stable_baselines3.common.utils import obs_as_tensor
 
 from sb3_detc.envs.wrappers import JointEnv
 from sb3_detc.mappoc.mappoc import MAPPOC
-from sb3_detc.mappoc.policies import MlpHybridPolicy
+from sb3_detc.mappoc.policies import MlpHybridPolicy, options_sampled
 from sb3_detc.mappoc.sampling import FixedTrigger
 from sb3_detc.triggers import (
     TRIGGER_FAMILIES,
     FixedControl,
     RandomTrigger,
+    StatelessTrigger,
     lqr_on_predicted_states,
     tune_trigger,
 )
@@ -423,10 +424,10 @@ def evaluate_episodes(
     if len(seeds) < 1:
         raise ValueError("evaluation needs at least one episode.")
     if sample_options is None:
-        sample_options = policy.sample_options or not deterministic
+        sample_options = options_sampled(policy.sample_options, deterministic)
     policy.set_training_mode(False)
     low, high = env.action_space["control"].low, env.action_space["control"].high
-    trigger_probability = getattr(fixed_trigger, "broadcast_probability", None)
+    decide = None if fixed_trigger is None else _options_and_probabilities(fixed_trigger)
     seeded = all(seed is not None for seed in seeds)
     copies = []
     if seeded and env.spec is not None:
@@ -458,13 +459,12 @@ def evaluate_episodes(
                 batch = {key: np.stack([running[slot].obs[key] for slot in slots]) for key in running[slots[0]].obs}
                 with th.no_grad():
                     obs = obs_as_tensor(batch, policy.device)
-                    forced, probability = None, None
-                    if fixed_trigger is None:
+                    forced = None
+                    if decide is None:
                         probability = policy.broadcast_probabilities(obs).cpu().numpy()
                     else:
-                        if trigger_probability is not None:
-                            probability = trigger_probability(batch)
-                        forced = th.as_tensor(fixed_trigger(batch), device=policy.device)
+                        options, probability = decide(batch)
+                        forced = th.as_tensor(options, device=policy.device)
                     sampled, controls = policy.sample_actions(
                         obs, broadcast=forced, deterministic=deterministic, sample_options=sample_options
                     )
@@ -484,6 +484,32 @@ def evaluate_episodes(
         for copy in copies:
             copy.close()
     return Episodes.from_records(records)  # type: ignore[arg-type]
+
+
+def _options_and_probabilities(
+    trigger: FixedTrigger,
+) -> Callable[[dict[str, np.ndarray]], tuple[np.ndarray, np.ndarray | None]]:
+    """A fixed trigger's options and probabilities of broadcasting for a batch, each computed once.
+
+    A stateless trigger's probabilities are its options; another trigger's come from its
+    ``broadcast_probability`` (None without one).
+
+    :param trigger: the fixed trigger
+    :return: a function of a batch of joint observations: options (B, N) and probabilities (B, N) or None
+    """
+    if isinstance(trigger, StatelessTrigger):
+
+        def stateless(batch: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray | None]:
+            options = trigger(batch)
+            return options, options.astype(np.float64)
+
+        return stateless
+    probability = getattr(trigger, "broadcast_probability", None)
+
+    def drawn(batch: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray | None]:
+        return trigger(batch), None if probability is None else probability(batch)
+
+    return drawn
 
 
 def evaluate_communication(
@@ -654,7 +680,7 @@ def _tuned_and_run(
     return trigger, evaluate_episodes(policy, env, seeds, fixed_trigger=trigger)
 
 
-class ThresholdedOptions:
+class ThresholdedOptions(StatelessTrigger):
     """A learned policy over options made deterministic: broadcast where ``mu``'s probability exceeds a threshold.
 
     The most likely option of ``mu`` (the protocol's ``mode``) is the threshold 0.5; other
@@ -685,14 +711,6 @@ class ThresholdedOptions:
         with th.no_grad():
             probability = self.policy.broadcast_probabilities(obs_as_tensor(obs, self.policy.device))
         return (probability > self.threshold).long().cpu().numpy()
-
-    def fork(self, seed: int) -> ThresholdedOptions:
-        """A copy for a rollout worker: the trigger itself, which has no state.
-
-        :param seed: unused
-        :return: the trigger
-        """
-        return self
 
 
 def evaluate_thresholded(

@@ -74,8 +74,13 @@ class RandomTrigger:
         return RandomTrigger(self.skip_prob, seed)
 
 
-class _StatelessTrigger(abc.ABC):
-    """A trigger whose options follow from the observations alone: no state, no random draws."""
+class StatelessTrigger(abc.ABC):
+    """A trigger whose options follow from the observations alone: no state, no random draws.
+
+    The base of the package's fixed triggers other than :class:`RandomTrigger`; a subclass
+    defines :meth:`__call__` and runs wherever a fixed trigger is accepted (one object serves
+    every rollout worker).
+    """
 
     @abc.abstractmethod
     def __call__(self, obs: dict[str, np.ndarray]) -> np.ndarray:
@@ -84,7 +89,7 @@ class _StatelessTrigger(abc.ABC):
         :param obs: a batch of joint observations, arrays shaped (B, N, ...) by key
         """
 
-    def fork(self, seed: int) -> _StatelessTrigger:
+    def fork(self, seed: int) -> StatelessTrigger:
         """A copy for a rollout worker: the trigger itself, which has no state.
 
         :param seed: unused
@@ -150,7 +155,7 @@ def _age_reached(obs: dict[str, np.ndarray], steps: int) -> np.ndarray:
     return _silent_age(obs) > steps - 0.5
 
 
-class PeriodicTrigger(_StatelessTrigger):
+class PeriodicTrigger(StatelessTrigger):
     """Every agent broadcasts every ``period``-th step, counted per episode: all in phase, or staggered.
 
     **In phase** (default): an agent broadcasts when its age of information reaches
@@ -213,7 +218,7 @@ class PeriodicTrigger(_StatelessTrigger):
         return (clock + offsets == self.period - 1).astype(np.int64)
 
 
-class SendOnDelta(_StatelessTrigger):
+class SendOnDelta(StatelessTrigger):
     """Send-on-delta: an agent broadcasts when its trigger features moved more than ``delta`` since its last broadcast.
 
     Agent i broadcasts when ``||trigger_i - trigger_held_i|| > delta`` (strictly), where
@@ -291,7 +296,7 @@ def _linear_system(system_or_env: LinearSystem | gym.Env, name: str) -> LinearSy
     return system
 
 
-class PredictiveTrigger(_StatelessTrigger):
+class PredictiveTrigger(StatelessTrigger):
     """Predictive triggering on the linear system: broadcast when the receivers' prediction is off by > ``delta``.
 
     The receivers predict every agent's current state from its held broadcast and its age

@@ -86,6 +86,7 @@ def test_a_policy_saved_under_earlier_names_loads(tmp_path) -> None:
     loaded = MlpHybridPolicy.load(str(tmp_path / "old.pt"))
     assert loaded.action_space == policy.action_space
     assert loaded.sample_options is True  # evaluated with sampled options, as it was
+    policy.sample_options = True  # the same predictions from the same weights
     obs = env.reset()
     th.manual_seed(1)
     expected = policy.predict(obs, deterministic=True)[0]

@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from sb3_detc.mappoc.policies import AgentController
+from sb3_detc.mappoc.policies import AgentController, options_sampled
 from sb3_detc.network import advance_timer, hold, initial_network, others_ages, others_index, relative_views
 
 #: This step's broadcasts as they go over the radio: ``{sender index: message (n_msg,)}``.
@@ -137,7 +137,7 @@ def run_decentralised_step(
     sent = [
         int(c.decide(parallel_obs[a]["trigger"], parallel_obs[a]["trigger_held"], not samples, inbox.own_age))
         for c, inbox, a in zip(controllers, inboxes, agents, strict=True)
-        for samples in [(c.sample_options or not deterministic) if sample_options is None else sample_options]
+        for samples in [options_sampled(c.sample_options, deterministic) if sample_options is None else sample_options]
     ]
     # (b) the broadcasts go out; every agent files them in its own table
     radio: Radio = {i: np.asarray(messages[i]) for i in range(len(agents)) if sent[i]}

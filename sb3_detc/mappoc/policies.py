@@ -73,6 +73,21 @@ def option_inputs(
     return th.cat(parts, dim=-1)
 
 
+def options_sampled(sample_options: bool, deterministic: bool) -> bool:
+    """Whether a trigger runs with options sampled from ``mu``: the one rule of every prediction and evaluation.
+
+    A stochastic call samples them; a deterministic one (mean controls) samples them too where
+    the trigger is meant to run sampled (``sample_options``), and takes the most likely ones
+    otherwise.
+
+    :param sample_options: how the trigger is meant to run when deployed (a policy's or a
+        controller's ``sample_options``)
+    :param deterministic: whether the call asks for the deterministic policy
+    :return: True to sample the options, False to take the most likely ones
+    """
+    return sample_options or not deterministic
+
+
 def broadcast_probability(logits: th.Tensor) -> th.Tensor:
     """Probability of broadcasting under ``mu`` from its logits (..., 2): ``sigmoid(logit_1 - logit_0)``.
 
@@ -178,13 +193,14 @@ class MlpHybridPolicy(BasePolicy):
     :param ortho_init: orthogonal initialisation (otherwise PyTorch's default init)
     :param sample_options: how this policy's trigger is meant to run when it is deployed: options
         sampled from the policy over options (True) or its most likely option (False, default).
-        Saved with the policy; the package's evaluation protocol (:mod:`sb3_detc.evaluation`) runs
-        the "learned" mode this way and the most likely option as a mode of its own.
-        :meth:`predict` with ``deterministic=True`` takes the most likely option whatever this says
-        (SB3's contract: the same action every call). A policy over options that an entropy
-        bonus keeps stochastic (the paper's ends near 50 %) has a mode that is another trigger,
-        one it was never trained with: on Multiwalker the paper's policies fall in nearly every
-        episode with it, so the paper's entries set ``sample_options=True``
+        Saved with the policy; :meth:`predict` with ``deterministic=True`` (mean controls) and the
+        package's evaluation protocol (:mod:`sb3_detc.evaluation`) run the trigger this way, the
+        protocol shows the most likely option as a mode of its own. A policy over options that an
+        entropy bonus keeps stochastic (the paper's ends near 50 %) has a mode that is another
+        trigger, one it was never trained with: on Multiwalker the paper's policies fall in nearly
+        every episode with it, so the paper's entries set ``sample_options=True``; their
+        deterministic predictions repeat under the same state of PyTorch's generator
+        (``th.manual_seed``)
     :param use_sde: not supported, must be False (present for SB3 compatibility)
     :param optimizer_class: optimizer class
     :param optimizer_kwargs: optimizer keyword arguments, excluding the learning rate
@@ -600,13 +616,14 @@ class MlpHybridPolicy(BasePolicy):
         :param sample_options: a sample (True) or the mode (False) of ``mu`` (None: the mode if
             ``deterministic``, else a sample)
         :param with_critic: whether to evaluate the critic too (output ``q``)
-        :return: the outputs of ``mu``, ``pi`` (and ``q``), the options, the controls
+        :return: the outputs of ``mu`` (left out where ``broadcast`` is given and the critic is
+            not needed), ``pi`` (and ``q``), the options, the controls
         """
         reads_afterstate = self.option_critic.reads_afterstate
-        before = {"mu": self.option_features(obs)}
+        before = {"mu": self.option_features(obs)} if broadcast is None or with_critic else {}  # mu decides
         if with_critic and not reads_afterstate:
             before["q"] = self.critic_inputs(obs)
-        out = self.chains.run(before)
+        out = self.chains.run(before) if before else {}
         if sample_options is None:
             sample_options = not deterministic
         if broadcast is None:
@@ -722,9 +739,11 @@ class MlpHybridPolicy(BasePolicy):
         """Options and controls side by side, (B, N, 1 + m); :meth:`predict` returns them as a Dict.
 
         :param observation: joint observation (B, N, ...)
-        :param deterministic: mean controls and the most likely options (else samples of both)
+        :param deterministic: mean controls and the options as :attr:`sample_options` says (else
+            samples of both)
         """
-        broadcast, control = self.sample_actions(observation, deterministic=deterministic)  # the critic is not needed
+        sampled = options_sampled(self.sample_options, deterministic)
+        broadcast, control = self.sample_actions(observation, deterministic=deterministic, sample_options=sampled)
         return th.cat([broadcast[..., None].to(control.dtype), control], dim=-1)
 
     def predict(
@@ -739,8 +758,9 @@ class MlpHybridPolicy(BasePolicy):
         :param observation: one joint observation or a batch of them (from a VecEnv)
         :param state: unused (no recurrent state), returned as is
         :param episode_start: unused
-        :param deterministic: mean of ``pi`` and the most likely options (the mode of ``mu``), the
-            same every call; else samples of both
+        :param deterministic: mean of ``pi`` and the options as the trigger is deployed: the most
+            likely ones (the mode of ``mu``), the same every call, or samples where
+            :attr:`sample_options` is set; else samples of both
         :return: ``{"broadcast": (N,), "control": (N, m)}`` for one observation, or a list of
             such dicts, one per environment, for a batch (what a VecEnv's ``step`` takes);
             controls are clipped to the action bounds
