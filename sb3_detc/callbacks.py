@@ -10,7 +10,9 @@ hyperparameter file, e.g. ``callback: sb3_detc.callbacks.CurriculumCallback``):
   skips), :class:`PeriodicCommCallback` (broadcast every step or every k-th step), or any
   trigger of :mod:`sb3_detc.triggers` with :class:`FixedTriggerCallback`;
 * two stages instead of the curriculum: :class:`ControlFirstCallback` (the control policy
-  under random skips first, then the policies over options for the frozen controller);
+  under random skips first, then the policies over options for the frozen controller) and
+  :class:`ScheduleFirstCallback` (a periodic schedule with a controller trained for it first,
+  then the policy over options, started as the schedule, learned with the controller);
 * :class:`CommMetricsCallback`: communication savings, inter-event times, per-agent
   returns with and without the communication cost, package travel and fall rate, per rollout.
 
@@ -48,6 +50,7 @@ __all__ = [
     "BroadcastEntropySchedule",
     "PeriodicCommCallback",
     "RandomSkipCallback",
+    "ScheduleFirstCallback",
     "TentNoiseSchedule",
     "linear_decay",
     "tent",
@@ -540,6 +543,103 @@ class ControlFirstCallback(_Schedule):
             # Fresh at the first rollout of stage 2, decided by the position: the same when a run resumes there.
             self.model.set_reward_normalization(True, fresh_statistics=self.value(t - step) == 1)
         self.logger.record("curriculum/stage", stage)
+
+
+class ScheduleFirstCallback(_Schedule):
+    """Two stages: a periodic schedule with a controller trained for it, then ``mu`` learned from the schedule on.
+
+    * stage 1 (positions before ``switch``): every agent broadcasts every ``period``-th step,
+      all in phase (:class:`~sb3_detc.triggers.PeriodicTrigger`, ``model.set_fixed_trigger``);
+      ``pi`` and the critic learn, ``mu`` does not;
+    * at the end of stage 1's last rollout, ``mu`` imitates the schedule
+      (:meth:`~sb3_detc.mappoc.policies.MlpHybridPolicy.imitate_options`) on that rollout's
+      observations and on copies of them whose own ages are drawn from ``[0, 2 period)``, so that
+      ``mu`` broadcasts from age ``period - 1`` on in every state; the policy must read its own
+      age (``option_age_scale > 0``);
+    * stage 2 (from ``switch`` on): the options come from ``mu``; ``mu``, the critic and (with
+      ``train_control``) ``pi`` learn. A rate target's price (``target_savings``) moves only here,
+      from the rate the schedule left.
+
+    Why: the schedule, with a controller trained for it, is the strongest fixed trigger at its
+    savings on Multiwalker. Started as that schedule, with that controller, a learned trigger can
+    then lose to it only by learning badly. The stage is a function of the position, and the
+    imitation happens in the rollout that ends stage 1 (the checkpoint after it holds the
+    imitated ``mu``), so a continued run resumes in the right stage. Logged as
+    ``curriculum/stage``, and the imitation's share of matched decisions as
+    ``curriculum/imitation_accuracy``. The communication cost stays charged in both stages.
+
+    :param switch: first position of stage 2 (iterations or timesteps, as ``unit``; > 0)
+    :param period: steps between two broadcasts of an agent in stage 1 (an integer >= 1)
+    :param train_control: whether ``pi`` keeps learning in stage 2 (False: as stage 1 left it)
+    :param imitation_steps: gradient steps of the imitation
+    :param unit: ``"iterations"`` (rollouts) or ``"timesteps"`` (environment steps)
+    :param verbose: verbosity level
+    :raises ValueError: on a ``switch`` that is not positive and finite, a ``period`` that is not an
+        integer >= 1 or ``imitation_steps`` < 1
+    """
+
+    def __init__(
+        self,
+        switch: float,
+        period: int,
+        train_control: bool = True,
+        imitation_steps: int = 500,
+        unit: str = "iterations",
+        verbose: int = 0,
+    ) -> None:
+        super().__init__(unit, verbose)
+        if not _check_value("switch", switch) > 0:
+            raise ValueError(f"switch must be > 0 (stage 1 must last), got {switch!r}.")
+        if isinstance(imitation_steps, bool) or not isinstance(imitation_steps, int) or imitation_steps < 1:
+            raise ValueError(f"imitation_steps must be an integer >= 1, got {imitation_steps!r}.")
+        self.switch = float(switch)
+        self.trigger = PeriodicTrigger(period)
+        self.period = self.trigger.period
+        self.train_control = bool(train_control)
+        self.imitation_steps = imitation_steps
+
+    def value(self, t: float) -> float:
+        """Stage at position ``t``: 1 or 2.
+
+        :param t: iteration or timestep (as :attr:`unit`)
+        :return: 1.0 before ``switch``, 2.0 from ``switch`` on
+        """
+        return 1.0 if t < self.switch else 2.0
+
+    def _on_training_start(self) -> None:
+        if not self.model.policy.option_age_scale > 0:
+            raise ValueError(
+                "ScheduleFirstCallback needs a policy over options that reads its own age, to start as the schedule: "
+                "set policy_kwargs option_age_scale > 0 (e.g. 0.1)."
+            )
+
+    def apply(self, t: float) -> None:
+        """Put the model into the stage of position ``t`` and log the stage.
+
+        :param t: iteration or timestep (as :attr:`unit`)
+        """
+        stage = int(self.value(t))
+        self.model.set_fixed_trigger(self.trigger if stage == 1 else None)
+        self.model.set_trained_policies(control_policy=stage == 1 or self.train_control, broadcast_policy=stage == 2)
+        self.logger.record("curriculum/stage", stage)
+
+    def _on_rollout_end(self) -> None:
+        rollout = 1 if self.unit == "iterations" else self.model.n_steps * self.model.n_envs
+        t = self.position()
+        if self.value(t - rollout) == 1 and self.value(t) == 2:  # the rollout that ends stage 1
+            self.logger.record("curriculum/imitation_accuracy", self.imitate())
+
+    def imitate(self) -> float:
+        """Fit ``mu`` to the schedule on the observations of the rollout in the model's buffer.
+
+        :return: the share of the imitated decisions whose most likely option matches the schedule
+        """
+        observations = self.model.rollout_buffer.tensors().observations
+        age = observations["age"]
+        drawn = th.randint(0, 2 * self.period, age.shape, device=age.device).to(age.dtype)
+        obs = {key: th.cat([value, drawn if key == "age" else value]) for key, value in observations.items()}
+        options = self.trigger({"age": obs["age"].cpu().numpy()})
+        return self.model.policy.imitate_options(obs, th.as_tensor(options), gradient_steps=self.imitation_steps)
 
 
 # ----------------------------------------------------------------------------- baselines

@@ -25,6 +25,7 @@ from sb3_detc.callbacks import (
     FixedTriggerCallback,
     PeriodicCommCallback,
     RandomSkipCallback,
+    ScheduleFirstCallback,
     TentNoiseSchedule,
     linear_decay,
     set_broadcast_cost,
@@ -176,6 +177,9 @@ def test_timesteps_unit_defaults_are_the_paper_iterations_times_2048() -> None:
         (lambda: ControlFirstCallback(-3), "switch"),
         (lambda: ControlFirstCallback(math.inf), "switch"),
         (lambda: ControlFirstCallback(5, skip_prob=1.5), "skip_prob"),
+        (lambda: ScheduleFirstCallback(0, 16), "switch"),
+        (lambda: ScheduleFirstCallback(5, 0), "period"),
+        (lambda: ScheduleFirstCallback(5, 16, imitation_steps=0), "imitation_steps"),
     ],
 )
 def test_bad_schedule_arguments_are_rejected(make: Any, match: str) -> None:
@@ -289,6 +293,92 @@ def test_control_first_trains_pi_under_random_skips_then_mu_for_the_frozen_pi(un
     # Stage 2: mu trained, pi exactly as stage 1 left it.
     assert all(th.equal(a, b) for a, b in zip(pi_stage_1, net_slices(model, "pi"), strict=True))
     assert any(not th.equal(a, b) for a, b in zip(mu_stage_1, net_slices(model, "mu"), strict=True))
+
+
+def aged_copies(observations: dict[str, th.Tensor], ages: range) -> dict[str, th.Tensor]:
+    """Copies of the observations, every agent's own age set to each of ``ages`` in turn."""
+    return {
+        key: th.cat([th.full_like(value, float(a)) if key == "age" else value for a in ages])
+        for key, value in observations.items()
+    }
+
+
+@pytest.mark.parametrize("unit", ["iterations", "timesteps"])
+def test_schedule_first_trains_pi_for_the_schedule_then_mu_from_the_schedule_on(unit: str) -> None:
+    n_steps, switch, period = 64, 2, 4
+    env = make_vec_env(ENV_ID, n_envs=1, env_kwargs={"n_agents": 3, "max_cycles": 20})
+    model = MAPPOC(
+        "MlpHybridPolicy",
+        env,
+        n_steps=n_steps,
+        batch_size=32,
+        n_epochs=1,
+        target_savings=0.75,
+        seed=0,
+        policy_kwargs={**TINY, "option_age_scale": 0.1},
+    )
+    stages = ScheduleFirstCallback(switch * (1 if unit == "iterations" else n_steps), period, unit=unit)
+    levels, record = Stages(), Record()
+    capture = capture_logger(model)
+    mu_before, pi_before = net_slices(model, "mu"), net_slices(model, "pi")
+    model.learn(n_steps, callback=[stages, levels, record])
+    # Stage 1: the schedule decides, pi learns, mu does not.
+    assert all(th.equal(a, b) for a, b in zip(mu_before, net_slices(model, "mu"), strict=True))
+    assert any(not th.equal(a, b) for a, b in zip(pi_before, net_slices(model, "pi"), strict=True))
+    steps = [info for step in record.infos for info in step]
+    assert [info["broadcast"].tolist() for info in steps[:8]] == [[0, 0, 0]] * 3 + [[1, 1, 1]] + [[0, 0, 0]] * 3 + [
+        [1, 1, 1]
+    ]
+    model.learn(n_steps, callback=[stages, levels], reset_num_timesteps=False)
+    # The rollout that ends stage 1 makes mu the schedule: broadcast from age period - 1 on, in every state met.
+    observations = aged_copies(model.rollout_buffer.tensors().observations, range(2 * period))
+    with th.no_grad():
+        mode = (model.policy.broadcast_probabilities(observations) > 0.5).numpy()
+    schedule = stages.trigger({"age": observations["age"].numpy()})
+    assert (mode == schedule).mean() > 0.99
+    assert capture.rows[-1]["curriculum/imitation_accuracy"] > 0.99
+    assert model.broadcast_price == 0.0  # the price waits for mu
+    mu_imitated, pi_stage_1 = net_slices(model, "mu"), net_slices(model, "pi")
+    model.learn(2 * n_steps, callback=[stages, levels], reset_num_timesteps=False)
+
+    assert [row["curriculum/stage"] for row in capture.rows] == [1, 1, 2, 2]
+    assert [(trigger is stages.trigger, mu, pi) for trigger, mu, pi in levels.rows] == [
+        (True, False, True),
+        (True, False, True),
+        (False, True, True),
+        (False, True, True),
+    ]
+    assert any(not th.equal(a, b) for a, b in zip(mu_imitated, net_slices(model, "mu"), strict=True))
+    assert any(not th.equal(a, b) for a, b in zip(pi_stage_1, net_slices(model, "pi"), strict=True))
+    assert model.broadcast_price != 0.0
+
+
+def test_schedule_first_can_keep_pi_and_needs_the_age_as_an_input_of_mu() -> None:
+    model = make_model(n_steps=8)
+    levels = Stages()
+    with pytest.raises(ValueError, match="option_age_scale"):
+        model.learn(8, callback=[ScheduleFirstCallback(1, 4)])
+    env = make_vec_env(ENV_ID, n_envs=1, env_kwargs={"n_agents": 2, "max_cycles": 20})
+    model = MAPPOC("MlpHybridPolicy", env, n_steps=8, batch_size=8, policy_kwargs={**TINY, "option_age_scale": 0.1})
+    model.learn(8 * 2, callback=[ScheduleFirstCallback(1, 4, train_control=False), levels])
+    assert [(mu, pi) for _, mu, pi in levels.rows] == [(False, True), (True, False)]
+
+
+def test_imitated_options_change_mu_alone() -> None:
+    env = make_vec_env(ENV_ID, n_envs=1, env_kwargs={"n_agents": 3, "max_cycles": 20})
+    model = MAPPOC("MlpHybridPolicy", env, n_steps=32, seed=0, policy_kwargs={**TINY, "option_age_scale": 0.1})
+    model.learn(32)
+    observations = aged_copies(model.rollout_buffer.tensors().observations, range(10))
+    options = PeriodicTrigger(5)({"age": observations["age"].numpy()})
+    others = {net: net_slices(model, net) for net in ("q", "pi")}
+    optimizer_state = copy.deepcopy(model.policy.optimizer.state_dict())
+    accuracy = model.policy.imitate_options(observations, th.as_tensor(options))
+    assert accuracy > 0.99
+    for net, before in others.items():
+        assert all(th.equal(a, b) for a, b in zip(before, net_slices(model, net), strict=True)), net
+    assert str(model.policy.optimizer.state_dict()) == str(optimizer_state)
+    with pytest.raises(ValueError, match="shaped"):
+        model.policy.imitate_options(observations, th.as_tensor(options[:, :2]))
 
 
 def test_control_first_without_a_learning_rate_keeps_the_models() -> None:

@@ -216,13 +216,18 @@ def test_the_shipped_study_files_load():
     joint = load_study(ROOT / "sb3_detc" / "studies" / "multiwalker_rate.yml")
     assert joint.fixed_families == ("periodic", "periodic_staggered", "send_on_delta_max_age")
     assert joint.episodes >= 50
-    learned, periodic = joint.algorithms
+    learned, periodic, schedule_first = joint.algorithms
     assert learned.hyperparams["target_savings"] == 0.9375 and learned.cpus == 2
     assert joint.budget(learned) == 6_144_000 and len(learned.seeds) == 5  # the paper's budget
     # the schedule at the same savings, its controller trained for it with the same settings otherwise
     assert repr(entry_fixed_trigger(periodic.entry)) == "PeriodicTrigger(period=16, staggered=False)"
     assert "target_savings" not in periodic.hyperparams and joint.budget(periodic) == 6_144_000
     assert periodic.hyperparams["policy_kwargs"] == learned.hyperparams["policy_kwargs"]
+    # the schedule for two thirds of the budget, then the learned trigger started as the schedule
+    stages = schedule_first.hyperparams["callback"][0]["sb3_detc.callbacks.ScheduleFirstCallback"]
+    assert stages == {"switch": 2000, "period": 16} and joint.budget(schedule_first) == 6_144_000
+    assert schedule_first.hyperparams["policy_kwargs"] == learned.hyperparams["policy_kwargs"]
+    assert schedule_first.hyperparams["target_savings"] == 0.9375
 
 
 def test_command_line_bad_input_is_one_line_with_exit_code_2(tmp_path):

@@ -506,6 +506,48 @@ class MlpHybridPolicy(BasePolicy):
         """
         return broadcast_probability(self.chains.run({"mu": self.option_features(obs)})["mu"])
 
+    def imitate_options(
+        self,
+        obs: PyTorchObs,
+        options: th.Tensor,
+        gradient_steps: int = 500,
+        batch_size: int = 256,
+        learning_rate: float = 1e-3,
+    ) -> float:
+        """Fit ``mu`` to given options by cross-entropy (behaviour cloning), e.g. to start it as a fixed trigger.
+
+        Only ``mu``'s parameters change (Adam of its own, which leaves the other networks'
+        parameters where they get no gradient); the training optimizer's state is not touched.
+
+        :param obs: joint observations (B, N, ...)
+        :param options: the options to imitate (B, N), 0 or 1
+        :param gradient_steps: Adam steps, each on ``batch_size`` samples drawn at random
+        :param batch_size: samples per gradient step
+        :param learning_rate: Adam's step size
+        :return: the share of agent decisions whose most likely option equals the given one afterwards
+        :raises ValueError: for options whose shape differs from the observations' (B, N)
+        """
+        features = self.option_features(obs).detach()
+        targets = th.as_tensor(options, device=features.device).long()
+        if targets.shape != features.shape[:2]:
+            raise ValueError(
+                f"options must be shaped (B, N) = {tuple(features.shape[:2])}, got {tuple(targets.shape)}."
+            )
+        optimizer = th.optim.Adam(self.chains.parameters(), lr=learning_rate)
+        training = self.training
+        self.set_training_mode(True)
+        for _ in range(gradient_steps):
+            idx = th.randint(len(targets), (min(batch_size, len(targets)),), device=features.device)
+            logits = self.chains.run({"mu": features[idx]})["mu"]
+            loss = F.cross_entropy(logits.reshape(-1, 2), targets[idx].reshape(-1))
+            optimizer.zero_grad()
+            loss.backward()
+            optimizer.step()
+        self.set_training_mode(training)
+        with th.no_grad():
+            mode = self.chains.run({"mu": features})["mu"].argmax(dim=-1)
+        return float((mode == targets).float().mean())
+
     def option_values(
         self, q: th.Tensor, broadcast_price: th.Tensor | None = None, p_broadcast: th.Tensor | None = None
     ) -> th.Tensor:
