@@ -7,7 +7,7 @@ every ``k`` steps and send-on-delta (a walker broadcasts when the package, as it
 more than ``delta`` since its last broadcast). Its learned trigger comes from the trial's
 ``evaluation.json`` (the same episodes, options sampled from its policy over options); a trial
 that learned its options also runs with the most likely option of its policy over options
-(``mode of mu``: what ``predict(deterministic=True)`` does). For
+(``mode of mu``: what ``predict(deterministic=True)`` does for a policy without ``sample_options``). For
 every algorithm of the study and every trigger: control return (without the communication
 cost), package travel, savings and fall rate, mean over seeds with a 95 % bootstrap interval
 (:func:`sb3_detc.study.report.interval_estimates`).

@@ -12,7 +12,8 @@ hyperparameter file, e.g. ``callback: sb3_detc.callbacks.CurriculumCallback``):
 * two stages instead of the curriculum: :class:`ControlFirstCallback` (the control policy
   under random skips first, then the policies over options for the frozen controller) and
   :class:`ScheduleFirstCallback` (a periodic schedule with a controller trained for it first,
-  then the policy over options, started as the schedule, learned with the controller);
+  then the policy over options, started as the schedule, learned with the controller) and
+  :class:`DeltaFirstCallback` (the same from send-on-delta, on the linear system predictive triggering);
 * :class:`CommMetricsCallback`: communication savings, inter-event times, per-agent
   returns with and without the communication cost, package travel and fall rate, per rollout.
 
@@ -38,7 +39,7 @@ from stable_baselines3.common.type_aliases import Schedule
 from sb3_detc.evaluation import EpisodeCounter, Episodes
 from sb3_detc.mappoc.checks import check_rate_target
 from sb3_detc.mappoc.mappoc import PAPER_ITERATION
-from sb3_detc.triggers import PeriodicTrigger, RandomTrigger
+from sb3_detc.triggers import PeriodicTrigger, RandomTrigger, SendOnDelta, StatelessTrigger
 
 __all__ = [
     "set_broadcast_cost",
@@ -46,6 +47,8 @@ __all__ = [
     "CommMetricsCallback",
     "ControlFirstCallback",
     "CurriculumCallback",
+    "DeltaFirstCallback",
+    "FixedFirstCallback",
     "FixedTriggerCallback",
     "BroadcastEntropySchedule",
     "PeriodicCommCallback",
@@ -150,6 +153,10 @@ class _Schedule(BaseCallback):
         if self.unit == "timesteps":
             return int(self.model.num_timesteps)
         return int(self.model.num_timesteps // (self.model.n_steps * self.model.n_envs))
+
+    def rollout_length(self) -> int:
+        """How far one rollout moves the position: 1 iteration, or ``n_steps * n_envs`` timesteps."""
+        return 1 if self.unit == "iterations" else self.model.n_steps * self.model.n_envs
 
     def value(self, t: float) -> float:
         """The scheduled value at position ``t`` (pure: depends on the constructor's arguments only).
@@ -463,7 +470,50 @@ def _seeded_random_trigger(trigger: RandomTrigger, seed: int | None, model: Any)
     return trigger, seed
 
 
-class ControlFirstCallback(_Schedule):
+class _TwoStages(_Schedule):
+    """A schedule of two stages: stage 1 before ``switch``, stage 2 from ``switch`` on.
+
+    :param switch: first position of stage 2 (iterations or timesteps, as ``unit``; > 0)
+    :param unit: ``"iterations"`` (rollouts) or ``"timesteps"`` (environment steps)
+    :param verbose: verbosity level
+    :raises ValueError: on a ``switch`` that is not positive and finite
+    """
+
+    def __init__(self, switch: float, unit: str = "iterations", verbose: int = 0) -> None:
+        super().__init__(unit, verbose)
+        if not _check_value("switch", switch) > 0:
+            raise ValueError(f"switch must be > 0 (stage 1 must last), got {switch!r}.")
+        self.switch = float(switch)
+
+    def value(self, t: float) -> float:
+        """Stage at position ``t``: 1 or 2.
+
+        :param t: iteration or timestep (as :attr:`unit`)
+        :return: 1.0 before ``switch``, 2.0 from ``switch`` on
+        """
+        return 1.0 if t < self.switch else 2.0
+
+    def first_of_stage_two(self, t: float) -> bool:
+        """Whether the rollout that ends at (or starts after) position ``t`` is the first of stage 2's positions.
+
+        :param t: iteration or timestep (as :attr:`unit`)
+        :return: True if the position one rollout before ``t`` is in stage 1 and ``t`` in stage 2
+        """
+        return self.value(t - self.rollout_length()) == 1 and self.value(t) == 2
+
+    def set_stage(self, stage: int, trigger: Any, train_control: bool) -> None:
+        """Options from ``trigger`` and ``pi`` trained in stage 1; options from ``mu``, ``mu`` trained in stage 2.
+
+        :param stage: 1 or 2
+        :param trigger: stage 1's fixed trigger
+        :param train_control: whether ``pi`` learns in stage 2
+        """
+        self.model.set_fixed_trigger(trigger if stage == 1 else None)
+        self.model.set_trained_policies(control_policy=stage == 1 or train_control, broadcast_policy=stage == 2)
+        self.logger.record("curriculum/stage", stage)
+
+
+class ControlFirstCallback(_TwoStages):
     """Two stages: the control policy under random skips, then the policies over options for it.
 
     * stage 1 (positions before ``switch``): options are drawn by
@@ -507,23 +557,12 @@ class ControlFirstCallback(_Schedule):
         unit: str = "iterations",
         verbose: int = 0,
     ) -> None:
-        super().__init__(unit, verbose)
-        if not _check_value("switch", switch) > 0:
-            raise ValueError(f"switch must be > 0 (stage 1 must last), got {switch!r}.")
-        self.switch = float(switch)
+        super().__init__(switch, unit, verbose)
         self.trigger = RandomTrigger(skip_prob, seed)
         self.skip_prob = self.trigger.skip_prob
         self.seed = seed
         self.trigger_learning_rate = trigger_learning_rate
         self.trigger_normalize_reward = bool(trigger_normalize_reward)
-
-    def value(self, t: float) -> float:
-        """Stage at position ``t``: 1 or 2.
-
-        :param t: iteration or timestep (as :attr:`unit`)
-        :return: 1.0 before ``switch``, 2.0 from ``switch`` on
-        """
-        return 1.0 if t < self.switch else 2.0
 
     def _on_training_start(self) -> None:
         self.trigger, self.seed = _seeded_random_trigger(self.trigger, self.seed, self.model)
@@ -534,39 +573,114 @@ class ControlFirstCallback(_Schedule):
         :param t: iteration or timestep (as :attr:`unit`)
         """
         stage = int(self.value(t))
-        self.model.set_fixed_trigger(self.trigger if stage == 1 else None)
-        self.model.set_trained_policies(control_policy=stage == 1, broadcast_policy=stage == 2)
+        self.set_stage(stage, self.trigger, train_control=False)
         if stage == 2 and self.trigger_learning_rate is not None:
             self.model.set_learning_rate(self.trigger_learning_rate)
         if stage == 2 and self.trigger_normalize_reward:
-            step = 1 if self.unit == "iterations" else self.model.n_steps * self.model.n_envs
             # Fresh at the first rollout of stage 2, decided by the position: the same when a run resumes there.
-            self.model.set_reward_normalization(True, fresh_statistics=self.value(t - step) == 1)
-        self.logger.record("curriculum/stage", stage)
+            self.model.set_reward_normalization(True, fresh_statistics=self.first_of_stage_two(t))
 
 
-class ScheduleFirstCallback(_Schedule):
-    """Two stages: a periodic schedule with a controller trained for it, then ``mu`` learned from the schedule on.
+class FixedFirstCallback(_TwoStages):
+    """Two stages: a fixed trigger with a controller trained for it, then ``mu`` learned from that trigger on.
 
-    * stage 1 (positions before ``switch``): every agent broadcasts every ``period``-th step,
-      all in phase (:class:`~sb3_detc.triggers.PeriodicTrigger`, ``model.set_fixed_trigger``);
-      ``pi`` and the critic learn, ``mu`` does not;
-    * at the end of stage 1's last rollout, ``mu`` imitates the schedule
+    * stage 1 (positions before ``switch``): the options come from :attr:`trigger`
+      (``model.set_fixed_trigger``); ``pi`` and the critic learn, ``mu`` does not;
+    * at the end of stage 1's last rollout, ``mu`` imitates the trigger
       (:meth:`~sb3_detc.mappoc.policies.MlpHybridPolicy.imitate_options`) on that rollout's
-      observations and on copies of them whose own ages are drawn from ``[0, 2 period)``, so that
-      ``mu`` broadcasts from age ``period - 1`` on in every state; the policy must read its own
-      age (``option_age_scale > 0``);
+      observations and on copies of them whose own ages are drawn from ``[0, 2 span)``
+      (:meth:`age_span`), so that it follows the trigger at every age;
     * stage 2 (from ``switch`` on): the options come from ``mu``; ``mu``, the critic and (with
       ``train_control``) ``pi`` learn. A rate target's price (``target_savings``) moves only here,
-      from the rate the schedule left.
+      from the rate the trigger left.
+
+    The stage is a function of the position, and the imitation happens at the end of the rollout
+    that ends stage 1, so a run continued from a model saved at a rollout's start (the study
+    runner's checkpoints) resumes in the right stage with the imitated ``mu``; a model saved
+    within stage 1's last rollout (e.g. by a checkpoint callback every so many steps) holds ``mu``
+    as it was before the imitation. Logged: ``curriculum/stage``, and the imitation's share of matched decisions
+    as ``curriculum/imitation_accuracy``. The communication cost stays charged in both stages.
+
+    :param switch: first position of stage 2 (iterations or timesteps, as ``unit``; > 0)
+    :param trigger: the fixed trigger of stage 1, a stateless one of :mod:`sb3_detc.triggers`
+    :param reads_age: whether the trigger reads the own age, so that ``mu`` must read it too
+        (``option_age_scale > 0``, checked when training starts)
+    :param train_control: whether ``pi`` keeps learning in stage 2 (False: as stage 1 left it)
+    :param imitation_steps: gradient steps of the imitation
+    :param unit: ``"iterations"`` (rollouts) or ``"timesteps"`` (environment steps)
+    :param verbose: verbosity level
+    :raises ValueError: on a ``switch`` that is not positive and finite, or ``imitation_steps`` < 1
+    """
+
+    def __init__(
+        self,
+        switch: float,
+        trigger: StatelessTrigger,
+        reads_age: bool = True,
+        train_control: bool = True,
+        imitation_steps: int = 500,
+        unit: str = "iterations",
+        verbose: int = 0,
+    ) -> None:
+        super().__init__(switch, unit, verbose)
+        if isinstance(imitation_steps, bool) or not isinstance(imitation_steps, int) or imitation_steps < 1:
+            raise ValueError(f"imitation_steps must be an integer >= 1, got {imitation_steps!r}.")
+        self.trigger = trigger
+        self.reads_age = bool(reads_age)
+        self.train_control = bool(train_control)
+        self.imitation_steps = imitation_steps
+
+    def _on_training_start(self) -> None:
+        if self.reads_age and not self.model.policy.option_age_scale > 0:
+            raise ValueError(
+                f"{type(self).__name__} needs a policy over options that reads its own age, to start as "
+                f"{self.trigger!r}: set policy_kwargs option_age_scale > 0 (e.g. 0.1)."
+            )
+
+    def apply(self, t: float) -> None:
+        """Put the model into the stage of position ``t`` and log the stage.
+
+        :param t: iteration or timestep (as :attr:`unit`)
+        """
+        self.set_stage(int(self.value(t)), self.trigger, self.train_control)
+
+    def _on_rollout_end(self) -> None:
+        if self.first_of_stage_two(self.position()):  # the rollout that ends stage 1
+            self.logger.record("curriculum/imitation_accuracy", self.imitate())
+
+    def age_span(self, ages: th.Tensor) -> int:
+        """The ages the imitation shows ``mu``: ``[0, 2 span)``.
+
+        :param ages: the own ages met in the rollout
+        :return: one more than the largest age met (subclasses: the trigger's own period or maximum age)
+        """
+        return int(ages.max()) + 1
+
+    def imitate(self) -> float:
+        """Fit ``mu`` to the trigger on the observations of the rollout in the model's buffer.
+
+        :return: the share of the imitated decisions whose most likely option matches the trigger
+        """
+        observations = self.model.rollout_buffer.tensors().observations
+        age = observations["age"]
+        drawn = th.randint(0, 2 * self.age_span(age), age.shape, device=age.device).to(age.dtype)
+        obs = {key: th.cat([value, drawn if key == "age" else value]) for key, value in observations.items()}
+        options = self.trigger({key: value.cpu().numpy() for key, value in obs.items()})
+        return self.model.policy.imitate_options(obs, th.as_tensor(options), gradient_steps=self.imitation_steps)
+
+
+class ScheduleFirstCallback(FixedFirstCallback):
+    """Two stages: a periodic schedule with a controller trained for it, then ``mu`` learned from the schedule on.
+
+    Stage 1: every agent broadcasts every ``period``-th step, all in phase
+    (:class:`~sb3_detc.triggers.PeriodicTrigger`); at the switch ``mu`` imitates the schedule
+    (own ages drawn from ``[0, 2 period)``, so that it broadcasts from age ``period - 1`` on in
+    every state; the policy must read its own age, ``option_age_scale > 0``); stage 2 learns it,
+    as described in :class:`FixedFirstCallback`.
 
     Why: the schedule, with a controller trained for it, is the strongest fixed trigger at its
     savings on Multiwalker. Started as that schedule, with that controller, a learned trigger can
-    then lose to it only by learning badly. The stage is a function of the position, and the
-    imitation happens in the rollout that ends stage 1 (the checkpoint after it holds the
-    imitated ``mu``), so a continued run resumes in the right stage. Logged as
-    ``curriculum/stage``, and the imitation's share of matched decisions as
-    ``curriculum/imitation_accuracy``. The communication cost stays charged in both stages.
+    then lose to it only by learning badly.
 
     :param switch: first position of stage 2 (iterations or timesteps, as ``unit``; > 0)
     :param period: steps between two broadcasts of an agent in stage 1 (an integer >= 1)
@@ -587,59 +701,59 @@ class ScheduleFirstCallback(_Schedule):
         unit: str = "iterations",
         verbose: int = 0,
     ) -> None:
-        super().__init__(unit, verbose)
-        if not _check_value("switch", switch) > 0:
-            raise ValueError(f"switch must be > 0 (stage 1 must last), got {switch!r}.")
-        if isinstance(imitation_steps, bool) or not isinstance(imitation_steps, int) or imitation_steps < 1:
-            raise ValueError(f"imitation_steps must be an integer >= 1, got {imitation_steps!r}.")
-        self.switch = float(switch)
-        self.trigger = PeriodicTrigger(period)
+        super().__init__(switch, PeriodicTrigger(period), True, train_control, imitation_steps, unit, verbose)
         self.period = self.trigger.period
-        self.train_control = bool(train_control)
-        self.imitation_steps = imitation_steps
 
-    def value(self, t: float) -> float:
-        """Stage at position ``t``: 1 or 2.
+    def age_span(self, ages: th.Tensor) -> int:
+        """The ages the imitation shows ``mu``: ``[0, 2 period)``.
 
-        :param t: iteration or timestep (as :attr:`unit`)
-        :return: 1.0 before ``switch``, 2.0 from ``switch`` on
+        :param ages: the own ages met in the rollout (unused)
+        :return: the period
         """
-        return 1.0 if t < self.switch else 2.0
+        return self.period
 
-    def _on_training_start(self) -> None:
-        if not self.model.policy.option_age_scale > 0:
-            raise ValueError(
-                "ScheduleFirstCallback needs a policy over options that reads its own age, to start as the schedule: "
-                "set policy_kwargs option_age_scale > 0 (e.g. 0.1)."
-            )
 
-    def apply(self, t: float) -> None:
-        """Put the model into the stage of position ``t`` and log the stage.
+class DeltaFirstCallback(FixedFirstCallback):
+    """Two stages: send-on-delta with a controller trained for it, then ``mu`` learned from that rule on.
 
-        :param t: iteration or timestep (as :attr:`unit`)
+    Stage 1: :class:`~sb3_detc.triggers.SendOnDelta` with ``delta`` (and ``max_age``); at the
+    switch ``mu`` imitates it; stage 2 learns it, as described in :class:`FixedFirstCallback`. On
+    ``sb3_detc/LinearETC-LQR-v0`` with ``prediction=True, predicted_held=True`` send-on-delta is
+    predictive triggering (:class:`~sb3_detc.triggers.ReceiverPredictions`): the learned trigger
+    then starts as the model-based anchor. ``mu`` follows the rule most closely when it reads
+    the distance itself (``option_distance_scale > 0``); with ``max_age`` it must read its own age.
+
+    :param switch: first position of stage 2 (iterations or timesteps, as ``unit``; > 0)
+    :param delta: the rule's threshold (a finite number >= 0), in the units of the trigger features
+    :param max_age: the rule's maximum age (an integer >= 1), or None
+    :param train_control: whether ``pi`` keeps learning in stage 2 (False: as stage 1 left it)
+    :param imitation_steps: gradient steps of the imitation
+    :param unit: ``"iterations"`` (rollouts) or ``"timesteps"`` (environment steps)
+    :param verbose: verbosity level
+    :raises ValueError: on a ``switch`` that is not positive and finite, a bad ``delta`` or ``max_age``
+        (see :class:`~sb3_detc.triggers.SendOnDelta`) or ``imitation_steps`` < 1
+    """
+
+    def __init__(
+        self,
+        switch: float,
+        delta: float,
+        max_age: int | None = None,
+        train_control: bool = True,
+        imitation_steps: int = 500,
+        unit: str = "iterations",
+        verbose: int = 0,
+    ) -> None:
+        trigger = SendOnDelta(delta, max_age=max_age)
+        super().__init__(switch, trigger, max_age is not None, train_control, imitation_steps, unit, verbose)
+
+    def age_span(self, ages: th.Tensor) -> int:
+        """The ages the imitation shows ``mu``: ``[0, 2 max_age)``, or up to twice the largest age met.
+
+        :param ages: the own ages met in the rollout
+        :return: the maximum age, or one more than the largest age met without one
         """
-        stage = int(self.value(t))
-        self.model.set_fixed_trigger(self.trigger if stage == 1 else None)
-        self.model.set_trained_policies(control_policy=stage == 1 or self.train_control, broadcast_policy=stage == 2)
-        self.logger.record("curriculum/stage", stage)
-
-    def _on_rollout_end(self) -> None:
-        rollout = 1 if self.unit == "iterations" else self.model.n_steps * self.model.n_envs
-        t = self.position()
-        if self.value(t - rollout) == 1 and self.value(t) == 2:  # the rollout that ends stage 1
-            self.logger.record("curriculum/imitation_accuracy", self.imitate())
-
-    def imitate(self) -> float:
-        """Fit ``mu`` to the schedule on the observations of the rollout in the model's buffer.
-
-        :return: the share of the imitated decisions whose most likely option matches the schedule
-        """
-        observations = self.model.rollout_buffer.tensors().observations
-        age = observations["age"]
-        drawn = th.randint(0, 2 * self.period, age.shape, device=age.device).to(age.dtype)
-        obs = {key: th.cat([value, drawn if key == "age" else value]) for key, value in observations.items()}
-        options = self.trigger({"age": obs["age"].cpu().numpy()})
-        return self.model.policy.imitate_options(obs, th.as_tensor(options), gradient_steps=self.imitation_steps)
+        return self.trigger.max_age or super().age_span(ages)
 
 
 # ----------------------------------------------------------------------------- baselines

@@ -491,13 +491,14 @@ def _options_and_probabilities(
 ) -> Callable[[dict[str, np.ndarray]], tuple[np.ndarray, np.ndarray | None]]:
     """A fixed trigger's options and probabilities of broadcasting for a batch, each computed once.
 
-    A stateless trigger's probabilities are its options; another trigger's come from its
-    ``broadcast_probability`` (None without one).
+    A stateless trigger's probabilities are its options (unless it defines its own
+    ``broadcast_probability``); another trigger's come from its ``broadcast_probability`` (None
+    without one).
 
     :param trigger: the fixed trigger
     :return: a function of a batch of joint observations: options (B, N) and probabilities (B, N) or None
     """
-    if isinstance(trigger, StatelessTrigger):
+    if getattr(type(trigger), "broadcast_probability", None) is StatelessTrigger.broadcast_probability:
 
         def stateless(batch: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray | None]:
             options = trigger(batch)

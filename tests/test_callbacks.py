@@ -22,6 +22,7 @@ from sb3_detc.callbacks import (
     CommMetricsCallback,
     ControlFirstCallback,
     CurriculumCallback,
+    DeltaFirstCallback,
     FixedTriggerCallback,
     PeriodicCommCallback,
     RandomSkipCallback,
@@ -180,6 +181,8 @@ def test_timesteps_unit_defaults_are_the_paper_iterations_times_2048() -> None:
         (lambda: ScheduleFirstCallback(0, 16), "switch"),
         (lambda: ScheduleFirstCallback(5, 0), "period"),
         (lambda: ScheduleFirstCallback(5, 16, imitation_steps=0), "imitation_steps"),
+        (lambda: DeltaFirstCallback(5, -1.0), "delta"),
+        (lambda: DeltaFirstCallback(5, 0.1, max_age=0), "max_age"),
     ],
 )
 def test_bad_schedule_arguments_are_rejected(make: Any, match: str) -> None:
@@ -364,6 +367,26 @@ def test_schedule_first_can_keep_pi_and_needs_the_age_as_an_input_of_mu() -> Non
     assert [(mu, pi) for _, mu, pi in levels.rows] == [(False, True), (True, False)]
 
 
+def test_delta_first_starts_mu_as_predictive_triggering_without_reading_the_age() -> None:
+    """On the linear system with the receivers' predictions shown, send-on-delta is predictive triggering."""
+    env_kwargs = {"n_agents": 3, "max_cycles": 40, "prediction": True, "predicted_held": True}
+    env = make_vec_env("sb3_detc/LinearETC-LQR-v0", n_envs=2, env_kwargs=env_kwargs)
+    policy_kwargs = {**TINY, "option_distance_scale": 5.0}
+    model = MAPPOC("MlpHybridPolicy", env, n_steps=64, batch_size=64, seed=0, policy_kwargs=policy_kwargs)
+    stages, levels = DeltaFirstCallback(1, 0.2, imitation_steps=2000), Stages()
+    capture = capture_logger(model)
+    model.learn(2 * 64 * 2, callback=[stages, levels])  # two rollouts of two envs
+    assert [trigger is stages.trigger for trigger, _, _ in levels.rows] == [True, False]
+    assert repr(stages.trigger) == "SendOnDelta(delta=0.2, norm=2, max_age=None)"
+    # mu decides as the rule on the first rollout's states (its second rollout came from mu itself)
+    assert capture.rows[0]["curriculum/imitation_accuracy"] > 0.97
+    observations = model.rollout_buffer.tensors().observations
+    with th.no_grad():
+        mode = (model.policy.broadcast_probabilities(observations) > 0.5).numpy()
+    rule = stages.trigger({key: value.numpy() for key, value in observations.items()})
+    assert 0.0 < rule.mean() < 1.0 and (mode == rule).mean() > 0.9
+
+
 def test_imitated_options_change_mu_alone() -> None:
     env = make_vec_env(ENV_ID, n_envs=1, env_kwargs={"n_agents": 3, "max_cycles": 20})
     model = MAPPOC("MlpHybridPolicy", env, n_steps=32, seed=0, policy_kwargs={**TINY, "option_age_scale": 0.1})
@@ -371,12 +394,15 @@ def test_imitated_options_change_mu_alone() -> None:
     observations = aged_copies(model.rollout_buffer.tensors().observations, range(10))
     options = PeriodicTrigger(5)({"age": observations["age"].numpy()})
     others = {net: net_slices(model, net) for net in ("q", "pi")}
-    optimizer_state = copy.deepcopy(model.policy.optimizer.state_dict())
+    optimizer_state = copy.deepcopy(model.policy.optimizer.state_dict()["state"])
     accuracy = model.policy.imitate_options(observations, th.as_tensor(options))
     assert accuracy > 0.99
     for net, before in others.items():
         assert all(th.equal(a, b) for a, b in zip(before, net_slices(model, net), strict=True)), net
-    assert str(model.policy.optimizer.state_dict()) == str(optimizer_state)
+    after = model.policy.optimizer.state_dict()["state"]
+    assert after.keys() == optimizer_state.keys()
+    for key, state in optimizer_state.items():
+        assert all(th.equal(th.as_tensor(value), th.as_tensor(after[key][name])) for name, value in state.items())
     with pytest.raises(ValueError, match="shaped"):
         model.policy.imitate_options(observations, th.as_tensor(options[:, :2]))
 

@@ -204,6 +204,7 @@ def test_the_shipped_study_files_load():
         "predicted_held_90_short": 0.9,
         "predicted_held_90_long": 0.9,
         "predicted_held_90_distance": 0.9,
+        "predictive_first_90": 0.9,
     }
     # the receivers' predictions shown, at five times the others' budget, at the same and at twenty times
     held = {a.label: a for a in rate.algorithms if a.label.startswith("predicted_held")}
@@ -213,6 +214,10 @@ def test_the_shipped_study_files_load():
     assert held["predicted_held_90_long"].hyperparams["broadcast_ent_coef"] == 0.01
     assert "option_distance_scale=5.0" in held["predicted_held_90_distance"].hyperparams["policy_kwargs"]
     assert rate.budget(held["predicted_held_90_distance"]) == 500_000
+    # started as predictive triggering (send-on-delta on the shown predictions), then learned
+    first = next(a for a in rate.algorithms if a.label == "predictive_first_90")
+    assert first.hyperparams["env_kwargs"]["predicted_held"] and rate.budget(first) == 500_000
+    assert first.hyperparams["callback"][0] == {"sb3_detc.callbacks.DeltaFirstCallback": {"switch": 50, "delta": 0.21}}
     joint = load_study(ROOT / "sb3_detc" / "studies" / "multiwalker_rate.yml")
     assert joint.fixed_families == ("periodic", "periodic_staggered", "send_on_delta_max_age")
     assert joint.episodes >= 50

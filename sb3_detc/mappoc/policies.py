@@ -543,6 +543,7 @@ class MlpHybridPolicy(BasePolicy):
             optimizer.zero_grad()
             loss.backward()
             optimizer.step()
+        optimizer.zero_grad(set_to_none=True)
         self.set_training_mode(training)
         with th.no_grad():
             mode = self.chains.run({"mu": features})["mu"].argmax(dim=-1)
@@ -634,7 +635,8 @@ class MlpHybridPolicy(BasePolicy):
         :param deterministic: mean of ``pi`` instead of samples, and the most likely options
             unless ``sample_options`` says otherwise
         :param sample_options: options sampled from ``mu`` (True) or its mode (False) whatever
-            ``deterministic`` says (None: the mode if ``deterministic``, else a sample)
+            ``deterministic`` says (None: the mode if ``deterministic``, else a sample; unlike
+            :meth:`predict`, the policy's own :attr:`sample_options` is not consulted)
         :return: options (B, N) and controls (B, N, m)
         """
         _, broadcast, control = self._sample(obs, deterministic, broadcast, action_noise_std, sample_options, False)
