@@ -205,6 +205,9 @@ def test_the_shipped_study_files_load():
         "predicted_held_90_long": 0.9,
         "predicted_held_90_distance": 0.9,
         "predictive_first_90": 0.9,
+        "predictive_first_90_gamma99": 0.9,
+        "predictive_first_90_raw": 0.9,
+        "predictive_imitated_90": 0.9,
     }
     # the receivers' predictions shown, at five times the others' budget, at the same and at twenty times
     held = {a.label: a for a in rate.algorithms if a.label.startswith("predicted_held")}
@@ -218,6 +221,11 @@ def test_the_shipped_study_files_load():
     first = next(a for a in rate.algorithms if a.label == "predictive_first_90")
     assert first.hyperparams["env_kwargs"]["predicted_held"] and rate.budget(first) == 500_000
     assert first.hyperparams["callback"][0] == {"sb3_detc.callbacks.DeltaFirstCallback": {"switch": 50, "delta": 0.21}}
+    variants = {a.label: a.hyperparams for a in rate.algorithms if a.label.startswith("predictive_first_90_")}
+    assert variants["predictive_first_90_gamma99"] == {**first.hyperparams, "gamma": 0.99}
+    assert variants["predictive_first_90_raw"] == {**first.hyperparams, "normalize_broadcast_advantage": False}
+    imitated = next(a for a in rate.algorithms if a.label == "predictive_imitated_90")
+    assert imitated.hyperparams == {**first.hyperparams, "n_timesteps": 51_200}  # stops at the switch
     joint = load_study(ROOT / "sb3_detc" / "studies" / "multiwalker_rate.yml")
     assert joint.fixed_families == ("periodic", "periodic_staggered", "send_on_delta_max_age")
     assert joint.episodes >= 50

@@ -546,7 +546,7 @@ class MlpHybridPolicy(BasePolicy):
         optimizer.zero_grad(set_to_none=True)
         self.set_training_mode(training)
         with th.no_grad():
-            mode = self.chains.run({"mu": features})["mu"].argmax(dim=-1)
+            mode = self._sample_options(self.chains.run({"mu": features})["mu"], deterministic=True)
         return float((mode == targets).float().mean())
 
     def option_values(
