@@ -42,6 +42,7 @@ from sb3_detc.mappoc.mappoc import PAPER_ITERATION
 from sb3_detc.triggers import PeriodicTrigger, RandomTrigger, SendOnDelta, StatelessTrigger
 
 __all__ = [
+    "IMITATED",
     "set_broadcast_cost",
     "ActionNoiseSchedule",
     "CommMetricsCallback",
@@ -581,25 +582,28 @@ class ControlFirstCallback(_TwoStages):
             self.model.set_reward_normalization(True, fresh_statistics=self.first_of_stage_two(t))
 
 
+#: The model attribute in which :class:`FixedFirstCallback` records the trigger ``mu`` imitated (its repr).
+IMITATED = "imitated_trigger"
+
+
 class FixedFirstCallback(_TwoStages):
     """Two stages: a fixed trigger with a controller trained for it, then ``mu`` learned from that trigger on.
 
     * stage 1 (positions before ``switch``): the options come from :attr:`trigger`
       (``model.set_fixed_trigger``); ``pi`` and the critic learn, ``mu`` does not;
-    * at the end of stage 1's last rollout, ``mu`` imitates the trigger
-      (:meth:`~sb3_detc.mappoc.policies.MlpHybridPolicy.imitate_options`) on that rollout's
-      observations and on copies of them whose own ages are drawn from ``[0, 2 span)``
-      (:meth:`age_span`), so that it follows the trigger at every age;
-    * stage 2 (from ``switch`` on): the options come from ``mu``; ``mu``, the critic and (with
-      ``train_control``) ``pi`` learn. A rate target's price (``target_savings``) moves only here,
-      from the rate the trigger left.
+    * at the end of stage 1's last rollout (the first that ends at ``switch`` or later), ``mu``
+      imitates the trigger (:meth:`~sb3_detc.mappoc.policies.MlpHybridPolicy.imitate_options`) on
+      that rollout's observations and on copies of them whose own ages are drawn from
+      ``[0, 2 span)`` (:meth:`age_span`), so that it follows the trigger at every age;
+    * stage 2 (from ``switch`` on, once ``mu`` imitated the trigger): the options come from
+      ``mu``; ``mu``, the critic and (with ``train_control``) ``pi`` learn. A rate target's price
+      (``target_savings``) moves only here, from the rate the trigger left.
 
-    The stage is a function of the position, and the imitation happens at the end of the rollout
-    that ends stage 1, so a run continued from a model saved at a rollout's start (the study
-    runner's checkpoints) resumes in the right stage with the imitated ``mu``; a model saved
-    within stage 1's last rollout (e.g. by a checkpoint callback every so many steps) holds ``mu``
-    as it was before the imitation. Logged: ``curriculum/stage``, and the imitation's share of matched decisions
-    as ``curriculum/imitation_accuracy``. The communication cost stays charged in both stages.
+    The model records the imitation (:data:`IMITATED`, saved with it), so a run continued from
+    any saved model resumes in the right stage: one saved within stage 1's last rollout, before
+    the imitation, runs one more rollout under the trigger and imitates it then. Logged:
+    ``curriculum/stage``, and the imitation's share of matched decisions as
+    ``curriculum/imitation_accuracy``. The communication cost stays charged in both stages.
 
     :param switch: first position of stage 2 (iterations or timesteps, as ``unit``; > 0)
     :param trigger: the fixed trigger of stage 1, a stateless one of :mod:`sb3_detc.triggers`
@@ -637,16 +641,21 @@ class FixedFirstCallback(_TwoStages):
                 f"{self.trigger!r}: set policy_kwargs option_age_scale > 0 (e.g. 0.1)."
             )
 
+    def imitated(self) -> bool:
+        """Whether the model's ``mu`` imitated this callback's trigger (recorded as :data:`IMITATED` on the model)."""
+        return getattr(self.model, IMITATED, None) == repr(self.trigger)
+
     def apply(self, t: float) -> None:
-        """Put the model into the stage of position ``t`` and log the stage.
+        """Put the model into the stage of position ``t`` and log the stage: 2 from ``switch`` on once imitated.
 
         :param t: iteration or timestep (as :attr:`unit`)
         """
-        self.set_stage(int(self.value(t)), self.trigger, self.train_control)
+        self.set_stage(2 if self.value(t) == 2 and self.imitated() else 1, self.trigger, self.train_control)
 
     def _on_rollout_end(self) -> None:
-        if self.first_of_stage_two(self.position()):  # the rollout that ends stage 1
+        if self.value(self.position()) == 2 and not self.imitated():  # the rollout that ends stage 1
             self.logger.record("curriculum/imitation_accuracy", self.imitate())
+            setattr(self.model, IMITATED, repr(self.trigger))
 
     def age_span(self, ages: th.Tensor) -> int:
         """The ages the imitation shows ``mu``: ``[0, 2 span)``.

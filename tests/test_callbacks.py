@@ -17,6 +17,7 @@ from stable_baselines3.common.vec_env import DummyVecEnv
 
 import sb3_detc  # noqa: F401  (registers the env ids)
 from sb3_detc.callbacks import (
+    IMITATED,
     ActionNoiseSchedule,
     BroadcastEntropySchedule,
     CommMetricsCallback,
@@ -354,6 +355,43 @@ def test_schedule_first_trains_pi_for_the_schedule_then_mu_from_the_schedule_on(
     assert any(not th.equal(a, b) for a, b in zip(mu_imitated, net_slices(model, "mu"), strict=True))
     assert any(not th.equal(a, b) for a, b in zip(pi_stage_1, net_slices(model, "pi"), strict=True))
     assert model.broadcast_price != 0.0
+
+
+class SaveAt(BaseCallback):
+    """Saves the model after the step at which the step count reaches ``steps`` (within a rollout)."""
+
+    def __init__(self, steps: int, path: Any) -> None:
+        super().__init__()
+        self.steps, self.path = steps, path
+
+    def _on_step(self) -> bool:
+        if self.model.num_timesteps == self.steps:
+            self.model.save(self.path)
+        return True
+
+
+def test_schedule_first_resumed_before_the_imitation_imitates_first(tmp_path) -> None:
+    """A model saved within stage 1's last rollout (a checkpoint every k steps) runs one more rollout in stage 1."""
+    n_steps, switch, period = 32, 2, 4
+    env = make_vec_env(ENV_ID, n_envs=1, env_kwargs={"n_agents": 3, "max_cycles": 20})
+    policy_kwargs = {**TINY, "option_age_scale": 0.1}
+    model = MAPPOC("MlpHybridPolicy", env, n_steps=n_steps, batch_size=32, seed=0, policy_kwargs=policy_kwargs)
+    path = tmp_path / "within.zip"
+    model.learn(n_steps * switch, callback=[ScheduleFirstCallback(switch, period), SaveAt(n_steps * switch, path)])
+    assert getattr(model, IMITATED) == "PeriodicTrigger(period=4, staggered=False)"
+    model.save(tmp_path / "after.zip")  # at a rollout's start: imitated
+    within = MAPPOC.load(path, env=env)
+    assert within.num_timesteps == n_steps * switch and not hasattr(within, IMITATED)
+    mu_before = net_slices(within, "mu")
+    stages, levels = ScheduleFirstCallback(switch, period), Stages()
+    capture = capture_logger(within)
+    within.learn(n_steps * 2, callback=[stages, levels], reset_num_timesteps=False)
+    assert [(trigger is stages.trigger, mu) for trigger, mu, _ in levels.rows] == [(True, False), (False, True)]
+    assert capture.rows[0]["curriculum/imitation_accuracy"] > 0.99
+    assert any(not th.equal(a, b) for a, b in zip(mu_before, net_slices(within, "mu"), strict=True))
+    after, levels = MAPPOC.load(tmp_path / "after.zip", env=env), Stages()
+    after.learn(n_steps, callback=[ScheduleFirstCallback(switch, period), levels], reset_num_timesteps=False)
+    assert [mu for _, mu, _ in levels.rows] == [True]  # straight on in stage 2
 
 
 def test_schedule_first_can_keep_pi_and_needs_the_age_as_an_input_of_mu() -> None:
