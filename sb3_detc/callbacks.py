@@ -10,10 +10,12 @@ hyperparameter file, e.g. ``callback: sb3_detc.callbacks.CurriculumCallback``):
   skips), :class:`PeriodicCommCallback` (broadcast every step or every k-th step), or any
   trigger of :mod:`sb3_detc.triggers` with :class:`FixedTriggerCallback`;
 * two stages instead of the curriculum: :class:`ControlFirstCallback` (the control policy
-  under random skips first, then the policies over options for the frozen controller) and
+  under random skips first, then the policies over options for the frozen controller),
   :class:`ScheduleFirstCallback` (a periodic schedule with a controller trained for it first,
-  then the policy over options, started as the schedule, learned with the controller) and
-  :class:`DeltaFirstCallback` (the same from send-on-delta, on the linear system predictive triggering);
+  then the policy over options, started as the schedule, learned with the controller),
+  :class:`DeltaFirstCallback` (the same from send-on-delta; on the linear system with the
+  receivers' predictions shown, predictive triggering) and :class:`FixedFirstCallback` (from any
+  stateless trigger);
 * :class:`CommMetricsCallback`: communication savings, inter-event times, per-agent
   returns with and without the communication cost, package travel and fall rate, per rollout.
 
