@@ -23,6 +23,7 @@ from sb3_detc.triggers import (
     PredictiveTrigger,
     RandomTrigger,
     SendOnDelta,
+    StatelessTrigger,
     lqr_on_predicted_states,
 )
 
@@ -127,6 +128,23 @@ def test_a_trigger_that_ignores_the_state_carries_no_information_about_it(policy
     episodes = evaluate_episodes(policy, gym.make(ENV_ID, **SETTINGS), [1, 2, 3], fixed_trigger=trigger)
     np.testing.assert_allclose(episodes.broadcast_probability, 1 - trigger.skip_prob)
     assert episodes.option_state_information == pytest.approx(0.0, abs=1e-12)
+
+
+class SoftPeriodic(PeriodicTrigger):
+    """A periodic trigger that tells a probability of its own instead of its options."""
+
+    def broadcast_probability(self, obs: dict[str, np.ndarray]) -> np.ndarray:
+        return np.full(obs["age"].shape[:-1], 0.25)
+
+
+def test_a_stateless_trigger_records_its_options_or_its_own_probabilities(policy) -> None:
+    env = gym.make(ENV_ID, **SETTINGS)
+    plain = evaluate_episodes(policy, env, [1, 2], fixed_trigger=PeriodicTrigger(3))
+    np.testing.assert_allclose(plain.broadcast_probability.mean(axis=0), 1 - plain.agent_savings)  # its options
+    assert isinstance(SoftPeriodic(3), StatelessTrigger)
+    soft = evaluate_episodes(policy, env, [1, 2], fixed_trigger=SoftPeriodic(3))
+    np.testing.assert_allclose(soft.broadcast_probability, 0.25)
+    np.testing.assert_array_equal(soft.agent_savings, plain.agent_savings)
 
 
 def test_a_deterministic_trigger_of_the_state_carries_the_entropy_of_its_rate() -> None:
