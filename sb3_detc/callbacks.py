@@ -42,6 +42,7 @@ from sb3_detc.evaluation import EpisodeCounter, Episodes
 from sb3_detc.mappoc.checks import check_rate_target
 from sb3_detc.mappoc.mappoc import PAPER_ITERATION
 from sb3_detc.triggers import PeriodicTrigger, RandomTrigger, SendOnDelta, StatelessTrigger
+from sb3_detc.validation import check_integer
 
 __all__ = [
     "IMITATED",
@@ -629,12 +630,10 @@ class FixedFirstCallback(_TwoStages):
         verbose: int = 0,
     ) -> None:
         super().__init__(switch, unit, verbose)
-        if isinstance(imitation_steps, bool) or not isinstance(imitation_steps, int) or imitation_steps < 1:
-            raise ValueError(f"imitation_steps must be an integer >= 1, got {imitation_steps!r}.")
         self.trigger = trigger
         self.reads_age = bool(reads_age)
         self.train_control = bool(train_control)
-        self.imitation_steps = imitation_steps
+        self.imitation_steps = check_integer("imitation_steps", imitation_steps)
 
     def _on_training_start(self) -> None:
         if self.reads_age and not self.model.policy.option_age_scale > 0:

@@ -33,6 +33,7 @@ from stable_baselines3.common.base_class import BaseAlgorithm
 from sb3_detc.mappoc import MAPPOC
 from sb3_detc.mappoc.checks import check_hyperparameters, check_observation_normalization, check_rate_target
 from sb3_detc.mappoc.mappoc import PAPER_ITERATION
+from sb3_detc.validation import is_integer
 from sb3_detc.zoo import ALGORITHMS, HYPERPARAMS_DIR, register
 
 __all__ = [
@@ -294,7 +295,7 @@ def _check_values(entry: dict[str, Any], algo: str, where: str) -> None:
         hint = " (YAML reads 1e6 as text: write 1000000 or !!float 1e6)" if isinstance(steps, str) else ""
         raise InputError(f"{where}: n_timesteps must be a number >= 0, got {steps!r}{hint}")
     n_envs = entry.get("n_envs", 1)
-    if isinstance(n_envs, bool) or not isinstance(n_envs, int) or n_envs < 1:
+    if not is_integer(n_envs, 1):
         raise InputError(f"{where}: n_envs must be a positive integer, got {n_envs!r}")
     for key in ("learning_rate", "clip_range", "clip_range_vf", "delta_std"):  # rl-zoo3's schedules
         if key in entry and not _is_schedule(entry[key]):

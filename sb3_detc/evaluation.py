@@ -47,7 +47,6 @@ from sb3_detc.triggers import (
     FixedControl,
     RandomTrigger,
     StatelessTrigger,
-    lqr_on_predicted_states,
     tune_trigger,
 )
 
@@ -394,9 +393,10 @@ def evaluate_episodes(
     otherwise one after another in ``env``. Episode
     ``k`` is reset with ``seeds[k]`` either way, and the results are in the order of ``seeds``.
     The copies have the settings of ``env.spec``: what was changed in ``env`` after it was
-    made (e.g. its broadcast cost set by hand, or a wrapper put around it by hand whose arguments
-    the spec does not record, such as a :class:`~sb3_detc.triggers.FixedControl` with another
-    control law) does not carry over; give such an env without a spec. Where every episode has its
+    made (e.g. its broadcast cost set by hand) does not carry over, and a wrapper put around it
+    by hand is made again only if it records its arguments (Gymnasium's ``RecordConstructorArgs``,
+    as :class:`~sb3_detc.triggers.FixedControl` and :class:`~sb3_detc.triggers.ReceiverPredictions`
+    do); give an env changed by hand without a spec. Where every episode has its
     seed, the policy's draws (options sampled from ``mu``, controls unless ``deterministic``)
     are seeded with the first (PyTorch's CPU generator, left as it was afterwards; a policy on
     a GPU draws from the GPU's): the same policy, env and seeds give the same episodes.
@@ -613,7 +613,7 @@ def fixed_family_env(env: gym.Env, family: str) -> gym.Env:
     spec = env.spec
     if spec is None:  # run one episode after another: nothing to copy
         joint = env.unwrapped
-        return FixedControl(joint, lqr_on_predicted_states(joint))
+        return FixedControl(joint, "lqr_on_predicted_states")
     if spec.id not in LINEAR_IDS:
         raise ValueError(f"predictive triggering needs the linear system ({', '.join(LINEAR_IDS)}), got {spec.id!r}.")
     # PredictiveTrigger predicts from the held broadcasts themselves: not on the env that shows the predictions

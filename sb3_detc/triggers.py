@@ -32,6 +32,7 @@ import numpy as np
 from sb3_detc.envs.linear import HeldStatePredictor, LinearSystem, LQRController
 from sb3_detc.envs.wrappers import JointEnv
 from sb3_detc.network import advance_timer, hold
+from sb3_detc.validation import check_integer
 
 
 class RandomTrigger:
@@ -106,19 +107,6 @@ class StatelessTrigger(abc.ABC):
         return self(obs).astype(np.float64)
 
 
-def _check_count(name: str, value: int) -> int:
-    """Check a count (a period, a maximum age, a number of episodes or iterations).
-
-    :param name: the parameter's name, for the message
-    :param value: the value (an integer >= 1, not a bool)
-    :return: ``value`` as an int
-    :raises ValueError: if ``value`` is not an integer >= 1
-    """
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
-        raise ValueError(f"{name} must be an integer >= 1, got {value!r}.")
-    return int(value)
-
-
 def _check_threshold(delta: float, norm: float) -> tuple[float, float]:
     """Check the threshold and the norm of a send-on-delta-like trigger.
 
@@ -185,7 +173,7 @@ class PeriodicTrigger(StatelessTrigger):
     """
 
     def __init__(self, period: int, staggered: bool = False) -> None:
-        self.period = _check_count("period", period)
+        self.period = check_integer("period", period)
         if not isinstance(staggered, (bool, np.bool_)):
             raise ValueError(f"staggered must be a bool, got {staggered!r}.")
         self.staggered = bool(staggered)
@@ -238,7 +226,7 @@ class SendOnDelta(StatelessTrigger):
 
     def __init__(self, delta: float, norm: float = 2, max_age: int | None = None) -> None:
         self.delta, self.norm = _check_threshold(delta, norm)
-        self.max_age = None if max_age is None else _check_count("max_age", max_age)
+        self.max_age = None if max_age is None else check_integer("max_age", max_age)
 
     def __repr__(self) -> str:
         return f"SendOnDelta(delta={self.delta:g}, norm={self.norm:g}, max_age={self.max_age})"
@@ -402,7 +390,7 @@ def evaluate_trigger(
     :return: savings and team control cost per episode
     :raises ValueError: if ``env`` is not a joint env or ``n_episodes < 1``
     """
-    n_episodes = _check_count("n_episodes", n_episodes)
+    n_episodes = check_integer("n_episodes", n_episodes)
     if not isinstance(env.unwrapped, JointEnv):
         raise ValueError(f"evaluate_trigger needs a joint sb3_detc env, got {env}.")
     costs = np.zeros(n_episodes)
@@ -478,7 +466,14 @@ def lqr_on_predicted_states(system_or_env: LinearSystem | gym.Env, gain: np.ndar
     return control
 
 
-class FixedControl(gym.Wrapper):
+#: Control laws that :class:`FixedControl` builds by name for its env's linear system.
+CONTROL_LAWS: dict[str, Callable[[LinearSystem | gym.Env], Control]] = {
+    "lqr_on_held_states": lqr_on_held_states,
+    "lqr_on_predicted_states": lqr_on_predicted_states,
+}
+
+
+class FixedControl(gym.Wrapper, gym.utils.RecordConstructorArgs):
     """A joint env whose controls come from a fixed control law; the options pass through.
 
     Every step, the control law gets the observation before the step's decisions and the
@@ -487,14 +482,28 @@ class FixedControl(gym.Wrapper):
     no effect), e.g. with :func:`lqr_on_held_states`, the model-based event-triggered
     setting in which send-on-delta is the classic trigger.
 
+    Its arguments are recorded in the env's spec, so ``gym.make(env.spec)`` makes it again (as
+    :func:`~sb3_detc.evaluation.evaluate_episodes` does to run episodes side by side): a law
+    named by a key of :data:`CONTROL_LAWS` is built anew for the copy's system, a law given as a
+    callable is shared with the copy, which is right for a law that is a function of its
+    arguments only (as every law of this module is).
+
     :param env: a joint env (:class:`~sb3_detc.envs.wrappers.JointEnv`, possibly wrapped)
-    :param control: the control law ``control(obs, broadcast) -> controls (N, m)``, or None for
-        :func:`lqr_on_held_states` of the env's linear system
+    :param control: the control law ``control(obs, broadcast) -> controls (N, m)``, a function of
+        its arguments only; or the name of one of :data:`CONTROL_LAWS`, built for the env's linear
+        system; None for ``"lqr_on_held_states"``
+    :raises ValueError: for a name that is not a key of :data:`CONTROL_LAWS`
     """
 
-    def __init__(self, env: gym.Env, control: Control | None = None) -> None:
-        super().__init__(env)
-        self.control = lqr_on_held_states(env) if control is None else control
+    def __init__(self, env: gym.Env, control: Control | str | None = None) -> None:
+        gym.utils.RecordConstructorArgs.__init__(self, control=control)
+        gym.Wrapper.__init__(self, env)
+        if control is None or isinstance(control, str):
+            name = "lqr_on_held_states" if control is None else control
+            if name not in CONTROL_LAWS:
+                raise ValueError(f"unknown control law {name!r}; the named laws are {sorted(CONTROL_LAWS)}.")
+            control = CONTROL_LAWS[name](env)
+        self.control = control
         self._obs: dict[str, np.ndarray] | None = None
 
     def reset(self, **kwargs: Any) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
@@ -521,7 +530,7 @@ class FixedControl(gym.Wrapper):
         return self._obs, reward, terminated, truncated, info
 
 
-class ReceiverPredictions(gym.ObservationWrapper):
+class ReceiverPredictions(gym.ObservationWrapper, gym.utils.RecordConstructorArgs):
     """A joint env on the linear system in which what the receivers hold of an agent is their prediction of it.
 
     Every agent's held broadcast (``held``, as every receiver and the critic see it) and its own
@@ -544,7 +553,8 @@ class ReceiverPredictions(gym.ObservationWrapper):
     """
 
     def __init__(self, env: gym.Env, gain: np.ndarray | None = None) -> None:
-        super().__init__(env)
+        gym.utils.RecordConstructorArgs.__init__(self, gain=gain)
+        gym.ObservationWrapper.__init__(self, env)
         self.predictor = HeldStatePredictor(_linear_system(env, "ReceiverPredictions"), gain)
 
     def observation(self, observation: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
@@ -581,7 +591,7 @@ def sweep_send_on_delta(
         raise ValueError("deltas must not be empty.")
     for delta in deltas:
         _check_threshold(delta, 2)
-    _check_count("n_episodes", n_episodes)
+    check_integer("n_episodes", n_episodes)
     return [
         evaluate_trigger(env, SendOnDelta(delta), control, n_episodes, seed, label=f"send-on-delta {delta:g}")
         for delta in deltas
@@ -728,7 +738,7 @@ def tune_trigger(
         raise ValueError(f"target_savings must be in (0, 1), got {target_savings!r}.")
     if isinstance(tolerance, bool) or not 0.0 < tolerance < 1.0:
         raise ValueError(f"tolerance must be in (0, 1), got {tolerance!r}.")
-    max_iterations = _check_count("max_iterations", max_iterations)
+    max_iterations = check_integer("max_iterations", max_iterations)
     if isinstance(initial, bool) or not (np.isfinite(initial) and initial > 0):
         raise ValueError(f"initial must be a finite number > 0, got {initial!r}.")
     if family in ("periodic", "periodic_staggered"):
@@ -784,7 +794,7 @@ def tune_trigger_on_env(
     """
     if control is None:
         control = lqr_on_predicted_states(env) if family == "predictive" else lqr_on_held_states(env)
-    n_episodes = _check_count("n_episodes", n_episodes)
+    n_episodes = check_integer("n_episodes", n_episodes)
     points: list[tuple[Trigger, TriggerPoint]] = []
 
     def savings_of(trigger: Trigger) -> float:

@@ -377,6 +377,36 @@ def test_predictive_triggering_runs_with_lqr_on_the_predicted_states_in_every_co
     np.testing.assert_allclose(from_shown.control_returns, one_by_one.control_returns, rtol=1e-6)
 
 
+@pytest.mark.parametrize("control", [None, "lqr_on_predicted_states", "a law"])
+def test_a_fixed_control_put_around_by_hand_is_made_again_and_runs_side_by_side(
+    monkeypatch: pytest.MonkeyPatch, control
+) -> None:
+    """A FixedControl around a made env records its law in the spec: copies act as the env does."""
+    made = gym.make(ENV_ID, n_agents=3, max_cycles=30)
+    law = lqr_on_predicted_states(made) if control == "a law" else control
+    wrapped = FixedControl(made, law)
+    copy = gym.make(wrapped.spec)
+    assert isinstance(copy, FixedControl) and copy.spec.kwargs == made.spec.kwargs
+    if control == "a law":
+        assert copy.control is law  # a law given as a function is shared
+    policy = MAPPOC("MlpHybridPolicy", made, policy_kwargs={"net_arch": [8]}, seed=0).policy
+    trigger, seeds = PeriodicTrigger(4), [5, 6, 7, 8]
+    made_again = []
+    original_make = gym.make
+    monkeypatch.setattr(gym, "make", lambda *args, **kwargs: made_again.append(args) or original_make(*args, **kwargs))
+    side_by_side = evaluate_episodes(policy, wrapped, seeds, fixed_trigger=trigger)
+    assert len(made_again) == len(seeds) - 1  # copies, not one episode after another
+    monkeypatch.undo()
+    joint = joint_env(n_agents=3, max_cycles=30)  # no spec: one episode after another
+    one_by_one = evaluate_episodes(policy, FixedControl(joint, law), seeds, fixed_trigger=trigger)
+    np.testing.assert_allclose(side_by_side.control_returns, one_by_one.control_returns, rtol=1e-6)
+
+
+def test_a_fixed_control_refuses_an_unknown_law_name() -> None:
+    with pytest.raises(ValueError, match=r"unknown control law 'lqr'; the named laws are \['lqr_on_held_states'"):
+        FixedControl(gym.make(ENV_ID), "lqr")
+
+
 def test_per_episode_values_are_kept_as_the_shortest_decimals_of_their_float32_values() -> None:
     values = np.array([-9.123456789012345, 1.0, 123456.789, 1e-9, np.nan])
     kept = evaluation.float32_list(values)

@@ -24,6 +24,7 @@ from gymnasium import spaces
 from gymnasium.utils import seeding
 
 from sb3_detc.envs.system import CommunicatingSystem, SystemObs
+from sb3_detc.validation import check_integer
 
 __all__ = [
     "LinearSystem",
@@ -142,10 +143,8 @@ class LinearSystem(CommunicatingSystem):
         jump_std: float = 1.0,
     ) -> None:
         super().__init__()
-        if isinstance(n_agents, bool) or not isinstance(n_agents, (int, np.integer)) or n_agents < 2:
-            raise ValueError(f"n_agents must be an integer >= 2, got {n_agents!r}.")
-        if isinstance(max_cycles, bool) or not isinstance(max_cycles, (int, np.integer)) or max_cycles < 1:
-            raise ValueError(f"max_cycles must be an integer >= 1, got {max_cycles!r}.")
+        check_integer("n_agents", n_agents, minimum=2)
+        check_integer("max_cycles", max_cycles)
         self.dt = _check_positive("dt", dt)
         self.q_reg = _check_non_negative("q_reg", q_reg)
         self.q_vel = _check_non_negative("q_vel", q_vel)

@@ -70,7 +70,5 @@ def lqr_joint_env(prediction: bool = False, predicted_held: bool = False, **kwar
     if predicted_held and not prediction:
         raise ValueError("predicted_held=True needs prediction=True: the receivers predict only with it.")
     joint = joint_env(**kwargs)
-    env = triggers.FixedControl(
-        joint, (triggers.lqr_on_predicted_states if prediction else triggers.lqr_on_held_states)(joint)
-    )
+    env = triggers.FixedControl(joint, "lqr_on_predicted_states" if prediction else "lqr_on_held_states")
     return triggers.ReceiverPredictions(env) if predicted_held else env

@@ -25,6 +25,7 @@ from pettingzoo.sisl.multiwalker import multiwalker_base as stock
 from pettingzoo.sisl.multiwalker.multiwalker_base import BipedalWalker, ContactDetector, MultiWalkerEnv
 
 from sb3_detc.envs.system import CommunicatingSystem, SystemObs
+from sb3_detc.validation import is_integer
 
 #: Maximum number of walkers (the stock limit).
 MAX_WALKERS = stock.MAX_AGENTS
@@ -323,7 +324,7 @@ class MultiwalkerSystem(CommunicatingSystem):
         terrain_length: int = stock.TERRAIN_LENGTH,
         render_mode: str | None = None,
     ) -> None:
-        if not _is_int(n_walkers) or not 2 <= n_walkers <= MAX_WALKERS:
+        if not is_integer(n_walkers) or not 2 <= n_walkers <= MAX_WALKERS:
             raise ValueError(f"n_walkers must be an int between 2 and {MAX_WALKERS}, got {n_walkers!r}.")
         for name, value in (
             ("forward_reward", forward_reward),
@@ -335,10 +336,10 @@ class MultiwalkerSystem(CommunicatingSystem):
                 raise ValueError(f"{name} must be a finite number, got {value!r}.")
         if speed_penalty < 0:
             raise ValueError(f"speed_penalty must be >= 0, got {speed_penalty!r}.")
-        if not _is_int(max_cycles) or max_cycles < 1:
+        if not is_integer(max_cycles, 1):
             raise ValueError(f"max_cycles must be an int >= 1, got {max_cycles!r}.")
         min_terrain = stock.TERRAIN_STARTPAD + stock.TERRAIN_GRASS
-        if not _is_int(terrain_length) or terrain_length < min_terrain:
+        if not is_integer(terrain_length, min_terrain):
             raise ValueError(f"terrain_length must be an int >= {min_terrain} (terrain steps), got {terrain_length!r}.")
         if render_mode not in (None, *self.metadata["render_modes"]):
             modes = self.metadata["render_modes"]
@@ -471,15 +472,6 @@ class MultiwalkerSystem(CommunicatingSystem):
     def close(self) -> None:
         """Release the rendering surface."""
         self.physics.close()
-
-
-def _is_int(value: Any) -> bool:
-    """Whether ``value`` is an integer, a Python or NumPy one but not a bool.
-
-    :param value: the value to check
-    :return: True for an int or a NumPy integer other than a bool
-    """
-    return isinstance(value, (int, np.integer)) and not isinstance(value, bool)
 
 
 def _unbounded(size: int) -> spaces.Box:

@@ -11,6 +11,7 @@ from stable_baselines3.common.type_aliases import GymEnv
 from stable_baselines3.common.vec_env import VecEnv, unwrap_vec_normalize
 
 from sb3_detc.mappoc.critics import CRITICS
+from sb3_detc.validation import is_integer
 
 #: Observation keys that the policy turns into the network's state with the broadcast rule (the
 #: message copied into ``held``, ``age`` reset to 0) or that feed the policy over options: a
@@ -35,9 +36,9 @@ def check_same_agents(env: GymEnv, n_agents: int) -> None:
 #: Hyperparameter checks: name -> (rule, what the rule needs).
 _HYPERPARAMETER_RULES: dict[str, tuple[Callable[[Any], bool], str]] = {
     "learning_rate": (lambda v: callable(v) or v >= 0, ">= 0 or a schedule"),
-    "n_steps": (lambda v: isinstance(v, numbers.Integral) and v > 0, "a positive integer"),
-    "batch_size": (lambda v: isinstance(v, numbers.Integral) and v > 0, "a positive integer"),
-    "n_epochs": (lambda v: isinstance(v, numbers.Integral) and v > 0, "a positive integer"),
+    "n_steps": (lambda v: is_integer(v, 1), "a positive integer"),
+    "batch_size": (lambda v: is_integer(v, 1), "a positive integer"),
+    "n_epochs": (lambda v: is_integer(v, 1), "a positive integer"),
     "gamma": (lambda v: 0 < v <= 1, "in (0, 1]"),
     "gae_lambda": (lambda v: 0 <= v <= 1, "in [0, 1]"),
     "clip_range": (lambda v: callable(v) or v > 0, "> 0 or a schedule"),
@@ -139,7 +140,7 @@ def check_n_envs(env: Any, n_envs: int | None) -> None:
         return
     if not isinstance(env, str):
         raise ValueError("n_envs is the number of envs MAPPOC builds from an env id; pass an env id, not an env.")
-    if isinstance(n_envs, bool) or not isinstance(n_envs, int) or n_envs < 1:
+    if not is_integer(n_envs, 1):
         raise ValueError(f"n_envs must be a positive integer, got {n_envs!r}.")
 
 

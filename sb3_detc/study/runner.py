@@ -27,6 +27,7 @@ import yaml
 
 from sb3_detc.study.spec import CONF_FOLDER, StudyError, StudySpec, conf_copy, load_folder_study, same_study
 from sb3_detc.study.trial import evaluate_trial, exclusive, read_status, replace_atomically, run_trial, trial_folder
+from sb3_detc.validation import is_integer
 
 __all__ = ["StudyProgress", "evaluate_study", "prepare_folder", "run_study"]
 
@@ -408,7 +409,7 @@ def run_study(
     :raises StudyError: if the folder belongs to another study or another run uses it, the cluster
         does not answer, or ``cpus`` is not a positive integer or comes with ``address``
     """
-    if cpus is not None and (isinstance(cpus, bool) or not isinstance(cpus, int) or cpus < 1):
+    if cpus is not None and not is_integer(cpus, 1):
         raise StudyError(f"cpus must be a positive integer, got {cpus!r}")
     if cpus is not None and address is not None:
         raise StudyError("give cpus or address, not both: a cluster's cores are its own")

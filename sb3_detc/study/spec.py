@@ -40,6 +40,7 @@ import yaml
 from sb3_detc.cli import InputError, check_algorithm, check_env, check_hyperparams_file
 from sb3_detc.renamed import renamed_keys
 from sb3_detc.triggers import TRIGGER_FAMILIES
+from sb3_detc.validation import is_integer
 from sb3_detc.zoo import ALGORITHMS, HYPERPARAMS_DIR, uses_rollout_workers
 
 __all__ = [
@@ -183,9 +184,9 @@ def _int(path: Path, where: str, value: Any, minimum: int) -> int:
     """
     if isinstance(value, float) and value.is_integer():
         value = int(value)
-    if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
+    if not is_integer(value, minimum):
         raise _fail(path, f"{where} must be an integer >= {minimum}, got {value!r}")
-    return value
+    return int(value)
 
 
 def _seeds(path: Path, where: str, value: Any) -> tuple[int, ...]:
