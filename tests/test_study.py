@@ -209,7 +209,7 @@ def test_the_shipped_study_files_load():
         "predictive_first_90_raw": 0.9,
         "predictive_imitated_90": 0.9,
         "predictive_first_90_noent": 0.9,
-        "predictive_first_90_noent_slow": 0.9,
+        "predictive_first_90_noent_return": 0.9,
     }
     # the receivers' predictions shown, at five times the others' budget, at the same and at twenty times
     held = {a.label: a for a in rate.algorithms if a.label.startswith("predicted_held")}
@@ -228,7 +228,7 @@ def test_the_shipped_study_files_load():
     assert variants["predictive_first_90_raw"] == {**first.hyperparams, "normalize_broadcast_advantage": False}
     no_bonus = {**first.hyperparams, "broadcast_ent_coef": 0.0}
     assert variants["predictive_first_90_noent"] == no_bonus
-    assert variants["predictive_first_90_noent_slow"] == {**no_bonus, "clip_range_broadcast": 0.05}
+    assert variants["predictive_first_90_noent_return"] == {**no_bonus, "broadcast_advantage": "return"}
     imitated = next(a for a in rate.algorithms if a.label == "predictive_imitated_90")
     assert imitated.hyperparams == {**first.hyperparams, "n_timesteps": 51_200}  # stops at the switch
     joint = load_study(ROOT / "sb3_detc" / "studies" / "multiwalker_rate.yml")
