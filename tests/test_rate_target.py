@@ -1,4 +1,4 @@
-"""MAPPOC's rate target: a price per broadcast adapted by dual ascent (``target_savings``), and mu's own-age input."""
+"""MAPPOC's rate target: a price per broadcast (``target_savings``) and its rules, and mu's own-age input."""
 
 from __future__ import annotations
 
@@ -17,6 +17,7 @@ from sb3_detc.callbacks import ControlFirstCallback, RandomSkipCallback
 from sb3_detc.cli import InputError, check_hyperparams_file
 from sb3_detc.mappoc import MAPPOC
 from sb3_detc.mappoc.critics import CRITICS
+from sb3_detc.mappoc.rewards import PRICE_RULES, GapQuantile
 from sb3_detc.mappoc.workers import RolloutWorker
 from sb3_detc.triggers import PeriodicTrigger, SendOnDelta
 
@@ -288,3 +289,65 @@ def test_the_price_waits_while_mu_does_not_learn() -> None:
     model.set_trained_policies(control_policy=False, broadcast_policy=True)
     model.learn(128, reset_num_timesteps=False)
     assert model.broadcast_price != 0.0
+
+
+def test_the_price_rules_step_as_documented() -> None:
+    rng = np.random.default_rng(0)
+    option_values = rng.normal(size=(64, 2, 3, 2))
+    broadcast = (rng.random((64, 2, 3)) < 0.3).astype(np.int64)
+    dual = PRICE_RULES["dual"](target_savings=0.9, lr=0.5)
+    assert dual.updated(0.1, broadcast, option_values, mu_took=True) == pytest.approx(
+        0.1 + 0.5 * (broadcast.mean() - 0.1)
+    )
+    assert dual.updated(0.1, broadcast, option_values, mu_took=False) == 0.1  # a fixed trigger's rate is not mu's
+    quantile = PRICE_RULES["quantile"](target_savings=0.9, lr=0.5)
+    for mu_took in (True, False):  # it reads the critic, whoever took the options
+        step = quantile.updated(0.1, broadcast, option_values, mu_took) - 0.1
+        gaps = option_values[..., 1] - option_values[..., 0]
+        assert np.mean(gaps - step > 0) == pytest.approx(0.1, abs=1 / gaps.size)  # greedy options at the target
+
+
+def test_the_quantile_price_puts_the_critics_greedy_options_at_the_target() -> None:
+    """After every update the critic's greedy options on the rollout's states broadcast at the target rate."""
+    model = make(target_savings=0.8, broadcast_price_rule="quantile")
+    prices = []
+
+    class Gaps(BaseCallback):
+        def _on_rollout_start(self) -> None:
+            if self.model.num_timesteps:
+                prices.append(self.model.broadcast_price)
+
+        def _on_step(self) -> bool:
+            return True
+
+    model.learn(4 * 128, callback=Gaps())
+    assert len(set(prices)) == len(prices) == 3 and model.broadcast_price not in prices
+    buffer = model.rollout_buffer
+    gaps = buffer.option_values[..., 1] - buffer.option_values[..., 0] + buffer.broadcast_price  # without the price
+    raw_price = buffer.broadcast_price[0, 0, 0] - prices[-1]  # the env's cost in the learner's units
+    share = np.mean(gaps > model.broadcast_price + raw_price)  # the price after the last update
+    assert share == pytest.approx(0.2, abs=2 / gaps.size)
+
+
+def test_the_quantile_price_moves_while_a_fixed_trigger_decides() -> None:
+    model = make(target_savings=0.9, broadcast_price_rule="quantile")
+    rollouts = Rollouts()
+    model.learn(4 * 128, callback=[ControlFirstCallback(switch=2, skip_prob=0.5), rollouts])
+    assert rollouts.prices[0] != 0.0  # stage 1: the trigger's options, the critic's gaps
+
+
+def test_a_price_rule_is_checked_by_name_and_against_the_critic() -> None:
+    with pytest.raises(ValueError, match=r"broadcast_price_rule must be one of \['dual', 'quantile'\], got 'mean'"):
+        make(target_savings=0.9, broadcast_price_rule="mean")
+    with pytest.raises(ValueError, match="'option_heads' critic learns it from the rewards"):
+        make(target_savings=0.9, broadcast_price_rule="quantile", policy_kwargs={"critic": "option_heads"})
+    make(broadcast_price_rule="quantile", policy_kwargs={"critic": "option_heads"})  # no target: no price
+
+
+def test_the_price_rule_is_saved_and_restored(tmp_path) -> None:
+    model = make(target_savings=0.8, broadcast_price_rule="quantile")
+    model.learn(128)
+    model.save(tmp_path / "model.zip")
+    loaded = MAPPOC.load(tmp_path / "model.zip", env=model.get_env())
+    assert loaded.broadcast_price_rule == "quantile" and isinstance(loaded.price_rule, GapQuantile)
+    assert loaded.broadcast_price == model.broadcast_price

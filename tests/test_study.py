@@ -210,6 +210,8 @@ def test_the_shipped_study_files_load():
         "predictive_imitated_90": 0.9,
         "predictive_first_90_noent": 0.9,
         "predictive_first_90_noent_return": 0.9,
+        "predictive_first_90_quantile": 0.9,
+        "predicted_held_90_quantile": 0.9,
     }
     # the receivers' predictions shown, at five times the others' budget, at the same and at twenty times
     held = {a.label: a for a in rate.algorithms if a.label.startswith("predicted_held")}
@@ -229,6 +231,8 @@ def test_the_shipped_study_files_load():
     no_bonus = {**first.hyperparams, "broadcast_ent_coef": 0.0}
     assert variants["predictive_first_90_noent"] == no_bonus
     assert variants["predictive_first_90_noent_return"] == {**no_bonus, "broadcast_advantage": "return"}
+    quantile = {key: value for key, value in first.hyperparams.items() if key != "broadcast_price_lr"}
+    assert variants["predictive_first_90_quantile"] == {**quantile, "broadcast_price_rule": "quantile"}
     imitated = next(a for a in rate.algorithms if a.label == "predictive_imitated_90")
     assert imitated.hyperparams == {**first.hyperparams, "n_timesteps": 51_200}  # stops at the switch
     joint = load_study(ROOT / "sb3_detc" / "studies" / "multiwalker_rate.yml")

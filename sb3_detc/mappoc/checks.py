@@ -10,7 +10,9 @@ from gymnasium import spaces
 from stable_baselines3.common.type_aliases import GymEnv
 from stable_baselines3.common.vec_env import VecEnv, unwrap_vec_normalize
 
-from sb3_detc.mappoc.critics import CRITICS
+from sb3_detc.mappoc.critics import CRITICS, OptionCritic
+from sb3_detc.mappoc.losses import BROADCAST_ADVANTAGES
+from sb3_detc.mappoc.rewards import PRICE_RULES
 from sb3_detc.validation import is_integer
 
 #: Observation keys that the policy turns into the network's state with the broadcast rule (the
@@ -50,6 +52,7 @@ _HYPERPARAMETER_RULES: dict[str, tuple[Callable[[Any], bool], str]] = {
     "reward_scale": (lambda v: v > 0, "> 0"),
     "target_kl": (lambda v: v is None or v > 0, "None or > 0"),
     "broadcast_price_lr": (lambda v: v > 0, "> 0"),
+    "broadcast_advantage": (lambda v: v in BROADCAST_ADVANTAGES, "'greedy' or 'return'"),
 }
 
 
@@ -109,13 +112,16 @@ def check_vec_normalize(env: GymEnv | None) -> None:
         check_observation_normalization(vec_normalize.norm_obs, vec_normalize.norm_obs_keys)
 
 
-def check_rate_target(target_savings: float | None, fixed_trigger: Any) -> None:
-    """Check a rate target of the policy over options (``target_savings``).
+def check_rate_target(target_savings: float | None, fixed_trigger: Any, price_rule: str = "dual") -> None:
+    """Check a rate target of the policy over options (``target_savings``) and the rule of its price.
 
     :param target_savings: the savings to settle at, or None
     :param fixed_trigger: the fixed trigger given with it, or None
-    :raises ValueError: for a target outside (0, 1), or one with a fixed trigger
+    :param price_rule: how the price follows the target, a key of :data:`~sb3_detc.mappoc.rewards.PRICE_RULES`
+    :raises ValueError: for an unknown price rule, a target outside (0, 1), or one with a fixed trigger
     """
+    if price_rule not in PRICE_RULES:
+        raise ValueError(f"broadcast_price_rule must be one of {sorted(PRICE_RULES)}, got {price_rule!r}.")
     if target_savings is None:
         return
     if isinstance(target_savings, bool) or not isinstance(target_savings, numbers.Real) or not 0 < target_savings < 1:
@@ -126,6 +132,22 @@ def check_rate_target(target_savings: float | None, fixed_trigger: Any) -> None:
         raise ValueError(
             "target_savings sets the rate of the policy over options, but a fixed trigger takes the options instead; "
             "give one of target_savings and fixed_trigger."
+        )
+
+
+def check_price_rule(price_rule: str, target_savings: float | None, critic: OptionCritic) -> None:
+    """Check that the critic gives what the rate target's price rule needs.
+
+    :param price_rule: a key of :data:`~sb3_detc.mappoc.rewards.PRICE_RULES`
+    :param target_savings: the savings to settle at, or None (then no rule runs)
+    :param critic: the policy's option critic
+    :raises ValueError: for a rule that needs option values that take the price analytically with a
+        critic that learns the price from the rewards
+    """
+    if target_savings is not None and PRICE_RULES[price_rule].needs_price and not critic.needs_price:
+        raise ValueError(
+            f"broadcast_price_rule={price_rule!r} needs a critic that adds the price of a broadcast to its option "
+            f"values; the {critic.name!r} critic learns it from the rewards: use another critic or the 'dual' rule."
         )
 
 

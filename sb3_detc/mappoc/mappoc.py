@@ -23,13 +23,14 @@ from sb3_detc.mappoc.checks import (
     check_fixed_trigger,
     check_hyperparameters,
     check_n_envs,
+    check_price_rule,
     check_rate_target,
     check_same_agents,
     check_vec_normalize,
 )
-from sb3_detc.mappoc.losses import BROADCAST_ADVANTAGES, STEP_STATS, MAPPOCLoss, UpdateInputs
+from sb3_detc.mappoc.losses import STEP_STATS, MAPPOCLoss, UpdateInputs
 from sb3_detc.mappoc.policies import MlpHybridPolicy, check_joint_spaces, drawn_broadcast_probability
-from sb3_detc.mappoc.rewards import RewardTransform, agent_rewards, broadcast_costs
+from sb3_detc.mappoc.rewards import PRICE_RULES, RewardTransform, agent_rewards, broadcast_costs
 from sb3_detc.mappoc.sampling import FixedTrigger, Rollout, RolloutSampler, StepsTaken, truncated_episodes
 from sb3_detc.mappoc.steps import FusedGradientStep, GradientStep, compiles, make_gradient_step
 from sb3_detc.mappoc.workers import default_n_envs, make_rollout_workers
@@ -103,14 +104,14 @@ class MAPPOC(OnPolicyAlgorithm):
         :func:`~sb3_detc.mappoc.workers.default_n_envs`); only for an env id
     :param fixed_trigger: take the options from this trigger instead of ``mu`` (see
         :meth:`set_fixed_trigger`; None: from ``mu``)
-    :param target_savings: communication savings the policy over options is to settle at, in
-        (0, 1) (None: no target). A price per broadcast, :attr:`broadcast_price` in the learner's
-        reward units, is charged on top of the environment's cost and adapted by dual ascent after
-        every rollout whose options ``mu`` took and learns from: ``price += broadcast_price_lr * (broadcast rate -
-        (1 - target_savings))``, below zero (a subsidy) if need be. Logged as
-        ``train/broadcast_price``, saved with the model. Not with a fixed trigger
-    :param broadcast_price_lr: step size of the price's dual ascent (> 0), in the learner's reward
-        units per unit of broadcast rate and rollout
+    :param target_savings: communication savings the policy over options is to settle at, in (0, 1)
+        (None: no target). A price per broadcast, :attr:`broadcast_price` in the learner's reward
+        units (a subsidy below zero), is charged on top of the environment's cost and moved after
+        every update by ``broadcast_price_rule``; logged as ``train/broadcast_price``, saved with
+        the model. Not with a fixed trigger
+    :param broadcast_price_lr: step size of the ``"dual"`` rule (> 0), in reward units per unit of rate
+    :param broadcast_price_rule: ``"dual"`` (dual ascent on ``mu``'s rate) or ``"quantile"`` (where
+        the critic's greedy options meet the target), see :data:`~sb3_detc.mappoc.rewards.PRICE_RULES`
     :param stats_window_size: window size of the rollout logging (episodes)
     :param tensorboard_log: log location for TensorBoard (None: no logging)
     :param policy_kwargs: additional arguments of the policy on creation
@@ -161,6 +162,7 @@ class MAPPOC(OnPolicyAlgorithm):
         fixed_trigger: FixedTrigger | None = None,
         target_savings: float | None = None,
         broadcast_price_lr: float = 0.05,
+        broadcast_price_rule: str = "dual",
         stats_window_size: int = 100,
         tensorboard_log: str | None = None,
         policy_kwargs: dict[str, Any] | None = None,
@@ -171,9 +173,7 @@ class MAPPOC(OnPolicyAlgorithm):
     ) -> None:
         if torch_compile not in (True, False, "auto"):
             raise ValueError(f"torch_compile must be True, False or 'auto', got {torch_compile!r}.")
-        check_rate_target(target_savings, fixed_trigger)
-        if broadcast_advantage not in BROADCAST_ADVANTAGES:
-            raise ValueError(f"broadcast_advantage must be 'greedy' or 'return', got {broadcast_advantage!r}.")
+        check_rate_target(target_savings, fixed_trigger, broadcast_price_rule)
         check_n_envs(env, n_envs)
         env = as_joint_env(env)
         if isinstance(env, str):
@@ -198,6 +198,7 @@ class MAPPOC(OnPolicyAlgorithm):
             target_kl=target_kl,
             normalize_advantage=normalize_advantage,
             broadcast_price_lr=broadcast_price_lr,
+            broadcast_advantage=broadcast_advantage,
         )
         if isinstance(env, str):  # after the checks: no worker processes for a model that cannot be built
             env = make_rollout_workers(env, n_envs, seed)  # type: ignore[arg-type]
@@ -249,6 +250,7 @@ class MAPPOC(OnPolicyAlgorithm):
         self.torch_compile = torch_compile
         self.target_savings = None if target_savings is None else float(target_savings)
         self.broadcast_price_lr = float(broadcast_price_lr)
+        self.broadcast_price_rule = broadcast_price_rule
         #: the price per broadcast of the rate target, in the learner's reward units (0 without a target)
         self.broadcast_price = 0.0
         self.fixed_trigger: FixedTrigger | None = fixed_trigger  # checked by set_fixed_trigger in _setup_model
@@ -292,6 +294,8 @@ class MAPPOC(OnPolicyAlgorithm):
             self.normalize_broadcast_advantage,
             self.normalize_advantage,
         )
+        check_price_rule(self.broadcast_price_rule, self.target_savings, self.policy.option_critic)
+        self.price_rule = PRICE_RULES[self.broadcast_price_rule](self.target_savings or 0.0, self.broadcast_price_lr)
         self._setup_steps(compiles(self.torch_compile, self.device))
         self.set_fixed_trigger(self.fixed_trigger)
 
@@ -328,6 +332,7 @@ class MAPPOC(OnPolicyAlgorithm):
             "_action_noise_terms",
             "_compiled",
             "_rollout_trigger",
+            "price_rule",
         ]
 
     @property
@@ -578,8 +583,9 @@ class MAPPOC(OnPolicyAlgorithm):
         rate = float(buffer.broadcast.mean())
         self.logger.record("rollout/broadcast_rate", rate)
         if self.target_savings is not None:
-            if train_mu:  # mu learns from a rollout of its own options
-                self.broadcast_price += self.broadcast_price_lr * (rate - (1.0 - self.target_savings))
+            self.broadcast_price = self.price_rule.updated(
+                self.broadcast_price, buffer.broadcast, buffer.option_values, mu_took=train_mu
+            )
             self.logger.record("train/broadcast_price", self.broadcast_price)
 
     def update_inputs(self, rollout: HybridRolloutSamples) -> UpdateInputs:

@@ -9,7 +9,7 @@ broadcast costs in exactly those units: :meth:`RewardTransform.price`.
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 from stable_baselines3.common.running_mean_std import RunningMeanStd
@@ -137,3 +137,87 @@ def broadcast_costs(env: Any, needs_price: bool, critic: str) -> np.ndarray:
             f"critic={critic!r} needs the environment's communication cost (attribute 'broadcast_cost', as the "
             "sb3_detc envs have) to add it to its option values."
         ) from err
+
+
+class PriceRule:
+    """How the rate target's price per broadcast (MAPPOC's ``target_savings``) follows the rollouts.
+
+    A rule is chosen once by name (:data:`PRICE_RULES`, MAPPOC's ``broadcast_price_rule``) and
+    gives the price after every update from what the rollout showed.
+
+    Class attributes:
+
+    * ``name``: the rule's name in :data:`PRICE_RULES`;
+    * ``needs_price``: whether the rule needs option values that take the price analytically
+      (a critic with ``needs_price``);
+    * ``mu_only``: whether the price moves only after rollouts whose options ``mu`` took
+      (not those of a fixed trigger, e.g. in the first stage of a two-stage callback).
+
+    :param target_savings: the savings to settle at, in (0, 1)
+    :param lr: the rule's step size (MAPPOC's ``broadcast_price_lr``), where it has one
+    """
+
+    name: ClassVar[str]
+    needs_price: ClassVar[bool]
+    mu_only: ClassVar[bool]
+
+    def __init__(self, target_savings: float, lr: float) -> None:
+        self.target_savings = target_savings
+        self.lr = lr
+
+    def updated(self, price: float, broadcast: np.ndarray, option_values: np.ndarray, mu_took: bool) -> float:
+        """The price after a rollout.
+
+        :param price: the price charged during the rollout, in the learner's reward units
+        :param broadcast: the rollout's options, (..., N)
+        :param option_values: the critic's ``Q_i(s, o)`` of both options at the rollout's steps, with
+            the rollout's price, (..., N, 2)
+        :param mu_took: whether ``mu`` took the rollout's options
+        :return: the new price (``price`` itself after a fixed trigger's rollout if ``mu_only``)
+        """
+        if self.mu_only and not mu_took:
+            return price
+        return price + self._step(np.asarray(broadcast), np.asarray(option_values))
+
+    def _step(self, broadcast: np.ndarray, option_values: np.ndarray) -> float:
+        """How far the price moves after a rollout (see :meth:`updated`)."""
+        raise NotImplementedError
+
+
+class DualAscent(PriceRule):
+    """Dual ascent on ``mu``'s rate: ``price += lr * (broadcast rate - (1 - target_savings))``.
+
+    It follows ``mu``'s own rate, with any critic; the price lags behind ``mu``, and a sharp
+    ``mu`` may swing around the target.
+    """
+
+    name = "dual"
+    needs_price = False
+    mu_only = True
+
+    def _step(self, broadcast: np.ndarray, option_values: np.ndarray) -> float:
+        return self.lr * (float(broadcast.mean()) - (1.0 - self.target_savings))
+
+
+class GapQuantile(PriceRule):
+    """The price at which the critic's greedy options broadcast at the target rate on the rollout's states.
+
+    The price moves by the ``target_savings``-quantile of the critic's broadcast gaps
+    ``Q_i(s, 1) - Q_i(s, 0)`` (taken with the rollout's price): then exactly ``1 -
+    target_savings`` of the rollout's agent-steps have a broadcast worth more than it costs.
+    No step size (``lr`` is not used), and it moves during a fixed trigger's stage too, so
+    that ``mu`` starts learning at a price that fits the target. It needs a critic that takes
+    the price analytically: where the critic learns the price from the rewards, its gaps do
+    not move with the price.
+    """
+
+    name = "quantile"
+    needs_price = True
+    mu_only = False
+
+    def _step(self, broadcast: np.ndarray, option_values: np.ndarray) -> float:
+        return float(np.quantile(option_values[..., 1] - option_values[..., 0], self.target_savings))
+
+
+#: Rules for the rate target's price, by name (MAPPOC's ``broadcast_price_rule``).
+PRICE_RULES: dict[str, type[PriceRule]] = {rule.name: rule for rule in (DualAscent, GapQuantile)}
