@@ -212,6 +212,8 @@ def test_the_shipped_study_files_load():
         "predictive_first_90_noent_return": 0.9,
         "predictive_first_90_quantile": 0.9,
         "predicted_held_90_quantile": 0.9,
+        "predictive_first_90_lambda50": 0.9,
+        "predictive_first_90_lambda0": 0.9,
     }
     # the receivers' predictions shown, at five times the others' budget, at the same and at twenty times
     held = {a.label: a for a in rate.algorithms if a.label.startswith("predicted_held")}
@@ -233,6 +235,8 @@ def test_the_shipped_study_files_load():
     assert variants["predictive_first_90_noent_return"] == {**no_bonus, "broadcast_advantage": "return"}
     quantile = {key: value for key, value in first.hyperparams.items() if key != "broadcast_price_lr"}
     assert variants["predictive_first_90_quantile"] == {**quantile, "broadcast_price_rule": "quantile"}
+    assert variants["predictive_first_90_lambda50"] == {**first.hyperparams, "gae_lambda": 0.5}
+    assert variants["predictive_first_90_lambda0"] == {**first.hyperparams, "gae_lambda": 0.0}
     imitated = next(a for a in rate.algorithms if a.label == "predictive_imitated_90")
     assert imitated.hyperparams == {**first.hyperparams, "n_timesteps": 51_200}  # stops at the switch
     joint = load_study(ROOT / "sb3_detc" / "studies" / "multiwalker_rate.yml")
@@ -503,7 +507,7 @@ def test_a_committed_study_keeps_what_its_report_reads_and_nothing_else():
             assert sorted(names) == sorted(FINISHED_FILES), trial
     kept = [p for p in (ROOT / "benchmarks" / "studies").rglob("*") if p.is_file()]
     size = sum(p.stat().st_size for p in kept if not any(trial in p.parents for trial in unfinished))
-    assert size < 48 * 2**20, f"benchmarks/studies holds {size / 2**20:.0f} MiB"
+    assert size < 64 * 2**20, f"benchmarks/studies holds {size / 2**20:.0f} MiB"
 
 
 def test_the_report_of_a_committed_study_regenerates_from_its_kept_files(tmp_path):
