@@ -214,6 +214,8 @@ def test_the_shipped_study_files_load():
         "predicted_held_90_quantile": 0.9,
         "predictive_first_90_lambda50": 0.9,
         "predictive_first_90_lambda0": 0.9,
+        "predictive_first_90_lambda80": 0.9,
+        "predicted_held_90_lambda50": 0.9,
     }
     # the receivers' predictions shown, at five times the others' budget, at the same and at twenty times
     held = {a.label: a for a in rate.algorithms if a.label.startswith("predicted_held")}
@@ -237,6 +239,11 @@ def test_the_shipped_study_files_load():
     assert variants["predictive_first_90_quantile"] == {**quantile, "broadcast_price_rule": "quantile"}
     assert variants["predictive_first_90_lambda50"] == {**first.hyperparams, "gae_lambda": 0.5}
     assert variants["predictive_first_90_lambda0"] == {**first.hyperparams, "gae_lambda": 0.0}
+    assert variants["predictive_first_90_lambda80"] == {**first.hyperparams, "gae_lambda": 0.8}
+    assert held["predicted_held_90_lambda50"].hyperparams == {
+        **held["predicted_held_90_distance"].hyperparams,
+        "gae_lambda": 0.5,
+    }
     imitated = next(a for a in rate.algorithms if a.label == "predictive_imitated_90")
     assert imitated.hyperparams == {**first.hyperparams, "n_timesteps": 51_200}  # stops at the switch
     joint = load_study(ROOT / "sb3_detc" / "studies" / "multiwalker_rate.yml")
