@@ -70,12 +70,16 @@ def top_overlap(score: np.ndarray, reference: np.ndarray, share: float) -> float
 
     :param score: a ranking's scores (flat)
     :param reference: the reference's scores (flat, same length)
-    :param share: the share of the entries on top
+    :param share: the share of the entries on top (equal scores are ordered at random, seeded)
     :return: the overlap, in [0, 1]
     """
     k = max(1, round(share * len(score)))
-    top = set(np.argsort(-score, kind="stable")[:k])
-    return len(top & set(np.argsort(-reference, kind="stable")[:k])) / k
+    ties = np.random.default_rng(0).random(len(score))  # equal scores (a saturated mu) in random order
+
+    def top(values: np.ndarray) -> set[int]:
+        return set(np.lexsort((ties, -values))[:k].tolist())
+
+    return len(top(score) & top(reference)) / k
 
 
 def rankings(policy: MlpHybridPolicy, obs: dict[str, np.ndarray], options: np.ndarray) -> dict[str, float]:

@@ -31,7 +31,13 @@ from rl_zoo3.utils import ALGOS, get_class_by_name, get_latest_run_id, get_model
 from stable_baselines3.common.base_class import BaseAlgorithm
 
 from sb3_detc.mappoc import MAPPOC
-from sb3_detc.mappoc.checks import check_hyperparameters, check_observation_normalization, check_rate_target
+from sb3_detc.mappoc.checks import (
+    check_hyperparameters,
+    check_observation_normalization,
+    check_price_rule,
+    check_rate_target,
+)
+from sb3_detc.mappoc.critics import CRITICS
 from sb3_detc.mappoc.mappoc import PAPER_ITERATION
 from sb3_detc.validation import is_integer
 from sb3_detc.zoo import ALGORITHMS, HYPERPARAMS_DIR, register
@@ -332,7 +338,10 @@ def _check_values(entry: dict[str, Any], algo: str, where: str) -> None:
                 if isinstance(values[key], str):
                     values[key] = float(values[key].split("_")[1])
             check_hyperparameters(**values)
-            check_rate_target(values["target_savings"], values["fixed_trigger"])
+            check_rate_target(values["target_savings"], values["fixed_trigger"], values["broadcast_price_rule"])
+            critic = (policy_kwargs or {}).get("critic", inspect.signature(policy_class).parameters["critic"].default)
+            if critic in CRITICS:  # an unknown critic is the policy's to refuse
+                check_price_rule(values["broadcast_price_rule"], values["target_savings"], CRITICS[critic])
             if normalize:  # rl-zoo3 wraps the envs in VecNormalize(**normalize) or VecNormalize()
                 kwargs = normalize if isinstance(normalize, dict) else {}
                 check_observation_normalization(kwargs.get("norm_obs", True), kwargs.get("norm_obs_keys"))

@@ -44,7 +44,7 @@ def test_bad_input_is_a_usage_error(tmp_path: Path, arguments: list[str], messag
         ("option_age_profile.py", ["README.md", "--episodes", "0"], "--episodes must be at least 1"),
         ("option_age_profile.py", ["README.md"], "README.md is not a saved MAPPOC model"),
         ("critic_gap_ranking.py", ["benchmarks/studies/linear_lqr_rate", "--arms", "best"], "no arms ['best']"),
-        ("critic_gap_ranking.py", ["benchmarks", "--arms", "a"], "benchmarks"),
+        ("critic_gap_ranking.py", ["benchmarks", "--arms", "a"], "benchmarks is not a study folder (no study.yml)"),
         ("critic_gap_ranking.py", [".", "--arms", "a", "--episodes", "0"], "--episodes must be at least 1"),
     ],
 )

@@ -11,13 +11,14 @@ import yaml
 from logged import capture_logger  # tests/logged.py
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.env_util import make_vec_env
+from stable_baselines3.common.save_util import load_from_zip_file, save_to_zip_file
 
 import sb3_detc  # noqa: F401  (registers the env ids)
 from sb3_detc.callbacks import ControlFirstCallback, RandomSkipCallback
 from sb3_detc.cli import InputError, check_hyperparams_file
 from sb3_detc.mappoc import MAPPOC
 from sb3_detc.mappoc.critics import CRITICS
-from sb3_detc.mappoc.rewards import PRICE_RULES, GapQuantile
+from sb3_detc.mappoc.rewards import PRICE_RULES
 from sb3_detc.mappoc.workers import RolloutWorker
 from sb3_detc.triggers import PeriodicTrigger, SendOnDelta
 
@@ -349,5 +350,34 @@ def test_the_price_rule_is_saved_and_restored(tmp_path) -> None:
     model.learn(128)
     model.save(tmp_path / "model.zip")
     loaded = MAPPOC.load(tmp_path / "model.zip", env=model.get_env())
-    assert loaded.broadcast_price_rule == "quantile" and isinstance(loaded.price_rule, GapQuantile)
-    assert loaded.broadcast_price == model.broadcast_price
+    assert loaded.broadcast_price_rule == "quantile" and loaded.broadcast_price == model.broadcast_price
+    # a model saved before the rule existed loads with dual ascent
+    data, params, variables = load_from_zip_file(tmp_path / "model.zip")
+    del data["broadcast_price_rule"]
+    save_to_zip_file(tmp_path / "old.zip", data=data, params=params, pytorch_variables=variables)
+    assert MAPPOC.load(tmp_path / "old.zip", env=model.get_env()).broadcast_price_rule == "dual"
+    with pytest.raises(ValueError, match="broadcast_price_rule must be one of"):
+        MAPPOC.load(tmp_path / "model.zip", env=model.get_env(), broadcast_price_rule="typo")
+
+
+def test_a_target_set_after_construction_is_followed() -> None:
+    """The rule is built with the model's settings at every update: a target or step size set later counts."""
+    model = make()
+    model.target_savings, model.broadcast_price_lr = 0.9, 0.5
+    rollouts = Rollouts()
+    model.learn(2 * 128, callback=rollouts)
+    assert rollouts.prices[0] == pytest.approx(0.5 * (rollouts.rates[0] - 0.1), abs=1e-6)
+
+
+def test_hyperparameter_files_check_the_price_rule_against_the_critic(tmp_path) -> None:
+    conf = tmp_path / "mappoc.yml"
+    entry = {"n_timesteps": 1000, "policy": "MlpHybridPolicy", "target_savings": 0.9}
+    quantile = {**entry, "broadcast_price_rule": "quantile"}
+    conf.write_text(yaml.safe_dump({LQR: {**quantile, "policy_kwargs": "dict(critic='afterstate')"}}))
+    assert check_hyperparams_file(conf, "mappoc", LQR)["broadcast_price_rule"] == "quantile"
+    conf.write_text(yaml.safe_dump({LQR: quantile}))  # the policy's default critic learns the price
+    with pytest.raises(InputError, match="the 'option_heads' critic learns it from the rewards"):
+        check_hyperparams_file(conf, "mappoc", LQR)
+    conf.write_text(yaml.safe_dump({LQR: {**entry, "broadcast_price_rule": "mean"}}))
+    with pytest.raises(InputError, match=r"broadcast_price_rule must be one of \['dual', 'quantile'\]"):
+        check_hyperparams_file(conf, "mappoc", LQR)

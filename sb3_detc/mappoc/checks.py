@@ -52,12 +52,12 @@ _HYPERPARAMETER_RULES: dict[str, tuple[Callable[[Any], bool], str]] = {
     "reward_scale": (lambda v: v > 0, "> 0"),
     "target_kl": (lambda v: v is None or v > 0, "None or > 0"),
     "broadcast_price_lr": (lambda v: v > 0, "> 0"),
-    "broadcast_advantage": (lambda v: v in BROADCAST_ADVANTAGES, "'greedy' or 'return'"),
+    "broadcast_advantage": (lambda v: v in BROADCAST_ADVANTAGES, " or ".join(map(repr, BROADCAST_ADVANTAGES))),
 }
 
 
 def check_hyperparameters(**values: Any) -> None:
-    """Check the values of MAPPOC's numeric hyperparameters (before anything is built).
+    """Check the values of MAPPOC's hyperparameters (before anything is built).
 
     :param values: every hyperparameter of :data:`_HYPERPARAMETER_RULES` and ``normalize_advantage``
     :raises ValueError: on the first value out of its range (or of the wrong type)
@@ -120,8 +120,7 @@ def check_rate_target(target_savings: float | None, fixed_trigger: Any, price_ru
     :param price_rule: how the price follows the target, a key of :data:`~sb3_detc.mappoc.rewards.PRICE_RULES`
     :raises ValueError: for an unknown price rule, a target outside (0, 1), or one with a fixed trigger
     """
-    if price_rule not in PRICE_RULES:
-        raise ValueError(f"broadcast_price_rule must be one of {sorted(PRICE_RULES)}, got {price_rule!r}.")
+    _check_price_rule_name(price_rule)
     if target_savings is None:
         return
     if isinstance(target_savings, bool) or not isinstance(target_savings, numbers.Real) or not 0 < target_savings < 1:
@@ -135,15 +134,26 @@ def check_rate_target(target_savings: float | None, fixed_trigger: Any, price_ru
         )
 
 
+def _check_price_rule_name(price_rule: Any) -> None:
+    """Refuse a price rule that is not a key of :data:`~sb3_detc.mappoc.rewards.PRICE_RULES`, with one line.
+
+    :param price_rule: the rule's name
+    :raises ValueError: if it is not one of the rules' names
+    """
+    if not isinstance(price_rule, str) or price_rule not in PRICE_RULES:
+        raise ValueError(f"broadcast_price_rule must be one of {sorted(PRICE_RULES)}, got {price_rule!r}.")
+
+
 def check_price_rule(price_rule: str, target_savings: float | None, critic: OptionCritic) -> None:
     """Check that the critic gives what the rate target's price rule needs.
 
     :param price_rule: a key of :data:`~sb3_detc.mappoc.rewards.PRICE_RULES`
     :param target_savings: the savings to settle at, or None (then no rule runs)
     :param critic: the policy's option critic
-    :raises ValueError: for a rule that needs option values that take the price analytically with a
-        critic that learns the price from the rewards
+    :raises ValueError: for an unknown rule, or one that needs option values that take the price
+        analytically with a critic that learns the price from the rewards
     """
+    _check_price_rule_name(price_rule)
     if target_savings is not None and PRICE_RULES[price_rule].needs_price and not critic.needs_price:
         raise ValueError(
             f"broadcast_price_rule={price_rule!r} needs a critic that adds the price of a broadcast to its option "

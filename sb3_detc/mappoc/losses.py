@@ -137,7 +137,8 @@ class MAPPOCLoss(nn.Module):
     ) -> None:
         super().__init__()
         if broadcast_advantage not in BROADCAST_ADVANTAGES:
-            raise ValueError(f"broadcast_advantage must be 'greedy' or 'return', got {broadcast_advantage!r}.")
+            kinds = " or ".join(map(repr, BROADCAST_ADVANTAGES))
+            raise ValueError(f"broadcast_advantage must be {kinds}, got {broadcast_advantage!r}.")
         self.policy = policy
         self.vf_coef = vf_coef
         self.offset = broadcast_advantage_offset

@@ -110,8 +110,9 @@ class MAPPOC(OnPolicyAlgorithm):
         every update by ``broadcast_price_rule``; logged as ``train/broadcast_price``, saved with
         the model. Not with a fixed trigger
     :param broadcast_price_lr: step size of the ``"dual"`` rule (> 0), in reward units per unit of rate
-    :param broadcast_price_rule: ``"dual"`` (dual ascent on ``mu``'s rate) or ``"quantile"`` (where
-        the critic's greedy options meet the target), see :data:`~sb3_detc.mappoc.rewards.PRICE_RULES`
+    :param broadcast_price_rule: ``"dual"`` (dual ascent on ``mu``'s rate, after rollouts of ``mu``'s
+        options) or ``"quantile"`` (where the critic's greedy options on the rollout's states meet the
+        target), see :data:`~sb3_detc.mappoc.rewards.PRICE_RULES`
     :param stats_window_size: window size of the rollout logging (episodes)
     :param tensorboard_log: log location for TensorBoard (None: no logging)
     :param policy_kwargs: additional arguments of the policy on creation
@@ -295,7 +296,6 @@ class MAPPOC(OnPolicyAlgorithm):
             self.normalize_advantage,
         )
         check_price_rule(self.broadcast_price_rule, self.target_savings, self.policy.option_critic)
-        self.price_rule = PRICE_RULES[self.broadcast_price_rule](self.target_savings or 0.0, self.broadcast_price_lr)
         self._setup_steps(compiles(self.torch_compile, self.device))
         self.set_fixed_trigger(self.fixed_trigger)
 
@@ -332,7 +332,6 @@ class MAPPOC(OnPolicyAlgorithm):
             "_action_noise_terms",
             "_compiled",
             "_rollout_trigger",
-            "price_rule",
         ]
 
     @property
@@ -582,10 +581,9 @@ class MAPPOC(OnPolicyAlgorithm):
         self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
         rate = float(buffer.broadcast.mean())
         self.logger.record("rollout/broadcast_rate", rate)
-        if self.target_savings is not None:
-            self.broadcast_price = self.price_rule.updated(
-                self.broadcast_price, buffer.broadcast, buffer.option_values, mu_took=train_mu
-            )
+        if self.target_savings is not None:  # the rule with the settings as they are now (callbacks may change them)
+            rule = PRICE_RULES[self.broadcast_price_rule](self.target_savings, self.broadcast_price_lr)
+            self.broadcast_price = rule.updated(self.broadcast_price, buffer.broadcast, buffer.option_values, train_mu)
             self.logger.record("train/broadcast_price", self.broadcast_price)
 
     def update_inputs(self, rollout: HybridRolloutSamples) -> UpdateInputs:

@@ -203,12 +203,14 @@ class GapQuantile(PriceRule):
     """The price at which the critic's greedy options broadcast at the target rate on the rollout's states.
 
     The price moves by the ``target_savings``-quantile of the critic's broadcast gaps
-    ``Q_i(s, 1) - Q_i(s, 0)`` (taken with the rollout's price): then exactly ``1 -
-    target_savings`` of the rollout's agent-steps have a broadcast worth more than it costs.
-    No step size (``lr`` is not used), and it moves during a fixed trigger's stage too, so
-    that ``mu`` starts learning at a price that fits the target. It needs a critic that takes
-    the price analytically: where the critic learns the price from the rewards, its gaps do
-    not move with the price.
+    ``Q_i(s, 1) - Q_i(s, 0)`` on the rollout, as the critic valued them when the rollout was
+    stored, with the rollout's price: then exactly ``1 - target_savings`` of the rollout's
+    agent-steps have a broadcast worth more than it costs. It follows the critic, one update
+    behind, not ``mu``'s own rate (a ``mu`` softer than the critic's greedy options broadcasts
+    at another rate). No step size (``lr`` is not used), and it moves during a fixed trigger's
+    stage too, so that ``mu`` starts learning at a price that fits the target. It needs a
+    critic that takes the price analytically: where the critic learns the price from the
+    rewards, its gaps do not move with the price.
     """
 
     name = "quantile"

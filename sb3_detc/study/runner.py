@@ -521,7 +521,7 @@ def _run_locked(spec: StudySpec, folder: Path, address: str | None, stream: Any,
     if address is None:  # a local Ray that fails to start is a fault of its own: its traceback is kept
         ray.init(
             address="local",  # a Ray of its own, even where another one runs
-            num_cpus=cpus or os.cpu_count(),
+            num_cpus=int(cpus) if cpus else os.cpu_count(),
             include_dashboard=False,
             log_to_driver=False,
             logging_level=logging.WARNING,
