@@ -339,7 +339,8 @@ def _check_values(entry: dict[str, Any], algo: str, where: str) -> None:
                     values[key] = float(values[key].split("_")[1])
             check_hyperparameters(**values)
             check_rate_target(values["target_savings"], values["fixed_trigger"], values["broadcast_price_rule"])
-            critic = (policy_kwargs or {}).get("critic", inspect.signature(policy_class).parameters["critic"].default)
+            parameter = inspect.signature(policy_class).parameters.get("critic")  # None: a policy without one
+            critic = (policy_kwargs or {}).get("critic", None if parameter is None else parameter.default)
             if critic in CRITICS:  # an unknown critic is the policy's to refuse
                 check_price_rule(values["broadcast_price_rule"], values["target_savings"], CRITICS[critic])
             if normalize:  # rl-zoo3 wraps the envs in VecNormalize(**normalize) or VecNormalize()

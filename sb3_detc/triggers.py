@@ -485,8 +485,8 @@ class FixedControl(gym.Wrapper, gym.utils.RecordConstructorArgs):
     Its arguments are recorded in the env's spec, so ``gym.make(env.spec)`` makes it again (as
     :func:`~sb3_detc.evaluation.evaluate_episodes` does to run episodes side by side): a law
     named by a key of :data:`CONTROL_LAWS` is built anew for the copy's system, a law given as a
-    function is shared with the copy (right for a law that is a function of its arguments only,
-    as every law of this module is) and a callable object is copied with the spec.
+    callable is shared with the copy, not copied (right for a law that is a function of its
+    arguments only, as every law of this module is).
 
     :param env: a joint env (:class:`~sb3_detc.envs.wrappers.JointEnv`, possibly wrapped)
     :param control: the control law ``control(obs, broadcast) -> controls (N, m)``, a function of

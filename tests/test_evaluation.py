@@ -402,6 +402,39 @@ def test_a_fixed_control_put_around_by_hand_is_made_again_and_runs_side_by_side(
     np.testing.assert_allclose(side_by_side.control_returns, one_by_one.control_returns, rtol=1e-6)
 
 
+def test_a_fixed_control_shares_a_callable_object_with_its_copy() -> None:
+    """The law is not deep-copied (it may hold an env): the wrapper and the spec's copy use the one given."""
+
+    class Law:
+        def __init__(self, env: gym.Env) -> None:
+            self.law = lqr_on_predicted_states(env)
+
+        def __call__(self, obs, broadcast):
+            return self.law(obs, broadcast)
+
+    made = gym.make(ENV_ID, n_agents=3, max_cycles=30)
+    law = Law(made)
+    wrapped = FixedControl(made, law)
+    assert wrapped.control is law
+    copy = gym.make(wrapped.spec)
+    assert copy.control is law
+
+
+def test_the_env_that_shows_the_receivers_predictions_is_made_again_from_its_spec() -> None:
+    """gym.make(spec) of the registered env with ReceiverPredictions gives the same wrappers and observations."""
+    shown = gym.make("sb3_detc/LinearETC-LQR-v0", n_agents=3, prediction=True, predicted_held=True)
+    copy = gym.make(shown.spec)
+    assert str(copy) == str(shown) and copy.spec.additional_wrappers == shown.spec.additional_wrappers
+    first, _ = shown.reset(seed=3)
+    again, _ = copy.reset(seed=3)
+    step = {"broadcast": np.zeros(3, dtype=np.int64), "control": np.zeros((3, 1), dtype=np.float32)}
+    for _ in range(5):
+        first, *_ = shown.step(step)
+        again, *_ = copy.step(step)
+    for key in first:
+        np.testing.assert_array_equal(first[key], again[key], err_msg=key)
+
+
 def test_a_fixed_control_refuses_an_unknown_law_name() -> None:
     with pytest.raises(ValueError, match=r"unknown control law 'lqr'; the named laws are \['lqr_on_held_states'"):
         FixedControl(gym.make(ENV_ID), "lqr")
