@@ -216,6 +216,8 @@ def test_the_shipped_study_files_load():
         "predictive_first_90_lambda0": 0.9,
         "predictive_first_90_lambda80": 0.9,
         "predicted_held_90_lambda50": 0.9,
+        "predictive_first_90_lambda50_switch200": 0.9,
+        "predictive_first_90_lambda50_clip05": 0.9,
     }
     # the receivers' predictions shown, at five times the others' budget, at the same and at twenty times
     held = {a.label: a for a in rate.algorithms if a.label.startswith("predicted_held")}
@@ -240,6 +242,13 @@ def test_the_shipped_study_files_load():
     assert variants["predictive_first_90_lambda50"] == {**first.hyperparams, "gae_lambda": 0.5}
     assert variants["predictive_first_90_lambda0"] == {**first.hyperparams, "gae_lambda": 0.0}
     assert variants["predictive_first_90_lambda80"] == {**first.hyperparams, "gae_lambda": 0.8}
+    lambda50 = variants["predictive_first_90_lambda50"]
+    assert variants["predictive_first_90_lambda50_clip05"] == {**lambda50, "clip_range_broadcast": 0.05}
+    later = {"sb3_detc.callbacks.DeltaFirstCallback": {"switch": 200, "delta": 0.21}}
+    assert variants["predictive_first_90_lambda50_switch200"] == {
+        **lambda50,
+        "callback": [later, *first.hyperparams["callback"][1:]],
+    }
     assert held["predicted_held_90_lambda50"].hyperparams == {
         **held["predicted_held_90_distance"].hyperparams,
         "gae_lambda": 0.5,
