@@ -387,6 +387,22 @@ def _stop_on_first_interrupt(stop_file: Path, stream: Any) -> Any:
             os.environ[switch] = before
 
 
+@contextlib.contextmanager
+def _without_results_warning() -> Any:
+    """Within the context, Ray Tune does not warn of trials that have no results when the run ends.
+
+    The study reads its results from the trial folders, not from Ray's; the trials a stop request
+    leaves pending never report, and Ray's warning would list every one of them.
+    """
+    logger = logging.getLogger("ray.tune.analysis.experiment_analysis")
+    level = logger.level
+    logger.setLevel(logging.ERROR)
+    try:
+        yield
+    finally:
+        logger.setLevel(level)
+
+
 def run_study(
     spec: StudySpec,
     directory: str | os.PathLike,
@@ -559,7 +575,7 @@ def _run_locked(spec: StudySpec, folder: Path, address: str | None, stream: Any,
                 failure_config=tune.FailureConfig(max_failures=0, fail_fast=False),
             ),
         )
-        with _stop_on_first_interrupt(folder / STOP_FILE, stream):
+        with _stop_on_first_interrupt(folder / STOP_FILE, stream), _without_results_warning():
             tuner.fit()
     finally:
         ray.shutdown()
