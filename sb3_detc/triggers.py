@@ -317,15 +317,23 @@ class PredictiveTrigger(StatelessTrigger):
     def __repr__(self) -> str:
         return f"PredictiveTrigger(delta={self.delta:g}, norm={self.norm:g})"
 
-    def error(self, obs: dict[str, np.ndarray]) -> np.ndarray:
-        """How far the receivers' prediction of every agent would be off if it stayed silent now, (B, N).
+    def deviation(self, obs: dict[str, np.ndarray]) -> np.ndarray:
+        """What the receivers' prediction of every agent would miss if it stayed silent now, (B, N, 2).
 
         :param obs: a batch of joint observations, arrays shaped (B, N, ...) by key; reads
             ``message`` and ``held`` (B, N, 2), ``age`` (B, N, 1)
-        :return: norms (of order ``norm``) of ``message - prediction``, (B, N), float64
+        :return: ``message - prediction``, (B, N, 2), float64
         """
         predicted = self.predictor(obs["held"], _silent_age(obs)[..., None])
-        return np.linalg.norm(np.asarray(obs["message"], dtype=np.float64) - predicted, ord=self.norm, axis=-1)
+        return np.asarray(obs["message"], dtype=np.float64) - predicted
+
+    def error(self, obs: dict[str, np.ndarray]) -> np.ndarray:
+        """How far the receivers' prediction of every agent would be off if it stayed silent now, (B, N).
+
+        :param obs: a batch of joint observations, as :meth:`deviation` reads them
+        :return: norms (of order ``norm``) of :meth:`deviation`, (B, N), float64
+        """
+        return np.linalg.norm(self.deviation(obs), ord=self.norm, axis=-1)
 
     def __call__(self, obs: dict[str, np.ndarray]) -> np.ndarray:
         """Options for a batch of joint observations, (B, N).

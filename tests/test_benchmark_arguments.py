@@ -46,6 +46,9 @@ def test_bad_input_is_a_usage_error(tmp_path: Path, arguments: list[str], messag
         ("critic_gap_ranking.py", ["benchmarks/studies/linear_lqr_rate", "--arms", "best"], "no arms ['best']"),
         ("critic_gap_ranking.py", ["benchmarks", "--arms", "a"], "benchmarks is not a study folder (no study.yml)"),
         ("critic_gap_ranking.py", [".", "--arms", "a", "--episodes", "0"], "--episodes must be at least 1"),
+        ("predictive_headroom.py", ["--episodes", "1"], "--episodes must be at least 2"),
+        ("predictive_headroom.py", ["--targets", "0.9", "1"], "--targets must lie in (0, 1)"),
+        ("predictive_headroom.py", ["--horizons", "0"], "--horizons must be at least 1"),
     ],
 )
 def test_other_benchmarks_check_their_numbers_first(

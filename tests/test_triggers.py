@@ -173,6 +173,8 @@ def test_held_state_prediction_by_hand():
 
 def test_predictive_trigger_by_hand():
     np.testing.assert_allclose(PredictiveTrigger(TINY, 0.15, gain=GAIN).error(TINY_OBS), [[0.1, 0.5]], atol=1e-6)
+    deviation = PredictiveTrigger(TINY, 0.15, gain=GAIN).deviation(TINY_OBS)  # message minus prediction
+    np.testing.assert_allclose(deviation, [[[0.0, 0.1], [0.3, 0.4]]], atol=1e-6)
     # Errors 0.1 and 0.5: delta 0.05 -> both broadcast; 0.15 -> agent 1 only; 0.6 -> none.
     for delta, expected in ((0.05, [[1, 1]]), (0.15, [[0, 1]]), (0.6, [[0, 0]])):
         np.testing.assert_array_equal(PredictiveTrigger(TINY, delta, gain=GAIN)(TINY_OBS), expected)
