@@ -441,6 +441,23 @@ def test_evaluating_a_study_again_rewrites_the_evaluations_of_the_chosen_finishe
     ]
 
 
+def test_a_run_can_be_limited_to_some_algorithms(tmp_path):
+    study = {**TINY, "seeds": [0], "n_timesteps": 1024}
+    path, out = write_study(tmp_path, study), tmp_path / "out"
+    refused = run_command("run", str(path), "--dir", str(out), "--algorithms", "random", "nope")
+    assert refused.returncode == 2 and not out.exists()  # checked before the folder is made
+    assert refused.stderr.strip().splitlines() == [
+        f"python -m sb3_detc.study: error: {out} has no algorithm 'nope'; its algorithms: ['learned', 'random']"
+    ]
+    result = run_command("run", str(path), "--dir", str(out), "--algorithms", "random")
+    assert result.returncode == 0, result.stdout + result.stderr  # every trial it was asked to run is done
+    assert "1 trials: 0 done, 1 to run" in result.stdout
+    assert read_status(out / "trials" / "random" / "seed0")["status"] == "done"
+    assert read_status(out / "trials" / "learned" / "seed0")["status"] == "pending"
+    again = run_command("run", str(path), "--dir", str(out), "--algorithms", "random")
+    assert again.returncode == 0 and "all 1 trials of random are done" in again.stdout
+
+
 def test_running_a_finished_study_again_trains_nothing(finished_study):
     path, out, _ = finished_study
     stamps = {p: p.stat().st_mtime_ns for p in out.rglob("evaluation.json")}

@@ -55,6 +55,9 @@ def _main() -> None:
         default=None,
         help="cores Ray hands out on this machine (default: all); more than it has runs more trials at once",
     )
+    run.add_argument(
+        "--algorithms", nargs="+", default=None, help="labels of the algorithms whose trials to run (default: all)"
+    )
     evaluate = commands.add_parser(
         "evaluate", help="evaluate the finished trials of a study folder again with the current protocol"
     )
@@ -67,7 +70,8 @@ def _main() -> None:
     if args.command == "run":
         from sb3_detc.study.runner import run_study
 
-        statuses = run_study(load_study(_study_path(args.study)), args.dir, address=args.address, cpus=args.cpus)
+        study = load_study(_study_path(args.study))
+        statuses = run_study(study, args.dir, address=args.address, cpus=args.cpus, labels=args.algorithms)
         if any(status != "done" for status in statuses.values()):
             raise SystemExit(1)
         print(f"[study] done: python -m sb3_detc.study report {args.dir}")

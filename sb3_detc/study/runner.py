@@ -409,8 +409,9 @@ def run_study(
     address: str | None = None,
     stream: Any = None,
     cpus: int | None = None,
+    labels: list[str] | None = None,
 ) -> dict[str, str]:
-    """Run every unfinished trial of a study on Ray Tune.
+    """Run every unfinished trial of a study on Ray Tune (or of some of its algorithms).
 
     :param spec: the study
     :param directory: the study folder (made if needed; on a cluster, a path every node sees)
@@ -420,18 +421,36 @@ def run_study(
     :param cpus: cores that Ray hands out to trials on this machine (default: all of them); fewer
         leave cores to other work, more run more trials at once (two Multiwalker trials on two
         cores were no faster together than one). Not with ``address`` (the cluster knows its cores).
-    :return: trial name -> final status of every trial of the study (``done``, ``failed``, or
-        ``interrupted``, ``running`` or ``pending`` when the study was stopped)
+    :param labels: the algorithms whose trials to run (None: all), e.g. to finish the seeds of one arm
+        of a long study before the others'
+    :return: trial name -> final status of every trial run (of the study, or of ``labels``):
+        ``done``, ``failed``, or ``interrupted``, ``running`` or ``pending`` when the study was stopped
     :raises StudyError: if the folder belongs to another study or another run uses it, the cluster
-        does not answer, or ``cpus`` is not a positive integer or comes with ``address``
+        does not answer, ``cpus`` is not a positive integer or comes with ``address``, or a label is
+        not the study's
     """
     if cpus is not None and not is_integer(cpus, 1):
         raise StudyError(f"cpus must be a positive integer, got {cpus!r}")
     if cpus is not None and address is not None:
         raise StudyError("give cpus or address, not both: a cluster's cores are its own")
+    _check_labels(spec, directory, labels)
     folder = prepare_folder(spec, directory).resolve()
     with _only_run_in(folder):
-        return _run_locked(spec, folder, address, stream, cpus)
+        return _run_locked(spec, folder, address, stream, cpus, labels)
+
+
+def _check_labels(spec: StudySpec, folder: str | os.PathLike, labels: list[str] | None) -> None:
+    """Check that every label names an algorithm of the study.
+
+    :param spec: the study
+    :param folder: the study folder (for the message)
+    :param labels: the labels, or None (all algorithms)
+    :raises StudyError: naming the unknown labels and the study's algorithms
+    """
+    known = [algorithm.label for algorithm in spec.algorithms]
+    unknown = [label for label in labels or [] if label not in known]
+    if unknown:
+        raise StudyError(f"{folder} has no algorithm {', '.join(map(repr, unknown))}; its algorithms: {known}")
 
 
 def evaluate_study(
@@ -455,10 +474,7 @@ def evaluate_study(
     stream = sys.stdout if stream is None else stream
     folder = Path(directory)
     spec = load_folder_study(folder)
-    known = [algorithm.label for algorithm in spec.algorithms]
-    unknown = [label for label in labels or [] if label not in known]
-    if unknown:
-        raise StudyError(f"{folder} has no algorithm {', '.join(map(repr, unknown))}; its algorithms: {known}")
+    _check_labels(spec, folder, labels)
     trials = [t for t in spec.trials() if labels is None or t.algorithm.label in labels]
     finished = [t for t in trials if read_status(trial_folder(folder, t)).get("status") == "done"]
     print(f"[study] evaluating {len(finished)} finished of {len(trials)} trials in {folder}", file=stream, flush=True)
@@ -505,7 +521,9 @@ def _only_run_in(folder: Path) -> contextlib.AbstractContextManager[Any]:
         raise StudyError(message) from None
 
 
-def _run_locked(spec: StudySpec, folder: Path, address: str | None, stream: Any, cpus: int | None) -> dict[str, str]:
+def _run_locked(
+    spec: StudySpec, folder: Path, address: str | None, stream: Any, cpus: int | None, labels: list[str] | None
+) -> dict[str, str]:
     """:func:`run_study` in its prepared and locked folder.
 
     :param spec: the study
@@ -513,17 +531,21 @@ def _run_locked(spec: StudySpec, folder: Path, address: str | None, stream: Any,
     :param address: as :func:`run_study`
     :param stream: as :func:`run_study`
     :param cpus: as :func:`run_study` (checked)
+    :param labels: as :func:`run_study` (checked)
     :return: as :func:`run_study`
     :raises StudyError: if the cluster does not answer
     """
     (folder / STOP_FILE).unlink(missing_ok=True)  # left by a run that was killed while stopping
-    trials = spec.trials()
+    trials = [t for t in spec.trials() if labels is None or t.algorithm.label in labels]
     todo = [t for t in trials if read_status(trial_folder(folder, t))["status"] != "done"]
     # Longest first (stable): short trials fill the cores at the end instead of a long one running alone.
     todo.sort(key=lambda t: -spec.budget(t.algorithm))
     stream = stream or sys.stdout
     if not todo:
-        print(f"[study] all {len(trials)} trials are done; see python -m sb3_detc.study report {folder}", file=stream)
+        of = f" of {', '.join(labels)}" if labels is not None else ""
+        print(
+            f"[study] all {len(trials)} trials{of} are done; see python -m sb3_detc.study report {folder}", file=stream
+        )
         return {t.name: "done" for t in trials}
     if address is not None:
         _check_address(address)
