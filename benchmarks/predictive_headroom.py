@@ -1,20 +1,21 @@
-"""How much better than predictive triggering a rule on the same prediction error can do, on the linear system.
+"""Predictive triggering against a threshold on its prediction error weighted by what it costs (linear system).
 
 Predictive triggering (:class:`~sb3_detc.triggers.PredictiveTrigger`) broadcasts when the
 receivers' prediction of an agent is off by more than ``delta`` in the Euclidean norm, and LQR
 acts on the predictions. Every unit of that error does not cost the same: an agent's own control
 acts on its own state, so its error costs only through the others' controls, ``du = G_i e`` with
 ``G_i`` agent i's columns of the LQR gain without its own row, and with the team's controls off by
-``du`` the expected cost grows by ``du' (R + B'PB) du`` per step (``P`` the Riccati solution). This
-script weights the error by that cost, summed over the next ``horizon`` steps of the receivers'
-prediction (``Phi_i`` the agent's closed-loop block)::
+``du`` the Q-function of LQR grows by ``du' (R + B'PB) du`` (``P`` the Riccati solution). This
+script weights the error by that cost, summed over the next ``horizon`` steps as the agent's own
+closed loop ``Phi_i`` carries it (an approximation: it leaves out the other agents' errors, the
+others' drift and the next broadcast)::
 
     ||e||_W = sqrt(e' W_i e),   W_i = sum_{k < horizon} (Phi_i^k)' G_i' (R + B'PB) G_i Phi_i^k,
 
 tunes both rules to each target savings on the same seeded episodes and prints, per agent and
 episode (the units of the studies' tables), their control returns and the paired difference with
-its 95 % interval over the episodes. A weighted rule that does not beat the Euclidean one says
-that predictive triggering leaves little to gain for a trigger that thresholds this error.
+its 95 % interval over the episodes: what one better-informed threshold on this error gains over
+predictive triggering (a lower bound on what a trigger could gain, not an upper one).
 
     python benchmarks/predictive_headroom.py --targets 0.8 0.9 0.95 --horizons 1 10
 """
@@ -62,11 +63,14 @@ class CostWeightedPredictive(PredictiveTrigger):
     :param system: the linear system
     :param delta: threshold (>= 0), in the units of the weighted norm
     :param weights: ``W`` (N, 2, 2), e.g. :func:`error_cost_weights`
+    :raises ValueError: on a bad ``delta`` or ``weights`` of the wrong shape
     """
 
     def __init__(self, system: LinearSystem, delta: float, weights: np.ndarray) -> None:
         super().__init__(system, delta)
-        self.weights = weights
+        self.weights = np.asarray(weights, dtype=np.float64)
+        if self.weights.shape != (system.n_agents, 2, 2):
+            raise ValueError(f"weights must have shape {(system.n_agents, 2, 2)}, got {self.weights.shape}.")
 
     def __repr__(self) -> str:
         return f"CostWeightedPredictive(delta={self.delta:g})"
@@ -78,7 +82,8 @@ class CostWeightedPredictive(PredictiveTrigger):
         :return: ``sqrt(e' W_i e)`` per agent, (B, N)
         """
         deviation = self.deviation(obs)
-        return np.sqrt(np.einsum("bni,nij,bnj->bn", deviation, self.weights, deviation))
+        squared = np.einsum("bni,nij,bnj->bn", deviation, self.weights, deviation)
+        return np.sqrt(np.maximum(squared, 0.0))  # a singular W may give -1e-16
 
 
 def episode_returns(env: gym.Env, trigger: Trigger, episodes: int, seed: int) -> tuple[np.ndarray, float]:

@@ -447,15 +447,24 @@ def test_a_run_can_be_limited_to_some_algorithms(tmp_path):
     refused = run_command("run", str(path), "--dir", str(out), "--algorithms", "random", "nope")
     assert refused.returncode == 2 and not out.exists()  # checked before the folder is made
     assert refused.stderr.strip().splitlines() == [
-        f"python -m sb3_detc.study: error: {out} has no algorithm 'nope'; its algorithms: ['learned', 'random']"
+        f"python -m sb3_detc.study: error: the study {path} has no algorithm 'nope'; its algorithms: "
+        "['learned', 'random']"
     ]
-    result = run_command("run", str(path), "--dir", str(out), "--algorithms", "random")
+    result = run_command("run", str(path), "--dir", str(out), "--algorithms", "random", "random")
     assert result.returncode == 0, result.stdout + result.stderr  # every trial it was asked to run is done
-    assert "1 trials: 0 done, 1 to run" in result.stdout
+    assert "1 trials: 0 done, 1 to run" in result.stdout  # a repeated label runs its trials once
+    assert "other algorithms' trials: the same command without --algorithms" in result.stdout
     assert read_status(out / "trials" / "random" / "seed0")["status"] == "done"
     assert read_status(out / "trials" / "learned" / "seed0")["status"] == "pending"
     again = run_command("run", str(path), "--dir", str(out), "--algorithms", "random")
     assert again.returncode == 0 and "all 1 trials of random are done" in again.stdout
+    # the folder's own study decides, whatever the labels
+    other = write_study(tmp_path, {**study, "seeds": [1]}, name="other.yml")
+    mixed = run_command("run", str(other), "--dir", str(out), "--algorithms", "random")
+    assert mixed.returncode == 2 and "another study" in mixed.stderr, mixed.stderr
+    for labels in ("random", []):  # the API refuses a bare string and an empty list
+        with pytest.raises(StudyError, match="give a list of one or more algorithm labels"):
+            run_study(load_study(path), out, labels=labels)
 
 
 def test_running_a_finished_study_again_trains_nothing(finished_study):

@@ -1,8 +1,9 @@
 """Multi-seed studies: ``python -m sb3_detc.study run STUDY.yml --dir DIR`` and ``python -m sb3_detc.study report DIR``.
 
-``run`` trains and evaluates every (algorithm, seed) trial of a study file as a Ray Tune
-trial (Ray started on this machine, or ``--address`` of a running cluster); running it
-again skips finished trials and resumes interrupted ones. ``evaluate DIR`` evaluates the
+``run`` trains and evaluates every (algorithm, seed) trial of a study file (``--algorithms``
+to run some algorithms' trials only) as a Ray Tune trial (Ray started on this machine, or
+``--address`` of a running cluster); running it again skips finished trials and resumes
+interrupted ones. ``evaluate DIR`` evaluates the
 finished trials again with the current protocol (``--algorithms`` to choose some), rewriting
 their ``evaluation.json``. ``report`` prints the tables
 and writes ``curves.png``, ``estimates.png`` and ``summary.json`` to the study folder. Study files shipped
@@ -41,11 +42,11 @@ def _main() -> None:
     :raises SystemExit: with code 1 if ``run`` leaves a trial not done (failed, or unfinished after a stop), or
         an evaluation of ``evaluate`` fails
     :raises StudyError: if the folder given to ``evaluate`` or ``report`` is not a study folder (or, for
-        ``evaluate``, another run uses it or an algorithm is not the study's)
+        ``evaluate``, another run uses it), or an algorithm given to ``run`` or ``evaluate`` is not the study's
     """
     parser = argparse.ArgumentParser(prog="python -m sb3_detc.study", description=__doc__.splitlines()[0])
     commands = parser.add_subparsers(dest="command", required=True)
-    run = commands.add_parser("run", help="run (or continue) every trial of a study")
+    run = commands.add_parser("run", help="run (or continue) the trials of a study")
     run.add_argument("study", help=f"study file (or the name of one in {STUDIES_DIR})")
     run.add_argument("--dir", required=True, type=Path, help="study folder (made if needed)")
     run.add_argument("--address", default=None, help="address of a running Ray cluster, e.g. auto (default: local)")
@@ -74,7 +75,8 @@ def _main() -> None:
         statuses = run_study(study, args.dir, address=args.address, cpus=args.cpus, labels=args.algorithms)
         if any(status != "done" for status in statuses.values()):
             raise SystemExit(1)
-        print(f"[study] done: python -m sb3_detc.study report {args.dir}")
+        others = "; the other algorithms' trials: the same command without --algorithms" if args.algorithms else ""
+        print(f"[study] done: python -m sb3_detc.study report {args.dir}{others}")
     elif args.command == "evaluate":
         from sb3_detc.study.runner import evaluate_study
 

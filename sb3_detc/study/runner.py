@@ -387,20 +387,33 @@ def _stop_on_first_interrupt(stop_file: Path, stream: Any) -> Any:
             os.environ[switch] = before
 
 
+class _NoMetricsWarning(logging.Filter):
+    """Drops Ray Tune's warning that it cannot fetch the metrics of trials without results."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        """Whether to keep a record.
+
+        :param record: a log record of Ray Tune's experiment analysis
+        :return: False for the warning about trials without metrics, True for every other record
+        """
+        return not record.getMessage().startswith("Failed to fetch metrics")
+
+
 @contextlib.contextmanager
 def _without_results_warning() -> Any:
     """Within the context, Ray Tune does not warn of trials that have no results when the run ends.
 
     The study reads its results from the trial folders, not from Ray's; the trials a stop request
-    leaves pending never report, and Ray's warning would list every one of them.
+    leaves pending never report, and Ray's warning would list every one of them. Its other
+    messages pass.
     """
     logger = logging.getLogger("ray.tune.analysis.experiment_analysis")
-    level = logger.level
-    logger.setLevel(logging.ERROR)
+    quiet = _NoMetricsWarning()
+    logger.addFilter(quiet)
     try:
         yield
     finally:
-        logger.setLevel(level)
+        logger.removeFilter(quiet)
 
 
 def run_study(
@@ -433,24 +446,33 @@ def run_study(
         raise StudyError(f"cpus must be a positive integer, got {cpus!r}")
     if cpus is not None and address is not None:
         raise StudyError("give cpus or address, not both: a cluster's cores are its own")
-    _check_labels(spec, directory, labels)
+    labels = _checked_labels(spec, f"the study {spec.path}", labels)
     folder = prepare_folder(spec, directory).resolve()
     with _only_run_in(folder):
         return _run_locked(spec, folder, address, stream, cpus, labels)
 
 
-def _check_labels(spec: StudySpec, folder: str | os.PathLike, labels: list[str] | None) -> None:
-    """Check that every label names an algorithm of the study.
+def _checked_labels(spec: StudySpec, subject: str, labels: list[str] | None) -> list[str] | None:
+    """Labels that each name an algorithm of the study, each once.
 
     :param spec: the study
-    :param folder: the study folder (for the message)
+    :param subject: what holds the study, for the message (its file, or its folder)
     :param labels: the labels, or None (all algorithms)
-    :raises StudyError: naming the unknown labels and the study's algorithms
+    :return: the labels without repeats, in their order, or None
+    :raises StudyError: for a string instead of a list, no labels, or labels that name no algorithm of the
+        study (the message lists its algorithms)
     """
+    if labels is None:
+        return None
     known = [algorithm.label for algorithm in spec.algorithms]
-    unknown = [label for label in labels or [] if label not in known]
+    if isinstance(labels, str) or not labels:
+        raise StudyError(
+            f"give a list of one or more algorithm labels of {subject}, got {labels!r}; its algorithms: {known}"
+        )
+    unknown = [label for label in labels if label not in known]
     if unknown:
-        raise StudyError(f"{folder} has no algorithm {', '.join(map(repr, unknown))}; its algorithms: {known}")
+        raise StudyError(f"{subject} has no algorithm {', '.join(map(repr, unknown))}; its algorithms: {known}")
+    return list(dict.fromkeys(labels))
 
 
 def evaluate_study(
@@ -474,7 +496,7 @@ def evaluate_study(
     stream = sys.stdout if stream is None else stream
     folder = Path(directory)
     spec = load_folder_study(folder)
-    _check_labels(spec, folder, labels)
+    labels = _checked_labels(spec, str(folder), labels)
     trials = [t for t in spec.trials() if labels is None or t.algorithm.label in labels]
     finished = [t for t in trials if read_status(trial_folder(folder, t)).get("status") == "done"]
     print(f"[study] evaluating {len(finished)} finished of {len(trials)} trials in {folder}", file=stream, flush=True)
