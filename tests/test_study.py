@@ -967,6 +967,28 @@ def test_an_interrupted_trial_says_so_and_the_next_run_finishes_it(tmp_path):
     assert "4096" in cells and "4096.0" not in cells
 
 
+def test_a_run_resumes_the_interrupted_trials_before_it_starts_new_ones(tmp_path):
+    from sb3_detc.study.trial import run_trial
+
+    study = {**TINY, "seeds": [0, 1], "n_timesteps": 4096, "algorithms": {"learned": {"algo": "mappoc"}}}
+    path, out = write_study(tmp_path, study), tmp_path / "out"
+    spec = load_study(path)
+    prepare_folder(spec, out)
+
+    def stop_after_the_first_checkpoint(steps: int) -> None:
+        if steps >= 2048:
+            raise KeyboardInterrupt
+
+    second = spec.trials()[1]
+    with pytest.raises(KeyboardInterrupt):
+        run_trial(spec, second, out, on_progress=stop_after_the_first_checkpoint)
+    result = run_command("run", str(path), "--dir", str(out), "--cpus", "1")  # one trial at a time
+    assert result.returncode == 0, result.stdout + result.stderr
+    first_running = next(line for line in result.stdout.splitlines() if "1 running (" in line)
+    assert "learned/seed1" in first_running, result.stdout
+    assert [a["start_timesteps"] for a in read_status(trial_folder(out, second))["attempts"]] == [0, 2048]
+
+
 def test_segments_of_lost_checkpoints_are_dropped(tmp_path):
     for start in (0, 204800, 409600):
         (tmp_path / "segments" / str(start)).mkdir(parents=True)

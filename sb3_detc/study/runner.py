@@ -559,9 +559,11 @@ def _run_locked(
     """
     (folder / STOP_FILE).unlink(missing_ok=True)  # left by a run that was killed while stopping
     trials = [t for t in spec.trials() if labels is None or t.algorithm.label in labels]
-    todo = [t for t in trials if read_status(trial_folder(folder, t))["status"] != "done"]
-    # Longest first (stable): short trials fill the cores at the end instead of a long one running alone.
-    todo.sort(key=lambda t: -spec.budget(t.algorithm))
+    before = {t.name: read_status(trial_folder(folder, t))["status"] for t in trials}
+    todo = [t for t in trials if before[t.name] != "done"]
+    # Longest first (stable): short trials fill the cores at the end instead of a long one running alone;
+    # of equal budgets, the trials a stop interrupted first, so that what was started finishes first.
+    todo.sort(key=lambda t: (-spec.budget(t.algorithm), before[t.name] != "interrupted"))
     stream = stream or sys.stdout
     if not todo:
         of = f" of {', '.join(labels)}" if labels is not None else ""
