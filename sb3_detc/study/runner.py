@@ -562,8 +562,9 @@ def _run_locked(
     before = {t.name: read_status(trial_folder(folder, t))["status"] for t in trials}
     todo = [t for t in trials if before[t.name] != "done"]
     # Longest first (stable): short trials fill the cores at the end instead of a long one running alone;
-    # of equal budgets, the trials a stop interrupted first, so that what was started finishes first.
-    todo.sort(key=lambda t: (-spec.budget(t.algorithm), before[t.name] != "interrupted"))
+    # of equal budgets, the trials a stop interrupted (or a killed run left running) first, so that what was
+    # started finishes first.
+    todo.sort(key=lambda t: (-spec.budget(t.algorithm), before[t.name] not in ("interrupted", "running")))
     stream = stream or sys.stdout
     if not todo:
         of = f" of {', '.join(labels)}" if labels is not None else ""
