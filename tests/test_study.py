@@ -967,7 +967,8 @@ def test_an_interrupted_trial_says_so_and_the_next_run_finishes_it(tmp_path):
     assert "4096" in cells and "4096.0" not in cells
 
 
-def test_a_run_resumes_the_interrupted_trials_before_it_starts_new_ones(tmp_path):
+@pytest.mark.parametrize("left", ["interrupted", "running"])  # stopped, or its run was killed
+def test_a_run_resumes_the_interrupted_trials_before_it_starts_new_ones(tmp_path, left):
     from sb3_detc.study.trial import run_trial
 
     study = {**TINY, "seeds": [0, 1], "n_timesteps": 4096, "algorithms": {"learned": {"algo": "mappoc"}}}
@@ -982,6 +983,8 @@ def test_a_run_resumes_the_interrupted_trials_before_it_starts_new_ones(tmp_path
     second = spec.trials()[1]
     with pytest.raises(KeyboardInterrupt):
         run_trial(spec, second, out, on_progress=stop_after_the_first_checkpoint)
+    status_file = trial_folder(out, second) / "status.json"
+    status_file.write_text(json.dumps({**read_status(trial_folder(out, second)), "status": left}))
     result = run_command("run", str(path), "--dir", str(out), "--cpus", "1")  # one trial at a time
     assert result.returncode == 0, result.stdout + result.stderr
     first_running = next(line for line in result.stdout.splitlines() if "1 running (" in line)
