@@ -26,7 +26,7 @@ from sb3_detc.plot import PROGRESS_XZ, progress_file, read_progress
 from sb3_detc.study import report
 from sb3_detc.study.__main__ import main as study_main
 from sb3_detc.study.report import report_study, splice, summarise
-from sb3_detc.study.runner import prepare_folder, run_study
+from sb3_detc.study.runner import prepare_folder, run_study, trials_to_run
 from sb3_detc.study.spec import StudyError, load_folder_study, load_study
 from sb3_detc.study.trial import (
     FINISHED_FILES,
@@ -967,29 +967,26 @@ def test_an_interrupted_trial_says_so_and_the_next_run_finishes_it(tmp_path):
     assert "4096" in cells and "4096.0" not in cells
 
 
-@pytest.mark.parametrize("left", ["interrupted", "running"])  # stopped, or its run was killed
-def test_a_run_resumes_the_interrupted_trials_before_it_starts_new_ones(tmp_path, left):
-    from sb3_detc.study.trial import run_trial
-
-    study = {**TINY, "seeds": [0, 1], "n_timesteps": 4096, "algorithms": {"learned": {"algo": "mappoc"}}}
-    path, out = write_study(tmp_path, study), tmp_path / "out"
-    spec = load_study(path)
-    prepare_folder(spec, out)
-
-    def stop_after_the_first_checkpoint(steps: int) -> None:
-        if steps >= 2048:
-            raise KeyboardInterrupt
-
-    second = spec.trials()[1]
-    with pytest.raises(KeyboardInterrupt):
-        run_trial(spec, second, out, on_progress=stop_after_the_first_checkpoint)
-    status_file = trial_folder(out, second) / "status.json"
-    status_file.write_text(json.dumps({**read_status(trial_folder(out, second)), "status": left}))
-    result = run_command("run", str(path), "--dir", str(out), "--cpus", "1")  # one trial at a time
-    assert result.returncode == 0, result.stdout + result.stderr
-    first_running = next(line for line in result.stdout.splitlines() if "1 running (" in line)
-    assert "learned/seed1" in first_running, result.stdout
-    assert [a["start_timesteps"] for a in read_status(trial_folder(out, second))["attempts"]] == [0, 2048]
+def test_a_run_starts_the_longest_trials_first_and_of_equal_budgets_the_ones_it_resumes(tmp_path):
+    study = {
+        **TINY_BUDGETS,
+        "seeds": [0, 1, 2, 3],
+        "algorithms": {**TINY_BUDGETS["algorithms"], "long": {"algo": "mappoc", "hyperparams": {"n_timesteps": 4096}}},
+    }
+    spec = load_study(write_study(tmp_path, study))
+    out = prepare_folder(spec, tmp_path / "out")
+    # stopped ("interrupted"), or left "running" by a run that was killed
+    left = {"learned/seed1": "interrupted", "learned/seed3": "running", "random/seed2": "interrupted"}
+    for name, status in {"learned/seed0": "done", "long/seed2": "done", **left}.items():
+        folder = out / "trials" / name
+        folder.mkdir(parents=True)
+        (folder / "status.json").write_text(json.dumps({"status": status}))
+    order = [t.name for t in trials_to_run(spec, out, spec.trials())]
+    assert order == [
+        *("long/seed0", "long/seed1", "long/seed3"),  # the largest budget first
+        *("learned/seed1", "learned/seed3", "learned/seed2"),  # what a stop or a kill left first
+        *("random/seed2", "random/seed0", "random/seed1", "random/seed3"),
+    ]
 
 
 def test_segments_of_lost_checkpoints_are_dropped(tmp_path):

@@ -25,7 +25,7 @@ from typing import Any
 import torch as th
 import yaml
 
-from sb3_detc.study.spec import CONF_FOLDER, StudyError, StudySpec, conf_copy, load_folder_study, same_study
+from sb3_detc.study.spec import CONF_FOLDER, StudyError, StudySpec, Trial, conf_copy, load_folder_study, same_study
 from sb3_detc.study.trial import evaluate_trial, exclusive, read_status, replace_atomically, run_trial, trial_folder
 from sb3_detc.validation import is_integer
 
@@ -526,6 +526,23 @@ def evaluate_study(
     return evaluations
 
 
+def trials_to_run(spec: StudySpec, folder: Path, trials: list[Trial]) -> list[Trial]:
+    """The trials of ``trials`` that are not done, in the order a run starts them.
+
+    Longest first (stable): short trials fill the cores at the end instead of a long one running
+    alone. Of equal budgets, the trials a stop interrupted (or a killed run left running) first, so
+    that what was started finishes first.
+
+    :param spec: the study
+    :param folder: the study folder (its trials' ``status.json``)
+    :param trials: the trials to consider, in the study's order
+    :return: the trials to run, in order
+    """
+    status = {t.name: read_status(trial_folder(folder, t))["status"] for t in trials}
+    todo = [t for t in trials if status[t.name] != "done"]
+    return sorted(todo, key=lambda t: (-spec.budget(t.algorithm), status[t.name] not in ("interrupted", "running")))
+
+
 def _only_run_in(folder: Path) -> contextlib.AbstractContextManager[Any]:
     """Hold the study folder's lock (``.lock``) while a run uses it: a second ``run`` (or ``evaluate``) is refused.
 
@@ -559,12 +576,7 @@ def _run_locked(
     """
     (folder / STOP_FILE).unlink(missing_ok=True)  # left by a run that was killed while stopping
     trials = [t for t in spec.trials() if labels is None or t.algorithm.label in labels]
-    before = {t.name: read_status(trial_folder(folder, t))["status"] for t in trials}
-    todo = [t for t in trials if before[t.name] != "done"]
-    # Longest first (stable): short trials fill the cores at the end instead of a long one running alone;
-    # of equal budgets, the trials a stop interrupted (or a killed run left running) first, so that what was
-    # started finishes first.
-    todo.sort(key=lambda t: (-spec.budget(t.algorithm), before[t.name] not in ("interrupted", "running")))
+    todo = trials_to_run(spec, folder, trials)
     stream = stream or sys.stdout
     if not todo:
         of = f" of {', '.join(labels)}" if labels is not None else ""
