@@ -1,8 +1,13 @@
 """Shared test settings."""
 
+import contextlib
+import io
 import os
+import runpy
 import subprocess
 import sys
+import traceback
+import warnings
 from collections.abc import Callable
 from pathlib import Path
 
@@ -34,5 +39,40 @@ def run_benchmark() -> Callable[..., subprocess.CompletedProcess]:
     def run(script: str, *arguments: str, check: bool = False) -> subprocess.CompletedProcess:
         command = [sys.executable, str(ROOT / "benchmarks" / script), *arguments]
         return subprocess.run(command, check=check, capture_output=True, text=True, cwd=ROOT, env=env)
+
+    return run
+
+
+@pytest.fixture
+def run_benchmark_here(monkeypatch: pytest.MonkeyPatch) -> Callable[..., subprocess.CompletedProcess]:
+    """Run a script of ``benchmarks/`` in this process, as ``python benchmarks/<script>`` would run it.
+
+    For light work: a report, or bad input that the script refuses before any work. It spares the
+    imports of a fresh interpreter; a script that trains or starts processes runs with
+    :func:`run_benchmark`. The returned function takes what that of :func:`run_benchmark` takes
+    and returns the exit code and the output as a finished process (1, with the traceback on
+    stderr, for an exception).
+    """
+    monkeypatch.chdir(ROOT)
+    monkeypatch.syspath_prepend(str(ROOT / "benchmarks"))  # as for a script: its folder first on the path
+
+    def run(script: str, *arguments: str, check: bool = False) -> subprocess.CompletedProcess:
+        path = ROOT / "benchmarks" / script
+        monkeypatch.setattr(sys, "argv", [str(path), *arguments])
+        stdout, stderr, code = io.StringIO(), io.StringIO(), 0
+        threads = torch.get_num_threads()
+        with contextlib.redirect_stdout(stdout), contextlib.redirect_stderr(stderr), warnings.catch_warnings():
+            try:
+                runpy.run_path(str(path), run_name="__main__")
+            except SystemExit as end:
+                code = end.code if isinstance(end.code, int) else 1 if end.code else 0
+            except Exception:
+                traceback.print_exc()
+                code = 1
+        torch.set_num_threads(threads)
+        done = subprocess.CompletedProcess(sys.argv, code, stdout.getvalue(), stderr.getvalue())
+        if check:
+            done.check_returncode()
+        return done
 
     return run

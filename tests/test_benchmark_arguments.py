@@ -16,11 +16,11 @@ import pytest
         ([], "no saved model"),
     ],
 )
-def test_bad_input_is_a_usage_error(tmp_path: Path, arguments: list[str], message: str, run_benchmark) -> None:
+def test_bad_input_is_a_usage_error(tmp_path: Path, arguments: list[str], message: str, run_benchmark_here) -> None:
     options = ["--env", "sb3_detc/LinearETC-v0", *arguments]
-    done = run_benchmark("evaluate_run.py", str(tmp_path), *options)
+    done = run_benchmark_here("evaluate_run.py", str(tmp_path), *options)
     assert done.returncode == 2 and message in done.stderr and "Traceback" not in done.stderr
-    missing = run_benchmark("evaluate_run.py", str(tmp_path / "none"), *options)
+    missing = run_benchmark_here("evaluate_run.py", str(tmp_path / "none"), *options)
     assert missing.returncode == 2 and ("no run folder" in missing.stderr or "--episodes" in missing.stderr)
 
 
@@ -52,17 +52,17 @@ def test_bad_input_is_a_usage_error(tmp_path: Path, arguments: list[str], messag
     ],
 )
 def test_other_benchmarks_check_their_numbers_first(
-    script: str, arguments: list[str], message: str, run_benchmark
+    script: str, arguments: list[str], message: str, run_benchmark_here
 ) -> None:
-    done = run_benchmark(script, *arguments)
+    done = run_benchmark_here(script, *arguments)
     assert done.returncode == 2 and message in done.stderr and "Traceback" not in done.stderr
 
 
 @pytest.mark.parametrize("script", ["linear_learning.py", "trigger_learning.py", "option_value_estimation.py"])
-def test_sweeps_refuse_a_results_file_of_something_else(tmp_path: Path, script: str, run_benchmark) -> None:
+def test_sweeps_refuse_a_results_file_of_something_else(tmp_path: Path, script: str, run_benchmark_here) -> None:
     out = tmp_path / "results.json"
     out.write_text('{"a": "run of another script"}')
-    done = run_benchmark(script, "--timesteps", "2048", "--out", str(out))
+    done = run_benchmark_here(script, "--timesteps", "2048", "--out", str(out))
     assert done.returncode == 2 and "not the JSON rows of an earlier run" in done.stderr
     assert out.read_text() == '{"a": "run of another script"}'
 

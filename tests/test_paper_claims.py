@@ -19,12 +19,12 @@ class ClaimsRefused(Exception):
 
 
 @pytest.fixture
-def claims(run_benchmark):
+def claims(run_benchmark_here):
     """The claims table the script prints for a study folder, or its usage error."""
 
     def table(folder: Path, mappoc: str, baseline: str, recipe: str | None) -> str:
         arguments = [str(folder), "--mappoc", mappoc, "--baseline", baseline, "--recipe", recipe or ""]
-        done = run_benchmark("paper_claims.py", *arguments)
+        done = run_benchmark_here("paper_claims.py", *arguments)
         if done.returncode == 2 and done.stderr.startswith("error: "):
             raise ClaimsRefused(done.stderr)
         assert done.returncode == 0, done.stderr

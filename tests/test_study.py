@@ -588,17 +588,17 @@ VOI_PAGE = (
 )
 
 
-def test_the_value_of_information_sweep_refuses_a_results_file_it_cannot_read(tmp_path, run_benchmark):
+def test_the_value_of_information_sweep_refuses_a_results_file_it_cannot_read(tmp_path, run_benchmark_here):
     write_study(tmp_path, TINY)  # a study folder without trials
     for text in ("{half", "[1, 2]"):
         (tmp_path / "broken.json").write_text(text)
-        done = run_benchmark(VOI, str(tmp_path), "--out", str(tmp_path / "broken.json"))
+        done = run_benchmark_here(VOI, str(tmp_path), "--out", str(tmp_path / "broken.json"))
         assert done.returncode == 2 and "not the JSON of an earlier sweep" in done.stderr
         assert "Traceback" not in done.stderr and (tmp_path / "broken.json").read_text() == text
 
 
 def test_the_value_of_information_sweep_runs_fixed_triggers_and_the_mode_of_learned_options(
-    finished_study, tmp_path, run_benchmark
+    finished_study, tmp_path, run_benchmark, run_benchmark_here
 ):
     _, out, _ = finished_study
     results_file = tmp_path / "results" / "voi.json"  # a folder that does not exist yet
@@ -671,10 +671,10 @@ def test_the_value_of_information_sweep_runs_fixed_triggers_and_the_mode_of_lear
         (["--splice", str(page), "--columns", "random", "nobody"], "no algorithm nobody in the study"),
         (["--splice", str(tmp_path / "missing.md")], "cannot be read as a text page"),
     ):
-        refused = run_benchmark(VOI, *command, *extra)
+        refused = run_benchmark_here(VOI, *command, *extra)
         assert refused.returncode == 2 and message in refused.stderr and refused.stdout == "", refused.stderr
     for extra in (["--columns", "random"], ["--deltas", "-1"], ["--rates", "2"], ["--periods", "0"]):
-        refused = run_benchmark(VOI, *command, *extra)
+        refused = run_benchmark_here(VOI, *command, *extra)
         assert refused.returncode == 2 and "error: " in refused.stderr and refused.stdout == "", extra
     assert page.read_text() == text
 

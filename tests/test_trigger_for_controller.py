@@ -47,8 +47,8 @@ def test_only_the_policies_over_options_change_and_the_protocol_evaluates_them(t
     assert "1 of 1 jobs already in" in again  # resumed, not trained again
 
 
-def test_an_unfinished_algorithm_is_a_usage_error(run_benchmark) -> None:
-    done = run_benchmark(SCRIPT, "benchmarks/studies/linear", "--algorithm", "nothing")
+def test_an_unfinished_algorithm_is_a_usage_error(run_benchmark_here) -> None:
+    done = run_benchmark_here(SCRIPT, "benchmarks/studies/linear", "--algorithm", "nothing")
     assert (
         done.returncode == 2 and "no finished trial of 'nothing' (algorithms: mappoc, ppo_random_skip)" in done.stderr
     )
