@@ -272,22 +272,23 @@ def test_the_shipped_study_files_load():
     assert schedule_first.hyperparams["target_savings"] == 0.9375
 
 
-def test_command_line_bad_input_is_one_line_with_exit_code_2(tmp_path):
+def test_command_line_bad_input_is_one_line_with_exit_code_2(tmp_path, capsys):
     path = write_study(tmp_path, {**TINY, "env": "sb3_detc/NoSuchEnv-v0"})
-    result = run_command("run", str(path), "--dir", str(tmp_path / "out"))
+    result = run_command("run", str(path), "--dir", str(tmp_path / "out"))  # as a user runs it
     assert result.returncode == 2
     assert result.stderr.strip().startswith("python -m sb3_detc.study: error:")
     assert len(result.stderr.strip().splitlines()) == 1
-    result = run_command("report", str(tmp_path / "nowhere"))
-    assert result.returncode == 2 and "not a study folder" in result.stderr
     path = write_study(tmp_path, TINY)
-    for extra, message in (
-        (["--cpus", "0"], "cpus must be a positive integer"),
-        (["--cpus", "2", "--address", "auto"], "not both"),
+    for arguments, message in (
+        (["report", str(tmp_path / "nowhere")], "not a study folder"),
+        (["run", str(path), "--dir", str(tmp_path / "out"), "--cpus", "0"], "cpus must be a positive integer"),
+        (["run", str(path), "--dir", str(tmp_path / "out"), "--cpus", "2", "--address", "auto"], "not both"),
     ):
-        result = run_command("run", str(path), "--dir", str(tmp_path / "out"), *extra)
-        assert result.returncode == 2 and message in result.stderr, result.stderr
-        assert len(result.stderr.strip().splitlines()) == 1
+        with pytest.raises(SystemExit) as stop:
+            study_main(arguments)
+        error = capsys.readouterr().err
+        assert stop.value.code == 2 and message in error, error
+        assert len(error.strip().splitlines()) == 1
 
 
 def test_a_folder_of_another_study_is_refused(tmp_path):
@@ -441,12 +442,13 @@ def test_evaluating_a_study_again_rewrites_the_evaluations_of_the_chosen_finishe
     ]
 
 
-def test_a_run_can_be_limited_to_some_algorithms(tmp_path):
+def test_a_run_can_be_limited_to_some_algorithms(tmp_path, capsys):
     study = {**TINY, "seeds": [0], "n_timesteps": 1024}
     path, out = write_study(tmp_path, study), tmp_path / "out"
-    refused = run_command("run", str(path), "--dir", str(out), "--algorithms", "random", "nope")
-    assert refused.returncode == 2 and not out.exists()  # checked before the folder is made
-    assert refused.stderr.strip().splitlines() == [
+    with pytest.raises(SystemExit) as refused:
+        study_main(["run", str(path), "--dir", str(out), "--algorithms", "random", "nope"])
+    assert refused.value.code == 2 and not out.exists()  # checked before the folder is made
+    assert capsys.readouterr().err.strip().splitlines() == [
         f"python -m sb3_detc.study: error: the study {path} has no algorithm 'nope'; its algorithms: "
         "['learned', 'random']"
     ]
@@ -456,12 +458,13 @@ def test_a_run_can_be_limited_to_some_algorithms(tmp_path):
     assert "other algorithms' trials: the same command without --algorithms" in result.stdout
     assert read_status(out / "trials" / "random" / "seed0")["status"] == "done"
     assert read_status(out / "trials" / "learned" / "seed0")["status"] == "pending"
-    again = run_command("run", str(path), "--dir", str(out), "--algorithms", "random")
-    assert again.returncode == 0 and "all 1 trials of random are done" in again.stdout
+    study_main(["run", str(path), "--dir", str(out), "--algorithms", "random"])  # nothing to run: no Ray
+    assert "all 1 trials of random are done" in capsys.readouterr().out
     # the folder's own study decides, whatever the labels
     other = write_study(tmp_path, {**study, "seeds": [1]}, name="other.yml")
-    mixed = run_command("run", str(other), "--dir", str(out), "--algorithms", "random")
-    assert mixed.returncode == 2 and "another study" in mixed.stderr, mixed.stderr
+    with pytest.raises(SystemExit) as mixed:
+        study_main(["run", str(other), "--dir", str(out), "--algorithms", "random"])
+    assert mixed.value.code == 2 and "another study" in capsys.readouterr().err
     for labels in ("random", []):  # the API refuses a bare string and an empty list
         with pytest.raises(StudyError, match="give a list of one or more algorithm labels"):
             run_study(load_study(path), out, labels=labels)
