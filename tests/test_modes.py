@@ -223,3 +223,18 @@ def test_bad_arguments_with_an_env_id_start_no_worker_processes() -> None:
     with pytest.raises(ValueError, match="broadcast_advantage must be"):
         MAPPOC("MlpHybridPolicy", ENV_ID, broadcast_advantage="best")
     assert set(multiprocessing.active_children()) == before
+
+
+def test_a_model_that_cannot_be_built_ends_the_worker_processes_it_started() -> None:
+    """What only the policy can check (its critic against the price rule) is refused after the workers start."""
+    before = set(multiprocessing.active_children())
+    with pytest.raises(ValueError, match="needs a critic that adds the price"):
+        MAPPOC(
+            "MlpHybridPolicy",
+            ENV_ID,
+            n_envs=2,
+            target_savings=0.9,
+            broadcast_price_rule="quantile",
+            policy_kwargs={"critic": "option_heads"},
+        )
+    assert set(multiprocessing.active_children()) == before

@@ -201,13 +201,14 @@ class MAPPOC(OnPolicyAlgorithm):
             broadcast_price_lr=broadcast_price_lr,
             broadcast_advantage=broadcast_advantage,
         )
-        if isinstance(env, str):  # after the checks: no worker processes for a model that cannot be built
-            env = make_rollout_workers(env, n_envs, seed)  # type: ignore[arg-type]
-        n_steps, batch_size, n_epochs = int(n_steps), int(batch_size), int(n_epochs)  # e.g. from numpy
         policy_kwargs = dict(policy_kwargs or {})
         if share_parameters and not policy_kwargs.get("share_parameters", True):
             raise ValueError("share_parameters=True contradicts policy_kwargs['share_parameters']=False: give one.")
         policy_kwargs.setdefault("share_parameters", share_parameters)
+        owns_env = isinstance(env, str)
+        if owns_env:  # after the checks: no worker processes for a model that cannot be built
+            env = make_rollout_workers(env, n_envs, seed)  # type: ignore[arg-type]
+        n_steps, batch_size, n_epochs = int(n_steps), int(batch_size), int(n_epochs)  # e.g. from numpy
         super().__init__(
             policy,
             env,
@@ -259,7 +260,12 @@ class MAPPOC(OnPolicyAlgorithm):
         self._rollout_trigger: FixedTrigger | None = fixed_trigger
         self._action_noise_terms: dict[Hashable, float] = {}
         if _init_setup_model:
-            self._setup_model()
+            try:
+                self._setup_model()
+            except BaseException:  # e.g. bad policy_kwargs: the worker processes it started end with it
+                if owns_env:
+                    env.close()
+                raise
 
     def _setup_model(self) -> None:
         self.n_agents, self.n_control = check_joint_spaces(self.observation_space, self.action_space)
