@@ -683,7 +683,7 @@ def test_the_value_of_information_sweep_runs_fixed_triggers_and_the_mode_of_lear
 
 
 def test_the_side_by_side_table_shows_each_algorithms_savings_where_a_trigger_saves_differently(
-    tmp_path, run_benchmark
+    tmp_path, run_benchmark_here
 ):
     """The page of a study whose trials' results are given (no trial finished in the folder: nothing evaluated)."""
     labels = ("a", "b", "c", "d")
@@ -718,7 +718,7 @@ def test_the_side_by_side_table_shows_each_algorithms_savings_where_a_trigger_sa
     def page(*arguments: str) -> tuple[subprocess.CompletedProcess, str]:
         out.write_text(json.dumps(results))
         (tmp_path / "README.md").write_text(VOI_PAGE)
-        done = run_benchmark(
+        done = run_benchmark_here(
             VOI, str(tmp_path), "--out", str(out), "--deltas", "--splice", str(tmp_path / "README.md"), *arguments
         )
         return done, (tmp_path / "README.md").read_text()
