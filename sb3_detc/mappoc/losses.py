@@ -117,12 +117,13 @@ class MAPPOCLoss(nn.Module):
 
     :param policy: the policy whose networks are trained
     :param vf_coef: coefficient of the critic's squared error
-    :param broadcast_advantage: ``"greedy"`` or ``"return"`` (see :class:`~sb3_detc.MAPPOC`, which checks it)
+    :param broadcast_advantage: ``"greedy"`` or ``"return"`` (see :class:`~sb3_detc.MAPPOC`)
     :param broadcast_advantage_offset: constant added to the broadcast advantages
     :param normalize_broadcast_advantage: divide the greedy broadcast advantages by every agent's
         root mean square broadcast gap over the minibatch (:func:`broadcast_gap_scale`)
     :param normalize_advantage: standardise the control advantages (and the sampled option
         advantages) per agent and minibatch
+    :raises ValueError: for an unknown ``broadcast_advantage``
     """
 
     def __init__(
@@ -135,6 +136,9 @@ class MAPPOCLoss(nn.Module):
         normalize_advantage: bool,
     ) -> None:
         super().__init__()
+        if broadcast_advantage not in BROADCAST_ADVANTAGES:
+            kinds = " or ".join(map(repr, BROADCAST_ADVANTAGES))
+            raise ValueError(f"broadcast_advantage must be {kinds}, got {broadcast_advantage!r}.")
         self.policy = policy
         self.vf_coef = vf_coef
         self.offset = broadcast_advantage_offset
