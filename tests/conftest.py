@@ -53,7 +53,6 @@ def run_benchmark_here(monkeypatch: pytest.MonkeyPatch) -> Callable[..., subproc
     and returns the exit code and the output as a finished process (1, with the traceback on
     stderr, for an exception).
     """
-    monkeypatch.chdir(ROOT)
     monkeypatch.syspath_prepend(str(ROOT / "benchmarks"))  # as for a script: its folder first on the path
 
     def run(script: str, *arguments: str, check: bool = False) -> subprocess.CompletedProcess:
@@ -61,15 +60,19 @@ def run_benchmark_here(monkeypatch: pytest.MonkeyPatch) -> Callable[..., subproc
         monkeypatch.setattr(sys, "argv", [str(path), *arguments])
         stdout, stderr, code = io.StringIO(), io.StringIO(), 0
         threads = torch.get_num_threads()
-        with contextlib.redirect_stdout(stdout), contextlib.redirect_stderr(stderr), warnings.catch_warnings():
-            try:
-                runpy.run_path(str(path), run_name="__main__")
-            except SystemExit as end:
-                code = end.code if isinstance(end.code, int) else 1 if end.code else 0
-            except Exception:
-                traceback.print_exc()
-                code = 1
-        torch.set_num_threads(threads)
+        with contextlib.chdir(ROOT), warnings.catch_warnings():  # the filters a script sets end with it
+            with contextlib.redirect_stdout(stdout), contextlib.redirect_stderr(stderr):
+                try:
+                    runpy.run_path(str(path), run_name="__main__")
+                except SystemExit as end:
+                    code = end.code if isinstance(end.code, int) else 0 if end.code is None else 1
+                    if not isinstance(end.code, int | None):  # as the interpreter prints it
+                        print(end.code, file=sys.stderr)
+                except Exception:
+                    traceback.print_exc()
+                    code = 1
+                finally:
+                    torch.set_num_threads(threads)
         done = subprocess.CompletedProcess(sys.argv, code, stdout.getvalue(), stderr.getvalue())
         if check:
             done.check_returncode()

@@ -19,7 +19,7 @@ from sb3_detc.mappoc.mappoc import PAPER_ITERATION
 from sb3_detc.mappoc.rewards import RewardTransform
 from sb3_detc.mappoc.sampling import has_rollout_workers
 from sb3_detc.mappoc.steps import COMPILE_FROM_TIMESTEPS, FusedGradientStep, GradientStep, has_cxx_compiler
-from sb3_detc.mappoc.workers import default_n_envs
+from sb3_detc.mappoc.workers import default_n_envs, make_rollout_workers
 from sb3_detc.triggers import RandomTrigger
 
 ENV_ID = "sb3_detc/LinearETC-v0"
@@ -225,16 +225,28 @@ def test_bad_arguments_with_an_env_id_start_no_worker_processes() -> None:
     assert set(multiprocessing.active_children()) == before
 
 
-def test_a_model_that_cannot_be_built_ends_the_worker_processes_it_started() -> None:
-    """What only the policy can check (its critic against the price rule) is refused after the workers start."""
-    before = set(multiprocessing.active_children())
-    with pytest.raises(ValueError, match="needs a critic that adds the price"):
-        MAPPOC(
-            "MlpHybridPolicy",
-            ENV_ID,
-            n_envs=2,
-            target_savings=0.9,
-            broadcast_price_rule="quantile",
-            policy_kwargs={"critic": "option_heads"},
-        )
+@pytest.mark.parametrize(
+    ("arguments", "message"),
+    [
+        ({"policy": "Mlp"}, "Policy Mlp unknown"),  # SB3's own refusal
+        (  # what only the policy can check: its critic against the price rule
+            {"target_savings": 0.9, "broadcast_price_rule": "quantile", "policy_kwargs": {"critic": "option_heads"}},
+            "needs a critic that adds the price",
+        ),
+    ],
+)
+def test_a_model_that_cannot_be_built_ends_the_worker_processes_it_started(monkeypatch, arguments, message) -> None:
+    from sb3_detc.mappoc import mappoc
+
+    before, started = set(multiprocessing.active_children()), []
+
+    def workers(*args, **kwargs):
+        env = make_rollout_workers(*args, **kwargs)
+        started.append(set(multiprocessing.active_children()) - before)
+        return env
+
+    monkeypatch.setattr(mappoc, "make_rollout_workers", workers)
+    with pytest.raises(ValueError, match=message):
+        MAPPOC(**{"policy": "MlpHybridPolicy", "env": ENV_ID, "n_envs": 2, **arguments})
+    assert len(started) == 1 and len(started[0]) >= 2  # the workers had started
     assert set(multiprocessing.active_children()) == before

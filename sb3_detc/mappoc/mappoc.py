@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import pathlib
 from collections.abc import Hashable
 from typing import Any, ClassVar, TypeVar
@@ -208,64 +209,65 @@ class MAPPOC(OnPolicyAlgorithm):
         owns_env = isinstance(env, str)
         if owns_env:  # after the checks: no worker processes for a model that cannot be built
             env = make_rollout_workers(env, n_envs, seed)  # type: ignore[arg-type]
-        n_steps, batch_size, n_epochs = int(n_steps), int(batch_size), int(n_epochs)  # e.g. from numpy
-        super().__init__(
-            policy,
-            env,
-            learning_rate=learning_rate,
-            n_steps=n_steps,
-            gamma=gamma,
-            gae_lambda=gae_lambda,
-            ent_coef=0.0,
-            vf_coef=vf_coef,
-            max_grad_norm=max_grad_norm,  # type: ignore[arg-type]
-            use_sde=False,
-            sde_sample_freq=-1,
-            stats_window_size=stats_window_size,
-            tensorboard_log=tensorboard_log,
-            policy_kwargs=policy_kwargs,
-            verbose=verbose,
-            device=device,
-            seed=seed,
-            _init_setup_model=False,
-            supported_action_spaces=None,
-        )
-        if self.env is not None:  # without an env (loading), the spaces are checked in _setup_model
-            check_joint_spaces(self.observation_space, self.action_space)
-            check_vec_normalize(self.env)  # also on load(path, env): SB3's load builds the model with the env
-        self.batch_size = batch_size
-        self.n_epochs = n_epochs
-        self.clip_range = clip_range
-        self.clip_range_broadcast = clip_range_broadcast
-        self.broadcast_ent_coef = broadcast_ent_coef
-        self.action_noise_std = action_noise_std
-        self.broadcast_advantage = broadcast_advantage
-        self.broadcast_advantage_offset = broadcast_advantage_offset
-        self.normalize_broadcast_advantage = normalize_broadcast_advantage
-        self.reward_scale = reward_scale
-        self.normalize_reward = normalize_reward
-        self.team_reward = team_reward
-        self.normalize_advantage = normalize_advantage
-        self.target_kl = target_kl
-        self.train_control_policy = train_control_policy
-        self.train_broadcast_policy = train_broadcast_policy
-        self.torch_compile = torch_compile
-        self.target_savings = None if target_savings is None else float(target_savings)
-        self.broadcast_price_lr = float(broadcast_price_lr)
-        self.broadcast_price_rule = broadcast_price_rule
-        #: the price per broadcast of the rate target, in the learner's reward units (0 without a target)
-        self.broadcast_price = 0.0
-        self.fixed_trigger: FixedTrigger | None = fixed_trigger  # checked by set_fixed_trigger in _setup_model
-        #: the fixed trigger that took the options of the rollout in the buffer (None: ``mu``)
-        self._rollout_trigger: FixedTrigger | None = fixed_trigger
-        self._action_noise_terms: dict[Hashable, float] = {}
-        if _init_setup_model:
-            try:
+        try:  # a model refused from here on (e.g. for its policy_kwargs) ends the workers it started
+            n_steps, batch_size, n_epochs = int(n_steps), int(batch_size), int(n_epochs)  # e.g. from numpy
+            super().__init__(
+                policy,
+                env,
+                learning_rate=learning_rate,
+                n_steps=n_steps,
+                gamma=gamma,
+                gae_lambda=gae_lambda,
+                ent_coef=0.0,
+                vf_coef=vf_coef,
+                max_grad_norm=max_grad_norm,  # type: ignore[arg-type]
+                use_sde=False,
+                sde_sample_freq=-1,
+                stats_window_size=stats_window_size,
+                tensorboard_log=tensorboard_log,
+                policy_kwargs=policy_kwargs,
+                verbose=verbose,
+                device=device,
+                seed=seed,
+                _init_setup_model=False,
+                supported_action_spaces=None,
+            )
+            if self.env is not None:  # without an env (loading), the spaces are checked in _setup_model
+                check_joint_spaces(self.observation_space, self.action_space)
+                check_vec_normalize(self.env)  # also on load(path, env): SB3's load builds the model with the env
+            self.batch_size = batch_size
+            self.n_epochs = n_epochs
+            self.clip_range = clip_range
+            self.clip_range_broadcast = clip_range_broadcast
+            self.broadcast_ent_coef = broadcast_ent_coef
+            self.action_noise_std = action_noise_std
+            self.broadcast_advantage = broadcast_advantage
+            self.broadcast_advantage_offset = broadcast_advantage_offset
+            self.normalize_broadcast_advantage = normalize_broadcast_advantage
+            self.reward_scale = reward_scale
+            self.normalize_reward = normalize_reward
+            self.team_reward = team_reward
+            self.normalize_advantage = normalize_advantage
+            self.target_kl = target_kl
+            self.train_control_policy = train_control_policy
+            self.train_broadcast_policy = train_broadcast_policy
+            self.torch_compile = torch_compile
+            self.target_savings = None if target_savings is None else float(target_savings)
+            self.broadcast_price_lr = float(broadcast_price_lr)
+            self.broadcast_price_rule = broadcast_price_rule
+            #: the price per broadcast of the rate target, in the learner's reward units (0 without a target)
+            self.broadcast_price = 0.0
+            self.fixed_trigger: FixedTrigger | None = fixed_trigger  # checked by set_fixed_trigger in _setup_model
+            #: the fixed trigger that took the options of the rollout in the buffer (None: ``mu``)
+            self._rollout_trigger: FixedTrigger | None = fixed_trigger
+            self._action_noise_terms: dict[Hashable, float] = {}
+            if _init_setup_model:
                 self._setup_model()
-            except BaseException:  # e.g. bad policy_kwargs: the worker processes it started end with it
-                if owns_env:
+        except BaseException:
+            if owns_env:
+                with contextlib.suppress(Exception):  # the refusal is what the user needs to see
                     env.close()
-                raise
+            raise
 
     def _setup_model(self) -> None:
         self.n_agents, self.n_control = check_joint_spaces(self.observation_space, self.action_space)

@@ -29,7 +29,7 @@ from sb3_detc.study.spec import CONF_FOLDER, StudyError, StudySpec, Trial, conf_
 from sb3_detc.study.trial import evaluate_trial, exclusive, read_status, replace_atomically, run_trial, trial_folder
 from sb3_detc.validation import is_integer
 
-__all__ = ["StudyProgress", "evaluate_study", "prepare_folder", "run_study"]
+__all__ = ["StudyProgress", "evaluate_study", "prepare_folder", "run_study", "trials_to_run"]
 
 #: Seconds between two progress lines while nothing else happens.
 PROGRESS_EVERY = 60.0
