@@ -26,7 +26,15 @@ import torch as th
 import yaml
 
 from sb3_detc.study.spec import CONF_FOLDER, StudyError, StudySpec, Trial, conf_copy, load_folder_study, same_study
-from sb3_detc.study.trial import evaluate_trial, exclusive, read_status, replace_atomically, run_trial, trial_folder
+from sb3_detc.study.trial import (
+    LEARNER_THREADS,
+    evaluate_trial,
+    exclusive,
+    read_status,
+    replace_atomically,
+    run_trial,
+    trial_folder,
+)
 from sb3_detc.validation import is_integer
 
 __all__ = ["StudyProgress", "evaluate_study", "prepare_folder", "run_study", "trials_to_run"]
@@ -505,7 +513,7 @@ def evaluate_study(
     with _only_run_in(folder.resolve()):
         for trial in finished:
             began = time.monotonic()
-            th.set_num_threads(trial.algorithm.cpus)
+            th.set_num_threads(LEARNER_THREADS)
             try:
                 evaluation = evaluate_trial(spec, trial, folder)
             except Exception:  # noqa: BLE001  (reported with its traceback; the other trials go on)

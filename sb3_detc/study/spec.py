@@ -24,8 +24,9 @@ A study file is YAML::
 The entry of ``env`` is taken from the package's hyperparameter file of the algorithm
 (``sb3_detc/hyperparams/<algo>.yml``) unless ``conf`` names another one. A trial uses as
 many cores as its entry's rollout workers (``n_envs`` with
-:class:`~sb3_detc.mappoc.workers.RolloutWorker` envs), otherwise one; its learner uses as many
-torch threads: the workers wait while the learner updates, and it waits while they collect.
+:class:`~sb3_detc.mappoc.workers.RolloutWorker` envs), otherwise one; its learner uses one torch
+thread (:data:`~sb3_detc.study.trial.LEARNER_THREADS`): the workers wait while the learner
+updates, and it waits while they collect.
 """
 
 from __future__ import annotations

@@ -76,6 +76,11 @@ __all__ = [
     "trial_folder",
 ]
 
+#: Torch threads of a trial's learner, whatever its cores (those are its rollout workers'). The
+#: small networks' update is no faster on two threads, and with OpenMP's passive waiting (which
+#: ``run`` sets) up to three times slower (``benchmarks/results/study_trial_threads_multiwalker.md``).
+LEARNER_THREADS = 1
+
 #: The files of a finished trial's folder: nothing else is kept.
 FINISHED_FILES = ("evaluation.json", "policy.pt", PROGRESS_XZ, "status.json")
 
@@ -503,7 +508,7 @@ def run_trial(
     budget = spec.budget(trial.algorithm)
     _write_json(folder / "status.json", {**status, "status": "running", "budget": budget})
     threads = th.get_num_threads()
-    th.set_num_threads(trial.algorithm.cpus)
+    th.set_num_threads(LEARNER_THREADS)
     try:
         if not (folder / "policy.pt").is_file():
             _train(spec, trial, folder, on_progress)
