@@ -49,6 +49,8 @@ def test_bad_input_is_a_usage_error(tmp_path: Path, arguments: list[str], messag
         ("predictive_headroom.py", ["--episodes", "1"], "--episodes must be at least 2"),
         ("predictive_headroom.py", ["--targets", "0.9", "1"], "--targets must lie in (0, 1)"),
         ("predictive_headroom.py", ["--horizons", "0"], "--horizons must be at least 1"),
+        ("learner_threads.py", ["no/such.zip"], "no/such.zip is not a saved model"),
+        ("learner_threads.py", ["README.md", "--repeats", "0"], "--repeats must be at least 1"),
     ],
 )
 def test_other_benchmarks_check_their_numbers_first(
