@@ -598,8 +598,8 @@ def _run_locked(
     import ray
     from ray import tune
 
-    # A learner thread that waits for a core sleeps instead of spinning: with OpenMP's default a
-    # busy process next to a two-thread learner slows its updates many times, not twice.
+    # Trials run torch on one thread (LEARNER_THREADS); should a trial's code start more, its idle
+    # OpenMP threads sleep instead of spinning next to the trial's other processes.
     runtime_env = {"env_vars": {"OMP_WAIT_POLICY": os.environ.get("OMP_WAIT_POLICY", "PASSIVE")}}
     if address is None:  # a local Ray that fails to start is a fault of its own: its traceback is kept
         ray.init(
