@@ -65,8 +65,8 @@ def run_benchmark_here(monkeypatch: pytest.MonkeyPatch) -> Callable[..., subproc
                 try:
                     runpy.run_path(str(path), run_name="__main__")
                 except SystemExit as end:
-                    code = end.code if isinstance(end.code, int) else 0 if end.code is None else 1
-                    if not isinstance(end.code, int | None):  # as the interpreter prints it
+                    code = end.code or 0 if end.code is None or isinstance(end.code, int) else 1
+                    if code == 1 and not isinstance(end.code, int):  # a message: as the interpreter prints it
                         print(end.code, file=sys.stderr)
                 except Exception:
                     traceback.print_exc()

@@ -16,6 +16,7 @@ from pathlib import Path
 import gymnasium as gym
 import numpy as np
 import pytest
+import torch
 import yaml
 
 import sb3_detc
@@ -990,6 +991,24 @@ def test_a_run_starts_the_longest_trials_first_and_of_equal_budgets_the_ones_it_
         *("learned/seed1", "learned/seed3", "learned/seed2"),  # what a stop or a kill left first
         *("random/seed2", "random/seed0", "random/seed1", "random/seed3"),
     ]
+
+
+def test_a_trial_of_two_cores_trains_its_learner_on_one_torch_thread(tmp_path):
+    """The cores are the rollout workers'; the learner's threads are ``LEARNER_THREADS``, and the caller's come back."""
+    from sb3_detc.study.trial import LEARNER_THREADS, run_trial
+
+    study = {**TINY, "seeds": [0], "n_timesteps": 1024, "algorithms": {"learned": {"algo": "mappoc", "cpus": 2}}}
+    spec = load_study(write_study(tmp_path, study))
+    [trial] = spec.trials()
+    assert trial.algorithm.cpus == 2 and LEARNER_THREADS == 1
+    threads = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        status = run_trial(spec, trial, tmp_path / "out")
+        assert torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(threads)
+    assert status["status"] == "done" and [a["torch_threads"] for a in status["attempts"]] == [1]
 
 
 def test_segments_of_lost_checkpoints_are_dropped(tmp_path):
