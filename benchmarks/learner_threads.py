@@ -40,13 +40,11 @@ def measure(model_path: str, env_id: str, threads: int, iterations: int, seed: i
     import torch as th
 
     from sb3_detc import MAPPOC
-    from sb3_detc.mappoc.workers import make_rollout_workers
 
     th.set_num_threads(threads)
-    model = MAPPOC.load(model_path, device="cpu")
-    env = make_rollout_workers(env_id, model.n_envs, seed)
+    model = MAPPOC.load(model_path, env=env_id, device="cpu", torch_compile=True)  # the saved number of workers
     try:
-        model = MAPPOC.load(model_path, env=env, device="cpu", torch_compile=True)
+        model.set_random_seed(seed)
         per_iteration = model.n_steps * model.n_envs
         began = time.perf_counter()
         model.learn(per_iteration, reset_num_timesteps=False)
@@ -55,7 +53,7 @@ def measure(model_path: str, env_id: str, threads: int, iterations: int, seed: i
         model.learn(iterations * per_iteration, reset_num_timesteps=False)
         return {"steps_per_s": iterations * per_iteration / (time.perf_counter() - began), "warm_up_s": warm_up}
     finally:
-        env.close()
+        model.get_env().close()
 
 
 def main(argv: list[str] | None = None) -> None:
