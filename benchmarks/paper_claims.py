@@ -19,7 +19,11 @@ listed under the table:
 * savings are "about 55 %" when their interval reaches 50 to 60 % (:data:`ABOUT_55`);
 * "about half of the runs succeed" holds for 30 to 70 % of the seeds succeeding by the study's
   criterion (``success``);
-* a recipe saves more when its savings interval lies above the paper's MAPPOC's.
+* a recipe saves more when its savings interval lies above the paper's MAPPOC's;
+* with ``--rate-study``, a learned trigger beats the fixed triggers when the interval of its control
+  return minus that of the best fixed family at the same savings (the same controller and paired
+  episodes, ``learned_minus_best_fixed_control_return``) lies above zero, loses when below, else
+  no evidence.
 
 ``--splice`` replaces the text between the lines ``<!-- paper_claims.py: start -->`` and
 ``<!-- paper_claims.py: end -->`` of a Markdown file with the table.
@@ -120,16 +124,67 @@ def improvement(summary: dict[str, Any], better: str, than: str) -> str:
     return f"P({better} > {than}) = {row['probability']:.2f} [{low:.2f}, {high:.2f}]"
 
 
-def claims(folder: Path, mappoc: str, baseline: str, recipe: str | None) -> str:
+def interval_verdict(low: float, high: float) -> str:
+    """The verdict on a difference claimed positive, from its 95 % interval.
+
+    :param low: the interval's lower end
+    :param high: the interval's upper end
+    :return: ``yes`` above zero, ``no`` below, else ``no evidence``, with where the interval lies
+    """
+    if low > 0:
+        return "yes: the interval lies above zero"
+    if high < 0:
+        return "no: the interval lies below zero"
+    return "no evidence: the interval contains zero"
+
+
+def rate_row(folder: Path, arm: str) -> tuple[str, str, str]:
+    """The claims row of a learned trigger at a rate target against the fixed triggers at its savings.
+
+    :param folder: the rate study's folder (its evaluation compares fixed trigger families)
+    :param arm: label of the arm whose trigger is learned
+    :return: the claim, our result and the verdict
+    :raises StudyError: if the arm has no finished seed or its evaluation compared no fixed family
+    """
+    summary = summarise(folder)
+    entry = summary.get(arm, {})
+    if not entry.get("seeds"):
+        raise StudyError(f"{folder}: no finished seed of {arm!r}")
+    if "learned_minus_best_fixed_control_return" not in entry["mean"]:
+        raise StudyError(f"{folder}: the evaluation of {arm!r} compared no fixed trigger family")
+    spec = load_folder_study(folder)
+    others = [c["than"] for c in summary["comparisons"] if c["better"] == arm]
+    low, high = entry["ci95"]["learned_minus_best_fixed_control_return"]
+    return (
+        f"(beyond the paper) a learned trigger beats the best fixed trigger at the same savings ({arm})",
+        f"savings {estimate(entry, 'savings', 100, 1, ' %')}, control return {estimate(entry, 'control_return')}; "
+        f"minus the best of {', '.join(spec.fixed_families)} with the same controller ({spec.episodes} paired "
+        f"episodes per seed) {estimate(entry, 'learned_minus_best_fixed_control_return')}, minus random options "
+        f"at the same rate {estimate(entry, 'learned_minus_random_control_return')}"
+        + "".join(
+            f"; {other}: control return {estimate(summary[other], 'control_return')}, "
+            f"{improvement(summary, arm, other)}"
+            for other in others
+        ),
+        f"{interval_verdict(low, high)} ({len(entry['seeds'])} seeds)",
+    )
+
+
+def claims(
+    folder: Path, mappoc: str, baseline: str, recipe: str | None, rate_study: Path | None = None, rate_arm: str = ""
+) -> str:
     """The claims table (Markdown) of a study folder.
 
     :param folder: the study folder
     :param mappoc: label of the paper's MAPPOC in the study
     :param baseline: label of the paper's random-skip baseline
     :param recipe: label of a recipe that claims more savings, or None
+    :param rate_study: a study of learned triggers at a rate target, or None (its row: :func:`rate_row`)
+    :param rate_arm: label of the rate study's arm whose trigger is learned
     :return: the table and the rules of its verdicts
     :raises StudyError: if a named algorithm has no finished seed, or the trials report no package travel
     """
+    rate = rate_row(rate_study, rate_arm) if rate_study is not None else None
     summary = summarise(folder)
     episodes = load_folder_study(folder).episodes
     for label in (mappoc, baseline, recipe):
@@ -168,14 +223,12 @@ def claims(folder: Path, mappoc: str, baseline: str, recipe: str | None) -> str:
         )
     )
 
-    low, high = paper["ci95"]["learned_minus_random_control_return"]
-    verdict = "yes" if low > 0 else "no" if high < 0 else "no evidence"
     rows.append(
         (
             "learned timing beats random timing at the same rate",
             f"control return, learned minus random options at the learned rate ({episodes} paired episodes "
             f"per seed): {estimate(paper, 'learned_minus_random_control_return')}",
-            f"{verdict}: the interval {'lies above' if low > 0 else 'lies below' if high < 0 else 'contains'} zero",
+            interval_verdict(*paper["ci95"]["learned_minus_random_control_return"]),
         )
     )
 
@@ -219,9 +272,13 @@ def claims(folder: Path, mappoc: str, baseline: str, recipe: str | None) -> str:
             )
         )
 
+    if rate is not None:
+        rows.append(rate)
+
     lines = [
         f"Study `{folder.name}`: {n} seeds of {mappoc}, {n_skips} of {baseline}"
         + (f", {len(summary[recipe]['seeds'])} of {recipe}" if recipe else "")
+        + (f"; study `{rate_study.name}`: its arm {rate_arm}" if rate_study is not None else "")
         + "; mean [95 % interval] (seeds: each seed's value).",
         "",
         "| paper claim | our result | holds? |",
@@ -239,6 +296,8 @@ def claims(folder: Path, mappoc: str, baseline: str, recipe: str | None) -> str:
         "* learned timing beats random timing when the interval of the difference lies above zero;",
         f"* about half is {100 * ABOUT_HALF[0]:.0f} % to {100 * ABOUT_HALF[1]:.0f} % of the seeds;",
         "* a recipe saves more when its savings interval lies above the paper's MAPPOC's;",
+        "* a learned trigger beats the fixed triggers when the interval of its control return minus that of the "
+        "best fixed family tuned to its savings (the same controller and episodes) lies above zero;",
         "* P(a > b) is the probability of improvement in control return (rliable): that a seed of a has the "
         "higher control return than a seed of b.",
     ]
@@ -254,6 +313,10 @@ def main() -> None:
     parser.add_argument(
         "--recipe", default="control_first", help="label of a recipe claiming more savings ('' for none)"
     )
+    parser.add_argument(
+        "--rate-study", type=Path, help="add the row of a learned trigger at a rate target from this study folder"
+    )
+    parser.add_argument("--rate-arm", default="joint_9375", help="label of the rate study's learned trigger")
     parser.add_argument("--out", type=Path, help="also write the table to this file")
     parser.add_argument(
         "--splice",
@@ -262,7 +325,7 @@ def main() -> None:
     )
     args = parser.parse_args()
     try:
-        table = claims(args.folder, args.mappoc, args.baseline, args.recipe or None)
+        table = claims(args.folder, args.mappoc, args.baseline, args.recipe or None, args.rate_study, args.rate_arm)
         if args.splice:
             splice(args.splice, MARK, table)
     except StudyError as error:

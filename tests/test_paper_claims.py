@@ -146,3 +146,65 @@ def test_a_finished_trial_without_its_progress_is_refused(tmp_path: Path, claims
     (folder / "trials" / "mappoc_paper" / "seed1" / "progress.csv").unlink()
     with pytest.raises(ClaimsRefused, match="seed1: finished, but its progress.csv is missing"):
         claims(folder, "mappoc_paper", "random_skip_paper", None)
+
+
+RATE_STUDY = ROOT / "benchmarks" / "studies" / "multiwalker_rate"
+
+
+def rate_copy(tmp_path: Path, differences: list[float]) -> Path:
+    """Seeds 0 and 1 of the rate study's joint_9375 and seed 0 of periodic_16, with given learned minus best fixed."""
+    folder = tmp_path / "multiwalker_rate"
+    folder.mkdir()
+    shutil.copy(RATE_STUDY / "study.yml", folder / "study.yml")
+    for label, seeds in (("joint_9375", (0, 1)), ("periodic_16", (0,))):
+        for seed in seeds:
+            source, target = RATE_STUDY / "trials" / label / f"seed{seed}", folder / "trials" / label / f"seed{seed}"
+            target.mkdir(parents=True)
+            for name in ("status.json", "evaluation.json"):
+                shutil.copy(source / name, target / name)
+    for seed, difference in enumerate(differences):
+        set_metrics(folder, "joint_9375", seed, learned_minus_best_fixed_control_return=difference)
+    return folder
+
+
+@pytest.mark.parametrize(
+    ("differences", "verdict"),
+    [
+        ([91.7, -4.0], "no evidence: the interval contains zero (2 seeds)"),
+        ([3.0, 5.0], "yes: the interval lies above zero (2 seeds)"),
+        ([-3.0, -5.0], "no: the interval lies below zero (2 seeds)"),
+    ],
+)
+def test_the_rate_study_row_compares_the_learned_trigger_with_the_best_fixed_family(
+    tmp_path: Path, differences: list[float], verdict: str, run_benchmark_here
+) -> None:
+    paper = study_copy(tmp_path, {0: 0.692, 1: 0.692}, LABELS[:2])
+    rate = rate_copy(tmp_path, differences)
+    arguments = [str(paper), "--recipe", "", "--rate-study", str(rate), "--rate-arm", "joint_9375"]
+    done = run_benchmark_here("paper_claims.py", *arguments)
+    assert done.returncode == 0, done.stderr
+    claim = "(beyond the paper) a learned trigger beats the best fixed trigger at the same savings (joint_9375)"
+    result, found = rows(done.stdout)[claim]
+    assert found == verdict
+    low, high = min(differences), max(differences)
+    assert (
+        f"with the same controller (50 paired episodes per seed) {np.mean(differences):.1f} [{low:.1f}, {high:.1f}]"
+        in result
+    )
+    periodic = metrics(rate, "periodic_16", 0)["control_return"]
+    assert f"periodic_16: control return {periodic:.1f}" in result and "P(joint_9375 > periodic_16)" in result
+
+
+def test_a_rate_study_without_the_arm_or_its_fixed_families_is_refused(tmp_path: Path, run_benchmark_here) -> None:
+    paper = study_copy(tmp_path, {0: 0.692, 1: 0.692}, LABELS[:2])
+    rate = rate_copy(tmp_path, [1.0, 2.0])
+    arguments = [str(paper), "--recipe", "", "--rate-study", str(rate), "--rate-arm"]
+    done = run_benchmark_here("paper_claims.py", *arguments, "schedule_first_9375")
+    assert done.returncode == 2 and "no finished seed of 'schedule_first_9375'" in done.stderr
+    for seed in (0, 1):
+        path = rate / "trials" / "joint_9375" / f"seed{seed}" / "evaluation.json"
+        evaluation = json.loads(path.read_text())
+        del evaluation["metrics"]["learned_minus_best_fixed_control_return"]
+        path.write_text(json.dumps(evaluation))
+    done = run_benchmark_here("paper_claims.py", *arguments, "joint_9375")
+    assert done.returncode == 2 and "compared no fixed trigger family" in done.stderr
