@@ -383,10 +383,9 @@ def plot_front(rows: Sequence[dict], out: str | Path, title: str = "") -> Path:
         ax.set_ylabel("control return (mean over seeds, 95 % interval)")
         ax.set_title(settings if settings != "{}" else "entry settings", fontsize="small")
         ax.grid(alpha=0.3)
-        ax.legend(fontsize="small")
-    fig.suptitle(
-        f"{title}{': ' if title else ''}learned triggers and fixed families at the same savings", fontsize="medium"
-    )
+        ax.legend(fontsize="small", loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=2)
+    fig.suptitle(f"{title}{chr(10) if title else ''}learned triggers and fixed families at the same savings")
+    fig.set_figheight(5.0)
     return _save(fig, out)
 
 
