@@ -338,7 +338,7 @@ def plot_front(rows: Sequence[dict], out: str | Path, title: str = "") -> Path:
     :return: the written file
     """
     panels = list(dict.fromkeys(row["settings"] for row in rows))
-    fig, axes = plt.subplots(1, len(panels), figsize=(5.2 * len(panels), 4.0), squeeze=False)
+    fig, axes = plt.subplots(1, len(panels), figsize=(5.2 * len(panels), 5.0), squeeze=False)
     colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
     for ax, settings in zip(axes[0], panels, strict=True):
         group = [row for row in rows if row["settings"] == settings]
@@ -384,8 +384,7 @@ def plot_front(rows: Sequence[dict], out: str | Path, title: str = "") -> Path:
         ax.set_title(settings if settings != "{}" else "entry settings", fontsize="small")
         ax.grid(alpha=0.3)
         ax.legend(fontsize="small", loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=2)
-    fig.suptitle(f"{title}{chr(10) if title else ''}learned triggers and fixed families at the same savings")
-    fig.set_figheight(5.0)
+    fig.suptitle("\n".join(filter(None, (title, "learned triggers and fixed families at the same savings"))))
     return _save(fig, out)
 
 

@@ -1155,3 +1155,29 @@ def test_the_front_puts_each_learned_trigger_beside_the_fixed_families_at_its_ra
     assert line.startswith("| learned | -8.00 [-8.50, -7.50] at 0.900 | -7.00 [-7.50, -6.50] at 0.905 |")
     assert line.endswith("| 0.50 [0.00, 1.00] | 1.50 [1.00, 2.00] |")
     assert plot.plot_front([row], tmp_path / "front.png").stat().st_size > 0
+
+
+def test_the_front_of_one_panel_keeps_its_long_title_and_its_legend_off_the_points(tmp_path, monkeypatch):
+    """The title fits the figure's width, and the legend lies below the panel, within the saved figure."""
+    import matplotlib.figure
+    import matplotlib.text
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    saved = []
+    monkeypatch.setattr(matplotlib.figure.Figure, "savefig", lambda fig, *args, **kwargs: saved.append(fig))
+    row = {
+        "label": "joint_9375",
+        "settings": '{"broadcast_cost": 0.25}',
+        "points": {"learned": (0.93, 330.0, (320.0, 340.0)), "periodic": (0.93, 300.0, (290.0, 310.0))},
+    }
+    plot.plot_front([row], tmp_path / "front.png", title="sb3_detc/MultiwalkerETC-v0")
+    [fig] = saved
+    renderer = FigureCanvasAgg(fig).get_renderer()
+    width, height = fig.bbox.width, fig.bbox.height
+    [title] = [text for text in fig.findobj(matplotlib.text.Text) if text.get_text() == fig.get_suptitle()]
+    assert title.get_text() == "sb3_detc/MultiwalkerETC-v0\nlearned triggers and fixed families at the same savings"
+    title = title.get_window_extent(renderer)
+    assert 0 <= title.x0 and title.x1 <= width and title.y1 <= height
+    [ax] = fig.axes
+    legend = ax.get_legend().get_window_extent(renderer)
+    assert legend.y1 < ax.get_window_extent(renderer).y0 and legend.y0 >= 0
