@@ -30,7 +30,11 @@ sampled from ``mu``, and ``mu`` made deterministic at the learned rate (the prot
 a column of the families' table); a rate target comes with ``--set '{"target_savings": 0.875}'``. With
 ``--option-age-scale`` the policy over options starts afresh and reads the age of its own last
 broadcast (every periodic schedule in phase then lies within what it can represent); the trial's
-controls and critic are kept.
+controls and critic are kept. With ``--start-period K`` as well, the warm-up's options come from a
+message every ``K``-th step, all agents in phase (the critic learns that schedule's values), and
+``mu`` then imitates the schedule (:func:`~sb3_detc.callbacks.imitate_trigger`) and learns from
+there: a trigger that starts as the strongest fixed family at ``1 - 1/K`` savings and can lose to
+it only by learning badly.
 
 One job per seed, one after another (each trains with the entry's two rollout-worker
 processes); every finished seed's row is written to ``--out`` at once and a seed already there
@@ -58,6 +62,7 @@ import numpy as np
 import torch as th
 from stable_baselines3.common.callbacks import BaseCallback
 
+from sb3_detc.callbacks import imitate_trigger
 from sb3_detc.cli import python_value
 from sb3_detc.evaluation import evaluate_episodes
 from sb3_detc.mappoc.policies import MlpHybridPolicy
@@ -228,9 +233,11 @@ def run(job: dict[str, Any], progress_every: int = PROGRESS_EVERY) -> dict[str, 
 
     The critic learns alone first (``warm_up`` steps, options from the untrained ``mu``: it learned
     for random options, and the baseline trained without the communication cost), then the critic
-    and ``mu`` together for the rest of ``timesteps``.
+    and ``mu`` together for the rest of ``timesteps``. With ``start_period`` the warm-up's options
+    come from that schedule (all agents in phase) and ``mu`` imitates it before it learns.
 
-    :param job: as :func:`build` takes it, ``warm_up`` (steps, part of ``timesteps``), ``fixed_families``
+    :param job: as :func:`build` takes it, ``warm_up`` (steps, part of ``timesteps``), optionally
+        ``start_period`` (a period: the warm-up under that schedule, ``mu`` started as it), ``fixed_families``
         (optional: the families the evaluation compares, with the learned options sampled), ``policy``
         (the trial's policy's digest: a retrained trial is a new job) and ``save_dir`` (where to keep
         the trained policy; None: not kept)
@@ -238,16 +245,23 @@ def run(job: dict[str, Any], progress_every: int = PROGRESS_EVERY) -> dict[str, 
     :return: the seed, the training seconds, the study protocol's metrics of the learned trigger
         (:func:`~sb3_detc.evaluation.evaluate_policy_modes`), the control return, package travel (None
         where the env reports none), fall rate and savings of a message every ``k`` steps at the nearest
-        savings (None if the trigger never broadcasts), and the file of the saved policy
+        savings (None if the trigger never broadcasts), the file of the saved policy and, with
+        ``start_period``, the share of decisions the imitation matched
     """
     th.set_num_threads(1)
     spec = load_folder_study(Path(job["folder"]))
     label = f"{job['algorithm']} seed {job['seed']}"
     with tempfile.TemporaryDirectory() as log_folder:
         model, env_kwargs = build(job, Path(log_folder))
+        schedule = PeriodicTrigger(job["start_period"]) if job.get("start_period") else None
         began = time.monotonic()
         try:
+            model.set_fixed_trigger(schedule)
             model.learn(job["warm_up"], callback=Progress(f"{label}, critic alone", progress_every))
+            if schedule is not None:
+                imitation = imitate_trigger(model, schedule, schedule.period)
+                print(f"{label}: mu imitated {schedule!r}, {imitation:.3f} of the decisions matched", flush=True)
+                model.set_fixed_trigger(None)
             model.set_trained_policies(control_policy=False, broadcast_policy=True)
             rest = job["timesteps"] - job["warm_up"]
             model.learn(rest, callback=Progress(label, progress_every), reset_num_timesteps=False)
@@ -296,6 +310,7 @@ def run(job: dict[str, Any], progress_every: int = PROGRESS_EVERY) -> dict[str, 
         "metrics": evaluation["metrics"],
         "periodic_nearest": periodic,
         "saved": saved,
+        **({"imitation_accuracy": imitation} if schedule is not None else {}),
     }
 
 
@@ -410,6 +425,12 @@ def main() -> None:
         help="start mu afresh, reading the age of its own last broadcast times this factor (default: the trial's mu)",
     )
     parser.add_argument(
+        "--start-period",
+        type=int,
+        help="the warm-up's options from a message every K-th step (in phase); mu then imitates it "
+        "(needs --option-age-scale)",
+    )
+    parser.add_argument(
         "--fixed-families",
         nargs="+",
         choices=TRIGGER_FAMILIES,
@@ -424,6 +445,8 @@ def main() -> None:
         parser.error("--broadcast-cost must be >= 0")
     if args.option_age_scale is not None and not (math.isfinite(args.option_age_scale) and args.option_age_scale > 0):
         parser.error("--option-age-scale must be a finite number > 0")
+    if args.start_period is not None and not (args.start_period >= 1 and args.option_age_scale and args.warm_up > 0):
+        parser.error("--start-period takes a period >= 1, with --option-age-scale and a --warm-up > 0")
     if not isinstance(args.set, dict) or not isinstance(args.set.get("env_kwargs", {}), dict) or "callback" in args.set:
         parser.error("--set takes a JSON object of entry settings (env_kwargs an object; no callback)")
     try:
@@ -453,6 +476,8 @@ def main() -> None:
         job["fixed_families"] = args.fixed_families
     if args.option_age_scale is not None:
         job["option_age_scale"] = args.option_age_scale
+    if args.start_period is not None:
+        job["start_period"] = args.start_period
     jobs = [
         {**job, "seed": seed, "policy": hashlib.sha256(policies[seed].read_bytes()).hexdigest()[:16]} for seed in seeds
     ]

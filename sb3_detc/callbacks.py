@@ -585,6 +585,28 @@ class ControlFirstCallback(_TwoStages):
             self.model.set_reward_normalization(True, fresh_statistics=self.first_of_stage_two(t))
 
 
+def imitate_trigger(model: Any, trigger: StatelessTrigger, span: int, gradient_steps: int = 500) -> float:
+    """Fit a MAPPOC model's ``mu`` to a fixed trigger on the observations of the rollout in its buffer.
+
+    ``mu`` is shown the rollout's observations twice: as they are, and with their own ages drawn
+    from ``[0, 2 span)``, so that it follows the trigger at every age (e.g. a schedule broadcasts
+    from age ``period - 1`` on in every state). Behaviour cloning
+    (:meth:`~sb3_detc.mappoc.policies.MlpHybridPolicy.imitate_options`); nothing else changes.
+
+    :param model: the model (MAPPOC) after a rollout
+    :param trigger: the trigger to imitate, a stateless one of :mod:`sb3_detc.triggers`
+    :param span: half the range of the drawn own ages (an integer >= 1)
+    :param gradient_steps: gradient steps of the imitation
+    :return: the share of the imitated decisions whose most likely option matches the trigger
+    """
+    observations = model.rollout_buffer.tensors().observations
+    age = observations["age"]
+    drawn = th.randint(0, 2 * span, age.shape, device=age.device).to(age.dtype)
+    obs = {key: th.cat([value, drawn if key == "age" else value]) for key, value in observations.items()}
+    options = trigger({key: value.cpu().numpy() for key, value in obs.items()})
+    return model.policy.imitate_options(obs, th.as_tensor(options), gradient_steps=gradient_steps)
+
+
 #: The model attribute in which :class:`FixedFirstCallback` records the trigger ``mu`` imitated (its repr).
 IMITATED = "imitated_trigger"
 
@@ -667,16 +689,12 @@ class FixedFirstCallback(_TwoStages):
         return int(ages.max()) + 1
 
     def imitate(self) -> float:
-        """Fit ``mu`` to the trigger on the observations of the rollout in the model's buffer.
+        """Fit ``mu`` to the trigger on the observations of the rollout in the model's buffer (:func:`imitate_trigger`).
 
         :return: the share of the imitated decisions whose most likely option matches the trigger
         """
-        observations = self.model.rollout_buffer.tensors().observations
-        age = observations["age"]
-        drawn = th.randint(0, 2 * self.age_span(age), age.shape, device=age.device).to(age.dtype)
-        obs = {key: th.cat([value, drawn if key == "age" else value]) for key, value in observations.items()}
-        options = self.trigger({key: value.cpu().numpy() for key, value in obs.items()})
-        return self.model.policy.imitate_options(obs, th.as_tensor(options), gradient_steps=self.imitation_steps)
+        span = self.age_span(self.model.rollout_buffer.tensors().observations["age"])
+        return imitate_trigger(self.model, self.trigger, span, self.imitation_steps)
 
 
 class ScheduleFirstCallback(FixedFirstCallback):

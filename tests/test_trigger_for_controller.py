@@ -91,3 +91,22 @@ def test_a_fresh_mu_reads_its_own_age_and_the_fixed_families_are_compared(tmp_pa
         SCRIPT, "benchmarks/studies/linear", "--algorithm", "ppo_random_skip", "--option-age-scale", "0"
     )
     assert bad.returncode == 2 and "--option-age-scale must be a finite number > 0" in bad.stderr
+
+
+def test_a_trigger_started_as_a_schedule_imitates_it_after_a_warm_up_under_it(tmp_path: Path, run_benchmark) -> None:
+    out = tmp_path / "rows.json"
+    arguments = ["benchmarks/studies/linear", "--algorithm", "ppo_random_skip", "--seeds", "1", "--option-age-scale"]
+    arguments += ["0.1", "--start-period", "4", "--timesteps", "2048", "--warm-up", "1024", "--out", str(out)]
+    kwargs = "dict(net_arch=[64, 64], learn_log_std=True, critic='afterstate', age_scale=0.0, broadcast_prob_init=0.5)"
+    arguments += ["--set", json.dumps({"policy_kwargs": kwargs})]
+    done = run_benchmark(SCRIPT, *arguments, "--progress-every", "1", check=True)
+    # the warm-up's rollout under the schedule: a message every 4th step, whatever mu would have done
+    first = re.search(r"critic alone: 1024 steps, savings in the last rollout ([\d.]+)", done.stdout)
+    assert first is not None and abs(float(first.group(1)) - 0.75) < 0.01
+    assert "mu imitated PeriodicTrigger(period=4" in done.stdout
+    (row,) = json.loads(out.read_text())
+    assert row["imitation_accuracy"] > 0.95
+    # one update after the imitation: mu still broadcasts about every 4th step (it started at 1 in 2)
+    assert abs(row["metrics"]["savings"] - 0.75) < 0.1
+    bad = run_benchmark(SCRIPT, "benchmarks/studies/linear", "--algorithm", "ppo_random_skip", "--start-period", "4")
+    assert bad.returncode == 2 and "--start-period takes a period >= 1, with --option-age-scale" in bad.stderr
