@@ -66,7 +66,7 @@ from sb3_detc.callbacks import imitate_trigger
 from sb3_detc.cli import python_value
 from sb3_detc.evaluation import evaluate_episodes
 from sb3_detc.mappoc.policies import MlpHybridPolicy
-from sb3_detc.study.report import interval_estimates, interval_text
+from sb3_detc.study.report import interval_text, metric_estimates
 from sb3_detc.study.spec import StudyError, Trial, load_folder_study
 from sb3_detc.study.sweep import OutError, check_at_least_one, job_key, run_rows
 from sb3_detc.study.trial import (
@@ -355,13 +355,11 @@ def print_table(rows: list[dict[str, Any]]) -> None:
     if all("thresholded_minus_best_fixed_control_return" in row["metrics"] for row in rows):
         names["control return thresholded at the learned rate"] = "thresholded_control_return"
         names["thresholded minus best family"] = "thresholded_minus_best_fixed_control_return"
-    values = np.array([[row["metrics"][key] for key in names.values()] for row in rows])
-    means, intervals = interval_estimates({"x": values})
+    mean, ci = metric_estimates([row["metrics"] for row in rows])
     print()
     print(f"Over {len(rows)} seeds, mean [95 % bootstrap interval]:")
-    for k, name in enumerate(names):
-        digits = 3 if name == "savings" else 1
-        print(f"- {name}: {interval_text(means['x'][k], intervals['x'][0, k], intervals['x'][1, k], digits)}")
+    for name, key in names.items():
+        print(f"- {name}: {interval_text(mean[key], *ci[key], 3 if name == 'savings' else 1)}")
 
 
 def print_families(rows: list[dict[str, Any]]) -> None:

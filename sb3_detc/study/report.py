@@ -117,6 +117,22 @@ def interval_estimates(values: dict[str, np.ndarray]) -> tuple[dict[str, np.ndar
     return _bootstrap(values, lambda scores: np.mean(scores, axis=0))
 
 
+def metric_estimates(seeds: list[dict[str, Any]]) -> tuple[dict[str, float], dict[str, list[float]]]:
+    """Means over seeds of every metric of :data:`METRICS` that all seeds have, with their 95 % bootstrap intervals.
+
+    One bootstrap over the metrics in :data:`METRICS`' order, so that a study's summary and any
+    other table of the same seeds' metrics give the same intervals.
+
+    :param seeds: every seed's metrics (at least one)
+    :return: metric -> mean, metric -> [low, high]
+    """
+    names = [m for m in METRICS if all(m in metrics for metrics in seeds)]
+    means, intervals = interval_estimates({"x": np.array([[float(metrics[m]) for m in names] for metrics in seeds])})
+    mean = {name: float(means["x"][k]) for k, name in enumerate(names)}
+    ci = {name: [float(intervals["x"][0, k]), float(intervals["x"][1, k])] for k, name in enumerate(names)}
+    return mean, ci
+
+
 def _bootstrap(
     values: dict[str, Any], statistic: Any, reps: int = BOOTSTRAP_REPS
 ) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
@@ -202,15 +218,12 @@ def summarise(directory: str | Path) -> dict[str, Any]:
         summary[label] = entry
         if not seeds:
             continue
-        names = [m for m in METRICS if all(m in metrics for metrics in seeds.values())]
-        table = np.array([[float(seeds[s][m]) for m in names] for s in sorted(seeds)])
-        means, intervals = interval_estimates({label: table})
-        for k, name in enumerate(names):
-            entry["mean"][name] = float(means[label][k])
-            entry["ci95"][name] = [float(intervals[label][0, k]), float(intervals[label][1, k])]
-        control = table[:, names.index("control_return")]
+        ordered = [seeds[s] for s in sorted(seeds)]
+        entry["mean"], entry["ci95"] = metric_estimates(ordered)
+        control = np.array([float(metrics["control_return"]) for metrics in ordered])
         entry["iqm_control_return"] = float(rly_metrics.aggregate_iqm(control[:, None]))
-        entry["success_count"] = int(table[:, names.index("success")].sum()) if "success" in names else None
+        success = "success" in entry["mean"]
+        entry["success_count"] = int(sum(float(metrics["success"]) for metrics in ordered)) if success else None
         scores[label] = control[:, None]
     comparisons = []
     labels = list(scores)
@@ -340,36 +353,48 @@ def front(spec: Any, summary: dict[str, Any]) -> list[dict[str, Any]]:
 
     :param spec: the study (:class:`~sb3_detc.study.spec.StudySpec`)
     :param summary: the study's statistics (:func:`summarise`)
-    :return: one row per algorithm with finished seeds that compared families: ``label``, ``settings``
-        (its environment settings, as text), ``points`` (``"learned"``, ``"thresholded"`` where every
-        seed ran that mode, and every family -> ``(savings, control return, (low, high))``), and
-        ``difference`` (learned minus the best family: mean and interval) and, with the
-        thresholded point, ``thresholded_difference`` (the same for it), in the order of the study
+    :return: one row per algorithm with finished seeds that compared families, as :func:`front_row`
+        gives it, in the order of the study
     """
     rows = []
     for algorithm in spec.algorithms:
         entry = summary[algorithm.label]
-        mean, ci = entry["mean"], entry["ci95"]
-        if "best_fixed_control_return" not in mean:
+        if "best_fixed_control_return" not in entry["mean"]:
             continue
-        points = {"learned": (mean["savings"], mean["control_return"], tuple(ci["control_return"]))}
-        if "thresholded_control_return" in mean:
-            name = "thresholded_control_return"
-            points["thresholded"] = (mean["thresholded_savings"], mean[name], tuple(ci[name]))
-        for family in spec.fixed_families:
-            name = f"fixed_{family}_control_return"
-            if name in mean and f"fixed_{family}_savings" in mean:
-                points[family] = (mean[f"fixed_{family}_savings"], mean[name], tuple(ci[name]))
-        row = {
-            "label": algorithm.label,
-            "settings": json.dumps(algorithm.entry.get("env_kwargs") or {}, sort_keys=True),
-            "points": points,
-        }
-        for key, difference, _ in DIFFERENCES:
-            if difference in mean:
-                row[key] = (mean[difference], tuple(ci[difference]))
-        rows.append(row)
+        settings = json.dumps(algorithm.entry.get("env_kwargs") or {}, sort_keys=True)
+        rows.append(front_row(algorithm.label, settings, entry["mean"], entry["ci95"], spec.fixed_families))
     return rows
+
+
+def front_row(
+    label: str, settings: str, mean: dict[str, float], ci: dict[str, Any], families: list[str]
+) -> dict[str, Any]:
+    """One learned trigger's row of a front, from the protocol's metrics averaged over seeds.
+
+    :param label: what learned the trigger (an algorithm of a study, a results file)
+    :param settings: its environment settings, as text (rows with the same settings share a panel)
+    :param mean: the metrics' means over seeds (the protocol's names: ``savings``, ``control_return``,
+        ``fixed_<family>_savings`` ...)
+    :param ci: the same metrics' 95 % intervals, (low, high) each
+    :param families: the fixed families the evaluation compared
+    :return: ``label``, ``settings``, ``points`` (``"learned"``, ``"thresholded"`` where every seed ran
+        that mode, and every family -> ``(savings, control return, (low, high))``), and ``difference``
+        (learned minus the best family: mean and interval) and, with the thresholded point,
+        ``thresholded_difference`` (the same for it)
+    """
+    points = {"learned": (mean["savings"], mean["control_return"], tuple(ci["control_return"]))}
+    if "thresholded_control_return" in mean:
+        name = "thresholded_control_return"
+        points["thresholded"] = (mean["thresholded_savings"], mean[name], tuple(ci[name]))
+    for family in families:
+        name = f"fixed_{family}_control_return"
+        if name in mean and f"fixed_{family}_savings" in mean:
+            points[family] = (mean[f"fixed_{family}_savings"], mean[name], tuple(ci[name]))
+    row = {"label": label, "settings": settings, "points": points}
+    for key, difference, _ in DIFFERENCES:
+        if difference in mean:
+            row[key] = (mean[difference], tuple(ci[difference]))
+    return row
 
 
 def front_markdown(rows: list[dict[str, Any]]) -> str:
