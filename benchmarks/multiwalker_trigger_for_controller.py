@@ -34,7 +34,10 @@ controls and critic are kept. With ``--start-period K`` as well, the warm-up's o
 message every ``K``-th step, all agents in phase (the critic learns that schedule's values), and
 ``mu`` then imitates the schedule (:func:`~sb3_detc.callbacks.imitate_trigger`) and learns from
 there: a trigger that starts as the strongest fixed family at ``1 - 1/K`` savings and can lose to
-it only by learning badly.
+it only by learning badly. ``--start-dither SKIP EXTRA`` adds random deviations to that schedule
+(:class:`~sb3_detc.triggers.DitheredTrigger`: each scheduled message skipped with ``SKIP``, each
+silence broken with ``EXTRA``), in the warm-up and in what ``mu`` imitates, so that the critic
+has seen both options at every age before ``mu`` follows it.
 
 One job per seed, one after another (each trains with the entry's two rollout-worker
 processes); every finished seed's row is written to ``--out`` at once and a seed already there
@@ -76,7 +79,7 @@ from sb3_detc.study.trial import (
     trial_folder,
     trial_manager,
 )
-from sb3_detc.triggers import TRIGGER_FAMILIES, PeriodicTrigger
+from sb3_detc.triggers import TRIGGER_FAMILIES, DitheredTrigger, PeriodicTrigger
 
 #: Training steps of the policies over options (500 of the paper's iterations of 2048 steps).
 TIMESTEPS = 1_024_000
@@ -228,19 +231,34 @@ def nearest_period(savings: float) -> int | None:
     return min({max(1, math.floor(exact)), math.ceil(exact)}, key=lambda k: abs(1 - 1 / k - savings))
 
 
+def start_trigger(job: dict[str, Any]) -> PeriodicTrigger | DitheredTrigger | None:
+    """The trigger of the warm-up, which ``mu`` then imitates: the job's schedule, with its deviations if any.
+
+    :param job: optionally ``start_period`` and ``start_dither`` (skip and extra probabilities)
+    :return: the trigger, or None without ``start_period`` (the warm-up takes ``mu``'s options)
+    """
+    if not job.get("start_period"):
+        return None
+    schedule = PeriodicTrigger(job["start_period"])
+    dither = job.get("start_dither")
+    return schedule if dither is None else DitheredTrigger(schedule, *dither, seed=job["seed"])
+
+
 def run(job: dict[str, Any], progress_every: int = PROGRESS_EVERY) -> dict[str, Any]:
     """Train the policies over options for one seed's controller and evaluate them; one table row.
 
     The critic learns alone first (``warm_up`` steps, options from the untrained ``mu``: it learned
     for random options, and the baseline trained without the communication cost), then the critic
     and ``mu`` together for the rest of ``timesteps``. With ``start_period`` the warm-up's options
-    come from that schedule (all agents in phase) and ``mu`` imitates it before it learns.
+    come from that schedule (all agents in phase; with ``start_dither``, with random deviations)
+    and ``mu`` imitates it before it learns.
 
     :param job: as :func:`build` takes it, ``warm_up`` (steps, part of ``timesteps``), optionally
-        ``start_period`` (a period: the warm-up under that schedule, ``mu`` started as it), ``fixed_families``
-        (optional: the families the evaluation compares, with the learned options sampled), ``policy``
-        (the trial's policy's digest: a retrained trial is a new job) and ``save_dir`` (where to keep
-        the trained policy; None: not kept)
+        ``start_period`` (a period: the warm-up under that schedule, ``mu`` started as it) and
+        ``start_dither`` (the schedule's skip and extra probabilities, :func:`start_trigger`),
+        ``fixed_families`` (optional: the families the evaluation compares, with the learned options
+        sampled), ``policy`` (the trial's policy's digest: a retrained trial is a new job) and
+        ``save_dir`` (where to keep the trained policy; None: not kept)
     :param progress_every: rollouts between two lines of progress (:class:`Progress`)
     :return: the seed, the training seconds, the study protocol's metrics of the learned trigger
         (:func:`~sb3_detc.evaluation.evaluate_policy_modes`), the control return, package travel (None
@@ -253,13 +271,13 @@ def run(job: dict[str, Any], progress_every: int = PROGRESS_EVERY) -> dict[str, 
     label = f"{job['algorithm']} seed {job['seed']}"
     with tempfile.TemporaryDirectory() as log_folder:
         model, env_kwargs = build(job, Path(log_folder))
-        schedule = PeriodicTrigger(job["start_period"]) if job.get("start_period") else None
+        schedule = start_trigger(job)
         began = time.monotonic()
         try:
             model.set_fixed_trigger(schedule)
             model.learn(job["warm_up"], callback=Progress(f"{label}, critic alone", progress_every))
             if schedule is not None:
-                imitation = imitate_trigger(model, schedule, schedule.period)
+                imitation = imitate_trigger(model, schedule, job["start_period"])
                 print(f"{label}: mu imitated {schedule!r}, {imitation:.3f} of the decisions matched", flush=True)
                 model.set_fixed_trigger(None)
             model.set_trained_policies(control_policy=False, broadcast_policy=True)
@@ -429,6 +447,13 @@ def main() -> None:
         "(needs --option-age-scale)",
     )
     parser.add_argument(
+        "--start-dither",
+        type=float,
+        nargs=2,
+        metavar=("SKIP", "EXTRA"),
+        help="with --start-period: each scheduled message skipped with SKIP, each silence broken with EXTRA",
+    )
+    parser.add_argument(
         "--fixed-families",
         nargs="+",
         choices=TRIGGER_FAMILIES,
@@ -445,6 +470,8 @@ def main() -> None:
         parser.error("--option-age-scale must be a finite number > 0")
     if args.start_period is not None and not (args.start_period >= 1 and args.option_age_scale and args.warm_up > 0):
         parser.error("--start-period takes a period >= 1, with --option-age-scale and a --warm-up > 0")
+    if args.start_dither is not None and not (args.start_period and all(0 <= p <= 1 for p in args.start_dither)):
+        parser.error("--start-dither takes two probabilities in [0, 1], with --start-period")
     if not isinstance(args.set, dict) or not isinstance(args.set.get("env_kwargs", {}), dict) or "callback" in args.set:
         parser.error("--set takes a JSON object of entry settings (env_kwargs an object; no callback)")
     try:
@@ -476,6 +503,8 @@ def main() -> None:
         job["option_age_scale"] = args.option_age_scale
     if args.start_period is not None:
         job["start_period"] = args.start_period
+    if args.start_dither is not None:
+        job["start_dither"] = args.start_dither
     jobs = [
         {**job, "seed": seed, "policy": hashlib.sha256(policies[seed].read_bytes()).hexdigest()[:16]} for seed in seeds
     ]

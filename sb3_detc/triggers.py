@@ -7,7 +7,8 @@ batches whose rows change from call to call (episodes run side by side and refil
 they end) and one object serves every rollout worker. The families: random skips,
 periodic (all agents in phase, or staggered over the agents), send-on-delta (with an
 optional maximum age) and, on the linear system, predictive triggering (:class:`PredictiveTrigger`
-with :func:`lqr_on_predicted_states`).
+with :func:`lqr_on_predicted_states`). :class:`DitheredTrigger` adds random deviations to any of
+them, for exploration.
 
 :func:`evaluate_trigger` runs a trigger with a given control law (e.g.
 :func:`lqr_on_held_states` on the linear system) and reports a :class:`TriggerPoint`
@@ -204,6 +205,64 @@ class PeriodicTrigger(StatelessTrigger):
         clock = np.minimum(np.rint(np.asarray(obs["age"], dtype=np.float64)[..., :1, 0]), self.period - 1)  # (B, 1)
         offsets = self.offsets(np.shape(obs["age"])[-2])
         return (clock + offsets == self.period - 1).astype(np.int64)
+
+
+class DitheredTrigger:
+    """A fixed trigger with random deviations, for exploration around it.
+
+    Each of the trigger's broadcasts is skipped with ``skip_prob``, and each of its silences
+    broken with ``extra_prob``, independently per agent and step. A critic that learns under a
+    deterministic trigger never sees the options it does not take (a schedule's skipped
+    message, an early one), and a policy over options started as that trigger would follow the
+    critic's guesses there. ``DitheredTrigger(PeriodicTrigger(16), 0.1, 0.01)`` stays close to
+    the schedule's rate and shows both options at every age.
+
+    :param trigger: the trigger followed, a stateless one (e.g. :class:`PeriodicTrigger`)
+    :param skip_prob: probability of staying silent where the trigger broadcasts, in [0, 1]
+    :param extra_prob: probability of broadcasting where the trigger stays silent, in [0, 1]
+    :param seed: seed of the deviations' random generator
+    :raises ValueError: for a probability outside [0, 1]
+    """
+
+    def __init__(self, trigger: StatelessTrigger, skip_prob: float, extra_prob: float, seed: int | None = None) -> None:
+        for name, value in (("skip_prob", skip_prob), ("extra_prob", extra_prob)):
+            if isinstance(value, bool) or not 0.0 <= value <= 1.0:
+                raise ValueError(f"{name} must be in [0, 1], got {value!r}.")
+        self.trigger = trigger
+        self.skip_prob = float(skip_prob)
+        self.extra_prob = float(extra_prob)
+        self.rng = np.random.default_rng(seed)
+
+    def __repr__(self) -> str:
+        return f"DitheredTrigger({self.trigger!r}, skip_prob={self.skip_prob:g}, extra_prob={self.extra_prob:g})"
+
+    def __call__(self, obs: dict[str, np.ndarray]) -> np.ndarray:
+        """Options for a batch of joint observations, (B, N).
+
+        :param obs: a batch of joint observations, as the followed trigger reads them
+        :return: options (B, N), int64: the trigger's, each broadcast kept with ``1 - skip_prob``
+            and each silence broken with ``extra_prob``
+        """
+        followed = np.asarray(self.trigger(obs)) == 1
+        draws = self.rng.random(followed.shape)
+        return np.where(followed, draws >= self.skip_prob, draws < self.extra_prob).astype(np.int64)
+
+    def broadcast_probability(self, obs: dict[str, np.ndarray]) -> np.ndarray:
+        """Every agent's probability of broadcasting in these observations (draws nothing), (B, N).
+
+        :param obs: a batch of joint observations, as :meth:`__call__` reads them
+        :return: ``p (1 - skip_prob) + (1 - p) extra_prob`` with ``p`` the followed trigger's probability, float64
+        """
+        p = self.trigger.broadcast_probability(obs)
+        return p * (1.0 - self.skip_prob) + (1.0 - p) * self.extra_prob
+
+    def fork(self, seed: int) -> DitheredTrigger:
+        """An independent copy with its own seed (one per rollout worker, see :mod:`sb3_detc.mappoc.workers`).
+
+        :param seed: seed of the copy's random generator
+        :return: a :class:`DitheredTrigger` of the followed trigger's fork with the same probabilities
+        """
+        return DitheredTrigger(self.trigger.fork(seed), self.skip_prob, self.extra_prob, seed)
 
 
 class SendOnDelta(StatelessTrigger):

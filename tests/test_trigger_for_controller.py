@@ -110,3 +110,22 @@ def test_a_trigger_started_as_a_schedule_imitates_it_after_a_warm_up_under_it(tm
     assert abs(row["metrics"]["savings"] - 0.75) < 0.1
     bad = run_benchmark(SCRIPT, "benchmarks/studies/linear", "--algorithm", "ppo_random_skip", "--start-period", "4")
     assert bad.returncode == 2 and "--start-period takes a period >= 1, with --option-age-scale" in bad.stderr
+
+
+def test_a_dithered_schedule_runs_in_the_warm_up_and_mu_imitates_its_deviations(tmp_path: Path, run_benchmark) -> None:
+    out = tmp_path / "rows.json"
+    arguments = ["benchmarks/studies/linear", "--algorithm", "ppo_random_skip", "--seeds", "1", "--option-age-scale"]
+    arguments += ["0.1", "--start-period", "4", "--start-dither", "0.5", "0.0", "--timesteps", "2048"]
+    arguments += ["--warm-up", "1024", "--out", str(out), "--progress-every", "1"]
+    done = run_benchmark(SCRIPT, *arguments, check=True)
+    # half of the scheduled messages skipped: an agent broadcasts at age 3 or later with probability 1/2,
+    # every 5 steps on average instead of 4
+    first = re.search(r"critic alone: 1024 steps, savings in the last rollout ([\d.]+)", done.stdout)
+    assert first is not None and abs(float(first.group(1)) - 0.8) < 0.03
+    assert "mu imitated DitheredTrigger(PeriodicTrigger(period=4, staggered=False), skip_prob=0.5" in done.stdout
+    (row,) = json.loads(out.read_text())
+    # mu learned to broadcast about half the time from age 3 on: the most likely option matches the
+    # deviations only by chance there
+    assert 0.6 < row["imitation_accuracy"] < 0.95
+    bad = run_benchmark(SCRIPT, *arguments[:5], "--start-dither", "0.1", "0.1")
+    assert bad.returncode == 2 and "--start-dither takes two probabilities in [0, 1], with --start-period" in bad.stderr

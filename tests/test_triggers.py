@@ -18,6 +18,7 @@ from sb3_detc.mappoc.workers import RolloutWorker
 from sb3_detc.network import advance_timer
 from sb3_detc.triggers import (
     TRIGGER_FAMILIES,
+    DitheredTrigger,
     PeriodicTrigger,
     PredictiveTrigger,
     ReceiverPredictions,
@@ -140,6 +141,27 @@ def test_stateless_triggers_fork_to_themselves_and_give_their_options_as_probabi
         np.concatenate([trigger({k: v[b : b + 1] for k, v in obs.items()}) for b in range(5)]), options
     )
     np.testing.assert_array_equal(pickle.loads(pickle.dumps(trigger))(obs), options)
+
+
+# ------------------------------------------------------------------ dithered
+def test_a_dithered_trigger_skips_and_adds_broadcasts_at_its_rates_and_forks_independently():
+    followed = PeriodicTrigger(4)
+    obs = {"age": np.tile(np.arange(4, dtype=np.float32)[:, None, None], (25_000, 3, 1))}  # ages 0-3, agent by agent
+    due = followed(obs) == 1  # age 3: due
+    dithered = DitheredTrigger(followed, skip_prob=0.2, extra_prob=0.05, seed=1)
+    options = dithered(obs)
+    assert options.dtype == np.int64 and set(np.unique(options)) == {0, 1}
+    assert abs(options[due].mean() - 0.8) < 0.01 and abs(options[~due].mean() - 0.05) < 0.005
+    np.testing.assert_allclose(dithered.broadcast_probability(obs), np.where(due, 0.8, 0.05))
+    # copies for the rollout workers draw their own deviations, the same for the same seed
+    first, again, other = (dithered.fork(seed)(obs) for seed in (5, 5, 6))
+    np.testing.assert_array_equal(first, again)
+    assert (first != other).any()
+    # no deviations: the followed trigger itself
+    np.testing.assert_array_equal(DitheredTrigger(followed, 0.0, 0.0)(obs), followed(obs))
+    for bad in ({"skip_prob": 1.5}, {"extra_prob": -0.1}, {"skip_prob": True}):
+        with pytest.raises(ValueError, match="must be in \\[0, 1\\]"):
+            DitheredTrigger(followed, **{"skip_prob": 0.1, "extra_prob": 0.1, **bad})
 
 
 # ------------------------------------------------------------------ predictive triggering
