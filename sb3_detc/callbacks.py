@@ -31,6 +31,7 @@ rollout, so a rollout and the update that follows it use the values of the same 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -585,7 +586,9 @@ class ControlFirstCallback(_TwoStages):
             self.model.set_reward_normalization(True, fresh_statistics=self.first_of_stage_two(t))
 
 
-def imitate_trigger(model: Any, trigger: StatelessTrigger, span: int, gradient_steps: int = 500) -> float:
+def imitate_trigger(
+    model: Any, trigger: Callable[[dict[str, np.ndarray]], np.ndarray], span: int, gradient_steps: int = 500
+) -> float:
     """Fit a MAPPOC model's ``mu`` to a fixed trigger on the observations of the rollout in its buffer.
 
     ``mu`` is shown the rollout's observations twice: as they are, and with their own ages drawn
@@ -594,7 +597,9 @@ def imitate_trigger(model: Any, trigger: StatelessTrigger, span: int, gradient_s
     (:meth:`~sb3_detc.mappoc.policies.MlpHybridPolicy.imitate_options`); nothing else changes.
 
     :param model: the model (MAPPOC) after a rollout
-    :param trigger: the trigger to imitate, a stateless one of :mod:`sb3_detc.triggers`
+    :param trigger: the trigger to imitate, one of :mod:`sb3_detc.triggers` that reads the observations it
+        is given (a stateless one, or a :class:`~sb3_detc.triggers.DitheredTrigger` of one: ``mu`` then
+        learns its probabilities of broadcasting)
     :param span: half the range of the drawn own ages (an integer >= 1)
     :param gradient_steps: gradient steps of the imitation
     :return: the share of the imitated decisions whose most likely option matches the trigger

@@ -20,7 +20,7 @@ from sb3_detc.callbacks import CommMetricsCallback
 from sb3_detc.mappoc import MAPPOC
 from sb3_detc.mappoc.sampling import has_rollout_workers
 from sb3_detc.mappoc.workers import RolloutWorker, check_finite
-from sb3_detc.triggers import PeriodicTrigger, RandomTrigger
+from sb3_detc.triggers import DitheredTrigger, PeriodicTrigger, RandomTrigger
 
 ENV_ID = "sb3_detc/LinearETC-v0"
 #: Nearly deterministic policies: broadcast with probability 1 - 1e-6, control noise exp(-30).
@@ -112,6 +112,18 @@ def test_random_skips_run_in_the_workers_with_one_fork_per_env_and_rollout() -> 
     assert not np.array_equal(rollout_broadcasts[0][:, 0], rollout_broadcasts[0][:, 1])  # the two envs
     assert not np.array_equal(rollout_broadcasts[0], rollout_broadcasts[1])  # the two rollouts
     assert 0.35 < np.mean(rollout_broadcasts) < 0.65
+
+
+def test_a_dithered_schedule_runs_in_the_workers_with_its_own_deviations_per_env() -> None:
+    """A schedule with random skips forks into the workers: each env skips its own scheduled messages."""
+    model = make(True, policy_kwargs={"net_arch": [16, 16]})
+    model.set_fixed_trigger(DitheredTrigger(PeriodicTrigger(2), skip_prob=0.5, extra_prob=0.0, seed=0))
+    model.learn(96)
+    broadcast = model.rollout_buffer.broadcast
+    assert model.sampler.last_in_workers
+    assert not np.array_equal(broadcast[:, 0], broadcast[:, 1])  # the two envs
+    # every other step due, half of those skipped (a skip makes the next step due again): about 1 in 3
+    assert 0.2 < np.mean(broadcast) < 0.45
 
 
 def test_other_triggers_and_vec_env_wrappers_keep_the_rollout_in_the_learner() -> None:
