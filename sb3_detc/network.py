@@ -60,6 +60,24 @@ def advance_timer(age: ArrayT, broadcast: ArrayT) -> ArrayT:
     return (age + 1) * (1 - broadcast[..., None])
 
 
+def interval_window(age: ArrayT, min_interval: int, max_interval: int) -> tuple[ArrayT, ArrayT]:
+    """Which options a window of broadcast intervals leaves to an agent's trigger.
+
+    A broadcast now ends an interval of ``tau_i[k-1] + 1`` steps since the agent's last one
+    (:func:`advance_timer`). Within the window ``[min_interval, max_interval]`` the agent must
+    stay silent while that interval would be shorter than ``min_interval`` and must broadcast
+    once it reaches ``max_interval``; in between the trigger chooses. ``min_interval =
+    max_interval = P`` leaves no choice: the periodic schedule of period ``P``, all agents in phase.
+
+    :param age: timers before this step's decisions, shape (..., N, 1)
+    :param min_interval: the shortest interval between two broadcasts of an agent (>= 1)
+    :param max_interval: the longest interval (>= ``min_interval``)
+    :return: where an agent must stay silent and where it must broadcast, two boolean arrays of shape (..., N)
+    """
+    interval = age[..., 0] + 1
+    return interval < min_interval - 0.5, interval > max_interval - 0.5
+
+
 def others_index(n_agents: int) -> np.ndarray:
     """Index of the other agents, row ``i`` lists ``j != i`` in increasing order.
 

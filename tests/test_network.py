@@ -6,7 +6,15 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from sb3_detc.network import advance_timer, hold, initial_network, others_ages, others_index, relative_views
+from sb3_detc.network import (
+    advance_timer,
+    hold,
+    initial_network,
+    interval_window,
+    others_ages,
+    others_index,
+    relative_views,
+)
 
 
 def reference_network(messages: np.ndarray, options: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -114,3 +122,30 @@ def test_others_ages_follow_the_others_index():
     np.testing.assert_array_equal(others_ages(age, others), [[0.0, 2.0], [5.0, 2.0], [5.0, 0.0]])
     batched = others_ages(torch.as_tensor(np.stack([age, age + 1])), torch.as_tensor(others))
     np.testing.assert_array_equal(batched.numpy(), [[[0, 2], [5, 2], [5, 0]], [[1, 3], [6, 3], [6, 1]]])
+
+
+@given(st.integers(1, 12), st.integers(0, 12), st.lists(st.integers(0, 40), min_size=1, max_size=8))
+def test_interval_window_reads_the_interval_a_broadcast_would_end(low: int, extra: int, ages: list[int]) -> None:
+    high = low + extra
+    age = np.array(ages, dtype=np.float64)[:, None]
+    silent, broadcast = interval_window(age, low, high)
+    interval = np.array(ages) + 1  # a broadcast now ends an interval of age + 1 steps
+    np.testing.assert_array_equal(silent, interval < low)
+    np.testing.assert_array_equal(broadcast, interval >= high)
+    assert not (silent & broadcast).any()
+    t_silent, t_broadcast = interval_window(torch.as_tensor(age), low, high)
+    np.testing.assert_array_equal(t_silent.numpy(), silent)
+    np.testing.assert_array_equal(t_broadcast.numpy(), broadcast)
+
+
+def test_a_window_of_one_interval_is_the_periodic_schedule() -> None:
+    """Run with the window's forced options alone, every agent broadcasts every P-th step from the reset on."""
+    period, age = 4, np.zeros((3, 1))
+    sent = []
+    for _ in range(12):
+        silent, broadcast = interval_window(age, period, period)
+        assert (silent ^ broadcast).all()  # nothing is left to choose
+        sent.append(broadcast.astype(float))
+        age = advance_timer(age, sent[-1])
+    np.testing.assert_array_equal(np.flatnonzero(np.array(sent)[:, 0]), [3, 7, 11])
+    assert (np.array(sent) == np.array(sent)[:, :1]).all()  # in phase

@@ -129,3 +129,17 @@ def test_a_dithered_schedule_runs_in_the_warm_up_and_mu_imitates_its_deviations(
     assert 0.6 < row["imitation_accuracy"] < 0.95
     bad = run_benchmark(SCRIPT, *arguments[:5], "--start-dither", "0.1", "0.1")
     assert bad.returncode == 2 and "--start-dither takes two probabilities in [0, 1], with --start-period" in bad.stderr
+
+
+def test_a_fresh_mu_may_decide_inside_a_window_of_broadcast_intervals(tmp_path: Path, run_benchmark) -> None:
+    out, saved = tmp_path / "rows.json", tmp_path / "policies"
+    arguments = ["benchmarks/studies/linear", "--algorithm", "ppo_random_skip", "--seeds", "1", "--option-age-scale"]
+    arguments += ["0.1", "--timesteps", "2048", "--warm-up", "1024", "--out", str(out), "--save-dir", str(saved)]
+    kwargs = "dict(net_arch=[64, 64], learn_log_std=True, critic='afterstate', age_scale=0.0, "
+    kwargs += "broadcast_interval=(3, 5))"
+    run_benchmark(SCRIPT, *arguments, "--set", json.dumps({"policy_kwargs": kwargs}), check=True)
+    (row,) = json.loads(out.read_text())
+    assert MlpHybridPolicy.load(str(saved / row["saved"]), device="cpu").broadcast_interval == (3, 5)
+    # every interval between two broadcasts of an agent lies in [3, 5] steps: savings in [2/3, 4/5]
+    # (an episode's first interval counts from the reset, where every initial message counts as received)
+    assert 2 / 3 - 0.02 <= row["metrics"]["savings"] <= 4 / 5 + 0.02

@@ -31,7 +31,7 @@ class UpdateInputs(NamedTuple):
     """What every gradient step of one update needs besides the minibatch's indices.
 
     :param inputs: stacked network inputs of the whole rollout (``MlpHybridPolicy.training_inputs``)
-    :param samples: the rollout's tensors (observations not needed)
+    :param samples: the rollout's tensors (of the observations only the ages, which a broadcast interval reads)
     :param p_broadcast: probabilities of broadcasting with which the options were drawn (B, N)
     :param clip_pi: clip range of pi
     :param clip_mu: clip range of mu
@@ -196,6 +196,7 @@ class MAPPOCLoss(nn.Module):
             data.control,
             data.broadcast_price,
             update.p_broadcast[idx],
+            data.observations.get("age"),  # read with a broadcast interval only
         )
 
         # Control policy: PPO clipped surrogate on GAE advantages of the taken option.

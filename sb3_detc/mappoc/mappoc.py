@@ -608,7 +608,7 @@ class MAPPOC(OnPolicyAlgorithm):
         return UpdateInputs(
             # The networks' inputs depend on stored observations and options only: built once.
             self.policy.training_inputs(rollout.observations, rollout.broadcast),
-            rollout._replace(observations={}),
+            rollout._replace(observations={"age": rollout.observations["age"]}),  # what option_logits reads
             # probability of broadcasting with which the options were drawn (the centred critic's p_i)
             drawn_broadcast_probability(rollout.broadcast, rollout.old_log_prob_broadcast),
             FloatSchedule(self.clip_range)(progress),

@@ -37,7 +37,15 @@ from torch.nn import functional as F
 from sb3_detc.envs.wrappers import JOINT_KEYS
 from sb3_detc.mappoc.batched import AgentBatchedNetworks, ChainInput, NetSpec
 from sb3_detc.mappoc.critics import CRITICS, OptionCritic
-from sb3_detc.network import advance_timer, hold, others_ages, others_index, relative_to_receivers, relative_views
+from sb3_detc.network import (
+    advance_timer,
+    hold,
+    interval_window,
+    others_ages,
+    others_index,
+    relative_to_receivers,
+    relative_views,
+)
 from sb3_detc.renamed import renamed_action_space, renamed_keys
 
 #: Order of the networks inside the batched chains: ``mu`` (and a critic that reads the state
@@ -46,6 +54,9 @@ from sb3_detc.renamed import renamed_action_space, renamed_keys
 NETS = ("mu", "q", "pi")
 #: Orthogonal-init gains of the networks' output layers.
 OUTPUT_GAINS = {"mu": 0.01, "q": 1.0, "pi": 0.01}
+#: How far below the other option's logit an option that a broadcast interval closes is pinned:
+#: its probability underflows to zero, and its log-probability stays finite (no NaN in entropies).
+CLOSED_LOGIT = 1e4
 
 
 def option_inputs(
@@ -71,6 +82,42 @@ def option_inputs(
     if distance_scale > 0:
         parts.append(th.linalg.vector_norm(trigger - trigger_held, dim=-1, keepdim=True) * distance_scale)
     return th.cat(parts, dim=-1)
+
+
+def pin_options(logits: th.Tensor, silent: th.Tensor, broadcast: th.Tensor) -> th.Tensor:
+    """Logits of ``mu`` with the options that a window of broadcast intervals decides pinned.
+
+    Where the window forces an option, the logits become constants that give it probability
+    one: the option is drawn and is the mode, its log-probability is zero whatever the
+    parameters (so PPO's ratio is one and no gradient flows from that decision), and the entropy is zero.
+
+    :param logits: outputs of ``mu``, (..., 2): the logits of silent (0) and broadcast (1)
+    :param silent: where the agent must stay silent (...), from :func:`~sb3_detc.network.interval_window`
+    :param broadcast: where it must broadcast (...)
+    :return: the logits, pinned where either mask is set, (..., 2)
+    """
+    pinned = th.stack([broadcast, silent], dim=-1).to(logits.dtype) * -CLOSED_LOGIT
+    return th.where((silent | broadcast)[..., None], pinned, logits)
+
+
+def check_broadcast_interval(window: Any) -> tuple[int, int]:
+    """A window of broadcast intervals as two integers, checked.
+
+    :param window: ``(min_interval, max_interval)``
+    :return: the window as a tuple of two ints
+    :raises ValueError: unless it is two integers with ``1 <= min_interval <= max_interval``
+    """
+    values = tuple(window) if isinstance(window, (list, tuple)) else ()
+    if not (
+        len(values) == 2
+        and all(isinstance(v, (int, np.integer)) and not isinstance(v, bool) for v in values)
+        and 1 <= values[0] <= values[1]
+    ):
+        raise ValueError(
+            "broadcast_interval must be two integers (min_interval, max_interval) with 1 <= min <= max, "
+            f"got {window!r}."
+        )
+    return int(values[0]), int(values[1])
 
 
 def options_sampled(sample_options: bool, deterministic: bool) -> bool:
@@ -179,6 +226,13 @@ class MlpHybridPolicy(BasePolicy):
         rule is a threshold on one input; where the held features are the receivers' predictions
         (``LinearETC-LQR-v0(prediction=True, predicted_held=True)``) the distance is the prediction
         error, and predictive triggering is such a threshold
+    :param broadcast_interval: a window ``(min_interval, max_interval)`` of steps between two
+        broadcasts of an agent (integers, ``1 <= min_interval <= max_interval``), or None (the
+        default: ``mu`` decides at every step). With it an agent stays silent while its interval
+        would be shorter than ``min_interval``, broadcasts once it reaches ``max_interval``, and
+        ``mu`` decides in between (:func:`~sb3_detc.network.interval_window`): no silence lasts
+        longer than the window, whatever ``mu`` learns. ``(P, P)`` is the periodic schedule of
+        period ``P``, all agents in phase. Decisions the window takes carry no gradient
     :param broadcast_prob_init: probability of broadcasting of the untrained policies over
         options (through the bias of their output layer; 0.5: undecided). A low value lets
         training start where every broadcast carries information that would otherwise stay
@@ -225,6 +279,7 @@ class MlpHybridPolicy(BasePolicy):
         age_scale: float = 0.1,
         option_age_scale: float = 0.0,
         option_distance_scale: float = 0.0,
+        broadcast_interval: tuple[int, int] | None = None,
         broadcast_prob_init: float = 0.5,
         critic: str = "option_heads",
         ortho_init: bool = True,
@@ -250,6 +305,8 @@ class MlpHybridPolicy(BasePolicy):
                 "option_distance_scale must be a finite number >= 0 (0: mu does not read the distance), "
                 f"got {option_distance_scale}."
             )
+        if broadcast_interval is not None:
+            broadcast_interval = check_broadcast_interval(broadcast_interval)
         if critic not in CRITICS:
             raise ValueError(f"critic must be one of {tuple(CRITICS)}, got {critic!r}.")
         if optimizer_kwargs is None:
@@ -276,6 +333,7 @@ class MlpHybridPolicy(BasePolicy):
         self.age_scale = age_scale
         self.option_age_scale = float(option_age_scale)
         self.option_distance_scale = float(option_distance_scale)
+        self.broadcast_interval = broadcast_interval
         self.broadcast_prob_init = broadcast_prob_init
         self.critic = critic
         self.option_critic: OptionCritic = CRITICS[critic]()
@@ -367,6 +425,7 @@ class MlpHybridPolicy(BasePolicy):
             age_scale=self.age_scale,
             option_age_scale=self.option_age_scale,
             option_distance_scale=self.option_distance_scale,
+            broadcast_interval=self.broadcast_interval,
             broadcast_prob_init=self.broadcast_prob_init,
             critic=self.critic,
             ortho_init=self.ortho_init,
@@ -414,6 +473,21 @@ class MlpHybridPolicy(BasePolicy):
         return option_inputs(
             obs["trigger"], obs["trigger_held"], obs["age"], self.option_age_scale, self.option_distance_scale
         )
+
+    def option_logits(self, logits: th.Tensor, age: th.Tensor | None) -> th.Tensor:
+        """The logits the options are drawn from: ``mu``'s, pinned where :attr:`broadcast_interval` decides.
+
+        :param logits: outputs of the ``mu`` networks (B, N, 2)
+        :param age: every agent's timer before this step's decisions (B, N, 1); read only with a
+            broadcast interval
+        :return: (B, N, 2), ``logits`` itself without a broadcast interval
+        :raises ValueError: with a broadcast interval and no ``age``
+        """
+        if self.broadcast_interval is None:
+            return logits
+        if age is None:
+            raise ValueError("A policy with a broadcast_interval needs the agents' ages to evaluate its options.")
+        return pin_options(logits, *interval_window(age, *self.broadcast_interval))
 
     def control_features(self, obs: PyTorchObs, broadcast: th.Tensor) -> th.Tensor:
         """Inputs of ``pi_i``: networked observation ``x^_i`` after this step's broadcasts.
@@ -504,7 +578,9 @@ class MlpHybridPolicy(BasePolicy):
         :param obs: joint observation (B, N, ...)
         :return: probabilities of broadcasting (B, N)
         """
-        return broadcast_probability(self.chains.run({"mu": self.option_features(obs)})["mu"])
+        return broadcast_probability(
+            self.option_logits(self.chains.run({"mu": self.option_features(obs)})["mu"], obs["age"])
+        )
 
     def imitate_options(
         self,
@@ -528,6 +604,7 @@ class MlpHybridPolicy(BasePolicy):
         :raises ValueError: for options whose shape differs from the observations' (B, N)
         """
         features = self.option_features(obs).detach()
+        age = obs["age"]
         targets = th.as_tensor(options, device=features.device).long()
         if targets.shape != features.shape[:2]:
             raise ValueError(
@@ -538,7 +615,7 @@ class MlpHybridPolicy(BasePolicy):
         self.set_training_mode(True)
         for _ in range(gradient_steps):
             idx = th.randint(len(targets), (min(batch_size, len(targets)),), device=features.device)
-            logits = self.chains.run({"mu": features[idx]})["mu"]
+            logits = self.option_logits(self.chains.run({"mu": features[idx]})["mu"], age[idx])
             loss = F.cross_entropy(logits.reshape(-1, 2), targets[idx].reshape(-1))
             optimizer.zero_grad()
             loss.backward()
@@ -546,7 +623,7 @@ class MlpHybridPolicy(BasePolicy):
         optimizer.zero_grad(set_to_none=True)
         self.set_training_mode(training)
         with th.no_grad():
-            mode = self._sample_options(self.chains.run({"mu": features})["mu"], deterministic=True)
+            mode = self._sample_options(self.option_logits(self.chains.run({"mu": features})["mu"], age), True)
         return float((mode == targets).float().mean())
 
     def option_values(
@@ -668,6 +745,8 @@ class MlpHybridPolicy(BasePolicy):
         if with_critic and not reads_afterstate:
             before["q"] = self.critic_inputs(obs)
         out = self.chains.run(before) if before else {}
+        if "mu" in out:
+            out["mu"] = self.option_logits(out["mu"], obs["age"])
         if sample_options is None:
             sample_options = not deterministic
         if broadcast is None:
@@ -717,7 +796,7 @@ class MlpHybridPolicy(BasePolicy):
         :return: log-probabilities, broadcast entropy and option values, as :class:`HybridEvaluation`
         """
         return self.evaluate_inputs(
-            self.training_inputs(obs, broadcast), broadcast, control, broadcast_price, p_broadcast
+            self.training_inputs(obs, broadcast), broadcast, control, broadcast_price, p_broadcast, obs["age"]
         )
 
     def evaluate_inputs(
@@ -727,6 +806,7 @@ class MlpHybridPolicy(BasePolicy):
         control: th.Tensor,
         broadcast_price: th.Tensor | None = None,
         p_broadcast: th.Tensor | None = None,
+        age: th.Tensor | None = None,
     ) -> HybridEvaluation:
         """Like :meth:`evaluate_actions`, from inputs prepared by :meth:`training_inputs`.
 
@@ -736,10 +816,11 @@ class MlpHybridPolicy(BasePolicy):
         :param broadcast_price: cost of a broadcast in the learner's reward units (B, N), see :meth:`option_values`
         :param p_broadcast: probabilities of broadcasting with which ``broadcast`` was drawn (B, N),
             see :meth:`option_values` (None: those of the current ``mu``)
+        :param age: the agents' timers before the options (B, N, 1); needed with a :attr:`broadcast_interval` only
         :return: log-probabilities, broadcast entropy and option values, as :class:`HybridEvaluation`
         """
         out = self.chains.evaluate(stacked)
-        log_p = F.log_softmax(out["mu"], dim=-1)
+        log_p = F.log_softmax(self.option_logits(out["mu"], age), dim=-1)
         log_prob_broadcast = log_p.gather(-1, broadcast.long()[..., None])[..., 0]
         entropy = -(log_p.exp() * log_p).sum(-1)
         log_std = self.log_std.expand(self.n_agents, -1)
@@ -768,6 +849,7 @@ class MlpHybridPolicy(BasePolicy):
         if not reads_afterstate:
             before["q"] = self.critic_inputs(obs)
         out = self.chains.run(before)
+        out["mu"] = self.option_logits(out["mu"], obs["age"])
         if reads_afterstate:
             if p_broadcast is None:
                 broadcast = self._sample_options(out["mu"], deterministic=False)
@@ -843,6 +925,7 @@ class MlpHybridPolicy(BasePolicy):
             age_scale=self.age_scale,
             option_age_scale=self.option_age_scale,
             option_distance_scale=self.option_distance_scale,
+            broadcast_interval=self.broadcast_interval,
             agent_id=self.agent_id[agent].clone() if self.share_parameters else None,
             control_low=self.control_low[agent].clone(),
             control_high=self.control_high[agent].clone(),
@@ -867,6 +950,8 @@ class AgentController(nn.Module):
     :param option_age_scale: factor applied to the own age before it enters ``mu`` (0: ``mu`` does not read it)
     :param option_distance_scale: factor applied to the distance of the trigger features from those at
         the own last broadcast before it enters ``mu`` (0: ``mu`` does not read it)
+    :param broadcast_interval: the policy's window of broadcast intervals, which decides the
+        options outside it (None: ``mu`` decides at every step)
     :param agent_id: one-hot id input for shared-parameter policies, else None
     :param control_low: lower control bounds (m,)
     :param control_high: upper control bounds (m,)
@@ -889,9 +974,11 @@ class AgentController(nn.Module):
         sample_options: bool = False,
         option_age_scale: float = 0.0,
         option_distance_scale: float = 0.0,
+        broadcast_interval: tuple[int, int] | None = None,
     ) -> None:
         super().__init__()
         self.sample_options = sample_options
+        self.broadcast_interval = broadcast_interval
         self.option_age_scale = option_age_scale
         self.option_distance_scale = option_distance_scale
         self.option_net = option_net
@@ -933,6 +1020,8 @@ class AgentController(nn.Module):
             self.option_distance_scale,
         )
         logits = self.option_net(self._with_id(x))
+        if self.broadcast_interval is not None:
+            logits = pin_options(logits, *interval_window(th.tensor([own_age]), *self.broadcast_interval))
         if deterministic:
             return bool(logits.argmax() == 1)
         return bool(th.distributions.Categorical(logits=logits).sample() == 1)
