@@ -34,6 +34,7 @@ from sb3_detc.cli import InputError, run_cli  # noqa: E402
 from sb3_detc.renamed import renamed_column  # noqa: E402
 
 __all__ = [
+    "LEARNED_MARKERS",
     "LEARNED_POINTS",
     "curriculum_phases",
     "curve_label",
@@ -322,15 +323,17 @@ def plot_estimates(
 #: Points of a front that are learned triggers, not fixed families: sampled as learned, and made deterministic at
 #: the learned rate (the protocol's mode ``thresholded``).
 LEARNED_POINTS = ("learned", "thresholded")
+#: Markers of the learned triggers of one panel of a front, in the order of its rows (squares are the families').
+LEARNED_MARKERS = "o^vDPX*"
 
 
 def plot_front(rows: Sequence[dict], out: str | Path, title: str = "") -> Path:
     """Control return against savings: learned triggers as points with intervals, fixed families as curves.
 
-    A learned trigger is a filled circle, and where the protocol ran it, the same trigger
-    thresholded at its rate an open diamond. Algorithms with the same environment settings
-    (``settings``) share a panel, in which every family's points at the algorithms' rates are
-    joined in the order of their savings.
+    Every learned trigger is a filled marker of its own, named in the legend, and where the
+    protocol ran it, the same trigger thresholded at its rate the same marker open. Algorithms
+    with the same environment settings (``settings``) share a panel, in which every family's
+    points at the algorithms' rates are joined in the order of their savings.
 
     :param rows: the study's front (:func:`sb3_detc.study.report.front`)
     :param out: the PNG file
@@ -358,8 +361,9 @@ def plot_front(rows: Sequence[dict], out: str | Path, title: str = "") -> Path:
                 linewidth=1.2,
                 label=family,
             )
-        for row in group:
-            for name, marker in zip(LEARNED_POINTS, "oD", strict=True):
+        for r, row in enumerate(group):
+            marker = LEARNED_MARKERS[r % len(LEARNED_MARKERS)]
+            for name in LEARNED_POINTS:
                 if name not in row["points"]:
                     continue
                 savings, mean, (low, high) = row["points"][name]
@@ -374,11 +378,9 @@ def plot_front(rows: Sequence[dict], out: str | Path, title: str = "") -> Path:
                     capsize=3,
                     linestyle="none",
                 )
-            savings, mean, _ = row["points"]["learned"]
-            ax.annotate(row["label"], (savings, mean), textcoords="offset points", xytext=(5, 5), fontsize="small")
-        ax.plot([], [], "o", color=colors[0], label="learned (per algorithm)")
+            ax.plot([], [], marker, color=colors[0], label=row["label"])
         if any("thresholded" in row["points"] for row in group):
-            ax.plot([], [], "D", color=colors[0], markerfacecolor="none", label="learned, thresholded at its rate")
+            ax.plot([], [], "o", color=colors[0], markerfacecolor="none", label="open: thresholded at its rate")
         ax.set_xlabel("communication savings")
         ax.set_ylabel("control return (mean over seeds, 95 % interval)")
         ax.set_title(settings if settings != "{}" else "entry settings", fontsize="small")
