@@ -23,7 +23,8 @@ listed under the table:
 * with ``--rate-study``, a learned trigger beats the fixed triggers when the interval of its control
   return minus that of the best fixed family at the same savings (the same controller and paired
   episodes, ``learned_minus_best_fixed_control_return``) lies above zero, loses when below, else
-  no evidence.
+  no evidence; ``--frozen`` adds the same row for every results file of
+  ``multiwalker_trigger_for_controller.py`` (triggers learned for the study's frozen controllers).
 
 ``--splice`` replaces the text between the lines ``<!-- paper_claims.py: start -->`` and
 ``<!-- paper_claims.py: end -->`` of a Markdown file with the table.
@@ -36,12 +37,13 @@ from __future__ import annotations
 
 import argparse
 import csv
+import json
 import math
 from pathlib import Path
 from typing import Any
 
 from sb3_detc.plot import open_progress, progress_file
-from sb3_detc.study.report import interval_text, mark_lines, splice, summarise
+from sb3_detc.study.report import interval_text, mark_lines, metric_estimates, splice, summarise
 from sb3_detc.study.spec import StudyError, load_folder_study
 from sb3_detc.study.trial import SUCCESS_NO_FALL, SUCCESS_TRAVEL, carries_package, trial_folder
 
@@ -170,8 +172,43 @@ def rate_row(folder: Path, arm: str) -> tuple[str, str, str]:
     )
 
 
+def frozen_row(path: Path) -> tuple[str, str, str]:
+    """The claims row of triggers learned for frozen controllers (``multiwalker_trigger_for_controller.py``'s rows).
+
+    :param path: its rows (one per seed), run with ``--fixed-families``
+    :return: the claim, our result and the verdict
+    :raises StudyError: if the file cannot be read, has no rows or its rows compared no fixed family
+    """
+    try:
+        rows = json.loads(path.read_text())
+    except (OSError, ValueError) as error:
+        raise StudyError(f"{path}: {error}") from error
+    if not rows or not all("learned_minus_best_fixed_control_return" in row["metrics"] for row in rows):
+        raise StudyError(f"{path}: no rows, or rows that compared no fixed trigger family (--fixed-families)")
+    mean, ci = metric_estimates([row["metrics"] for row in rows])
+    entry = {"mean": mean, "ci95": ci, "seeds": {str(row["seed"]): row["metrics"] for row in rows}}
+    job = json.loads(rows[0]["job"])
+    target = job["changes"].get("target_savings")
+    families = ", ".join(job["fixed_families"])
+    return (
+        f"(beyond the paper) a trigger learned for the frozen controllers of {job['algorithm']} beats the best fixed "
+        f"trigger at the same savings ({path.stem})",
+        f"target {target}: savings {estimate(entry, 'savings', 100, 1, ' %')}, control return "
+        f"{estimate(entry, 'control_return')}; minus the best of {families} with the same controller "
+        f"{estimate(entry, 'learned_minus_best_fixed_control_return')}, minus random options at the same rate "
+        f"{estimate(entry, 'learned_minus_random_control_return')}",
+        f"{interval_verdict(*ci['learned_minus_best_fixed_control_return'])} ({len(rows)} seeds)",
+    )
+
+
 def claims(
-    folder: Path, mappoc: str, baseline: str, recipe: str | None, rate_study: Path | None = None, rate_arm: str = ""
+    folder: Path,
+    mappoc: str,
+    baseline: str,
+    recipe: str | None,
+    rate_study: Path | None = None,
+    rate_arm: str = "",
+    frozen: list[Path] | None = None,
 ) -> str:
     """The claims table (Markdown) of a study folder.
 
@@ -181,10 +218,12 @@ def claims(
     :param recipe: label of a recipe that claims more savings, or None
     :param rate_study: a study of learned triggers at a rate target, or None (its row: :func:`rate_row`)
     :param rate_arm: label of the rate study's arm whose trigger is learned
+    :param frozen: results files of triggers learned for frozen controllers (a row each: :func:`frozen_row`)
     :return: the table and the rules of its verdicts
     :raises StudyError: if a named algorithm has no finished seed, or the trials report no package travel
     """
     rate = rate_row(rate_study, rate_arm) if rate_study is not None else None
+    frozen_rows = [frozen_row(path) for path in frozen or []]
     summary = summarise(folder)
     episodes = load_folder_study(folder).episodes
     for label in (mappoc, baseline, recipe):
@@ -274,11 +313,13 @@ def claims(
 
     if rate is not None:
         rows.append(rate)
+    rows.extend(frozen_rows)
 
     lines = [
         f"Study `{folder.name}`: {n} seeds of {mappoc}, {n_skips} of {baseline}"
         + (f", {len(summary[recipe]['seeds'])} of {recipe}" if recipe else "")
         + (f"; study `{rate_study.name}`: its arm {rate_arm}" if rate_study is not None else "")
+        + (f"; triggers for frozen controllers: {', '.join(f'`{p.name}`' for p in frozen)}" if frozen else "")
         + "; mean [95 % interval] (seeds: each seed's value).",
         "",
         "| paper claim | our result | holds? |",
@@ -317,6 +358,13 @@ def main() -> None:
         "--rate-study", type=Path, help="add the row of a learned trigger at a rate target from this study folder"
     )
     parser.add_argument("--rate-arm", default="joint_9375", help="label of the rate study's learned trigger")
+    parser.add_argument(
+        "--frozen",
+        type=Path,
+        nargs="+",
+        default=[],
+        help="add a row per results file of multiwalker_trigger_for_controller.py (with --fixed-families)",
+    )
     parser.add_argument("--out", type=Path, help="also write the table to this file")
     parser.add_argument(
         "--splice",
@@ -325,7 +373,9 @@ def main() -> None:
     )
     args = parser.parse_args()
     try:
-        table = claims(args.folder, args.mappoc, args.baseline, args.recipe or None, args.rate_study, args.rate_arm)
+        table = claims(
+            args.folder, args.mappoc, args.baseline, args.recipe or None, args.rate_study, args.rate_arm, args.frozen
+        )
         if args.splice:
             splice(args.splice, MARK, table)
     except StudyError as error:

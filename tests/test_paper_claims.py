@@ -208,3 +208,25 @@ def test_a_rate_study_without_the_arm_or_its_fixed_families_is_refused(tmp_path:
         path.write_text(json.dumps(evaluation))
     done = run_benchmark_here("paper_claims.py", *arguments, "joint_9375")
     assert done.returncode == 2 and "compared no fixed trigger family" in done.stderr
+
+
+def test_a_row_per_results_file_of_triggers_learned_for_frozen_controllers(tmp_path: Path, run_benchmark_here) -> None:
+    paper = study_copy(tmp_path, {0: 0.692, 1: 0.692}, LABELS[:2])
+    source = json.loads((ROOT / "benchmarks" / "results" / "multiwalker_trigger_rate_9375.json").read_text())[:2]
+    for row, difference in zip(source, (-3.0, -5.0), strict=True):
+        row["metrics"]["learned_minus_best_fixed_control_return"] = difference
+    path = tmp_path / "frozen_9375.json"
+    path.write_text(json.dumps(source))
+    done = run_benchmark_here("paper_claims.py", str(paper), "--recipe", "", "--frozen", str(path))
+    assert done.returncode == 0, done.stderr
+    claim = (
+        "(beyond the paper) a trigger learned for the frozen controllers of mappoc_paper beats the best fixed "
+        "trigger at the same savings (frozen_9375)"
+    )
+    result, verdict = rows(done.stdout)[claim]
+    assert verdict == "no: the interval lies below zero (2 seeds)"
+    assert result.startswith("target 0.9375: ") and "with the same controller -4.0 [-5.0, -3.0]" in result
+    del source[1]["metrics"]["learned_minus_best_fixed_control_return"]
+    path.write_text(json.dumps(source))
+    done = run_benchmark_here("paper_claims.py", str(paper), "--recipe", "", "--frozen", str(path))
+    assert done.returncode == 2 and "compared no fixed trigger family" in done.stderr
