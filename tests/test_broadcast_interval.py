@@ -11,6 +11,7 @@ from stable_baselines3.common.env_util import make_vec_env
 
 import sb3_detc  # noqa: F401  (registers the env ids)
 from sb3_detc.mappoc import MAPPOC
+from sb3_detc.mappoc.losses import STEP_STATS
 from sb3_detc.mappoc.policies import MlpHybridPolicy
 from sb3_detc.triggers import PeriodicTrigger
 
@@ -89,3 +90,46 @@ def test_a_window_needs_the_ages_to_evaluate_stored_options() -> None:
     inputs = model.policy.training_inputs(rollout.observations, rollout.broadcast)
     with pytest.raises(ValueError, match="needs the agents' ages"):
         model.policy.evaluate_inputs(inputs, rollout.broadcast, rollout.control)
+
+
+def forced_rows(model: MAPPOC) -> tuple[th.Tensor, th.Tensor]:
+    """The last rollout's samples where the window decided every agent's option, and where it decided none."""
+    interval = model.rollout_buffer.tensors().observations["age"][..., 0] + 1
+    forced = (interval < 3) | (interval >= 6)
+    return th.nonzero(forced.all(-1))[:, 0], th.nonzero((~forced).all(-1))[:, 0]
+
+
+def test_the_training_loss_reads_the_window() -> None:
+    model = make((3, 6))
+    model.learn(128)
+    update = model.update_inputs(model.rollout_buffer.tensors())
+    forced, free = forced_rows(model)
+    assert len(forced) and len(free)
+    stats = {
+        name: [dict(zip(STEP_STATS, model.loss(update, idx)[1].tolist(), strict=True))[name] for idx in (forced, free)]
+        for name in ("entropy_mu", "kl_mu")
+    }
+    assert stats["entropy_mu"][0] == 0 and stats["kl_mu"][0] == 0  # pinned: no entropy, no change
+    assert stats["entropy_mu"][1] > 0.1
+
+
+def test_state_values_average_the_options_the_window_allows() -> None:
+    model = make((3, 6))
+    model.learn(64)
+    obs = model.rollout_buffer.tensors().observations
+    with th.no_grad():
+        values = model.policy.state_values(obs)
+        p = model.policy.broadcast_probabilities(obs)
+        q = model.policy(obs).option_values  # the option heads' values do not depend on the options drawn
+    assert set(p[forced_rows(model)[0]].unique().tolist()) <= {0.0, 1.0}
+    th.testing.assert_close(values, (1 - p) * q[..., 0] + p * q[..., 1])
+
+
+def test_imitation_cannot_move_the_options_the_window_takes() -> None:
+    model = make((3, 6))
+    model.learn(64)
+    obs = model.rollout_buffer.tensors().observations
+    interval = obs["age"][..., 0] + 1
+    always = th.ones_like(interval, dtype=th.long)  # a broadcast at every step: not within the window
+    accuracy = model.policy.imitate_options(obs, always, gradient_steps=300)
+    assert accuracy == pytest.approx(float((interval >= 3).float().mean()), abs=1e-6)

@@ -135,11 +135,12 @@ def test_a_fresh_mu_may_decide_inside_a_window_of_broadcast_intervals(tmp_path: 
     out, saved = tmp_path / "rows.json", tmp_path / "policies"
     arguments = ["benchmarks/studies/linear", "--algorithm", "ppo_random_skip", "--seeds", "1", "--option-age-scale"]
     arguments += ["0.1", "--timesteps", "2048", "--warm-up", "1024", "--out", str(out), "--save-dir", str(saved)]
+    # a window of one interval leaves mu no choice: a message every 4th step, whatever mu learned
     kwargs = "dict(net_arch=[64, 64], learn_log_std=True, critic='afterstate', age_scale=0.0, "
-    kwargs += "broadcast_interval=(3, 5))"
+    kwargs += "broadcast_interval=(4, 4))"
     run_benchmark(SCRIPT, *arguments, "--set", json.dumps({"policy_kwargs": kwargs}), check=True)
     (row,) = json.loads(out.read_text())
-    assert MlpHybridPolicy.load(str(saved / row["saved"]), device="cpu").broadcast_interval == (3, 5)
-    # every interval between two broadcasts of an agent lies in [3, 5] steps: savings in [2/3, 4/5]
-    # (an episode's first interval counts from the reset, where every initial message counts as received)
-    assert 2 / 3 - 0.02 <= row["metrics"]["savings"] <= 4 / 5 + 0.02
+    assert MlpHybridPolicy.load(str(saved / row["saved"]), device="cpu").broadcast_interval == (4, 4)
+    # the learned trigger is the schedule (an episode's last interval may end unfinished)
+    assert abs(row["metrics"]["savings"] - 0.75) < 0.01
+    assert abs(row["metrics"]["control_return"] - row["periodic_nearest"]["control_return"]) < 1e-6

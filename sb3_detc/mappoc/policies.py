@@ -1009,7 +1009,7 @@ class AgentController(nn.Module):
         :param trigger_held: own trigger features at the own last broadcast (n_trig,)
         :param deterministic: the most likely option instead of a sample
         :param own_age: steps since the own last broadcast, before this step's decision (read with
-            ``option_age_scale``)
+            ``option_age_scale``, and by a ``broadcast_interval``: pass it wherever either is set)
         :return: True to broadcast, False to stay silent
         """
         x = option_inputs(
