@@ -42,6 +42,7 @@ from sb3_detc.envs.wrappers import JointEnv
 from sb3_detc.mappoc.mappoc import MAPPOC
 from sb3_detc.mappoc.policies import MlpHybridPolicy, options_sampled
 from sb3_detc.mappoc.sampling import FixedTrigger
+from sb3_detc.network import interval_window
 from sb3_detc.triggers import (
     TRIGGER_FAMILIES,
     FixedControl,
@@ -691,8 +692,12 @@ class ThresholdedOptions(StatelessTrigger):
     tunes the threshold to a savings target. Stateless (a function of the observations alone,
     through the policy), so it serves as a fixed trigger wherever one is accepted.
 
+    A policy with a window of broadcast intervals (``broadcast_interval``) keeps it at every
+    threshold: silent where the window forbids a broadcast, broadcasting where it forces one.
+
     :param policy: the policy whose ``mu`` decides
-    :param threshold: the probability of broadcasting above which an agent broadcasts, > 0 (1 and above: never)
+    :param threshold: the probability of broadcasting above which an agent broadcasts, > 0 (1 and
+        above: never, but where a window forces a broadcast)
     """
 
     def __init__(self, policy: MlpHybridPolicy, threshold: float) -> None:
@@ -711,7 +716,10 @@ class ThresholdedOptions(StatelessTrigger):
         """
         with th.no_grad():
             probability = self.policy.broadcast_probabilities(obs_as_tensor(obs, self.policy.device))
-        return (probability > self.threshold).long().cpu().numpy()
+        options = (probability > self.threshold).cpu().numpy()
+        if self.policy.broadcast_interval is not None:  # forced broadcasts have probability one, kept above 1
+            options |= interval_window(np.asarray(obs["age"]), *self.policy.broadcast_interval)[1]
+        return options.astype(np.int64)
 
 
 def evaluate_thresholded(

@@ -10,9 +10,11 @@ import torch as th
 from stable_baselines3.common.env_util import make_vec_env
 
 import sb3_detc  # noqa: F401  (registers the env ids)
+from sb3_detc.evaluation import ThresholdedOptions
 from sb3_detc.mappoc import MAPPOC
 from sb3_detc.mappoc.losses import STEP_STATS
 from sb3_detc.mappoc.policies import MlpHybridPolicy
+from sb3_detc.network import interval_window
 from sb3_detc.triggers import PeriodicTrigger
 
 LINEAR = "sb3_detc/LinearETC-v0"
@@ -75,6 +77,8 @@ def test_the_window_is_saved_with_the_policy_and_reaches_the_agent_controllers(t
     trigger = np.zeros(loaded.observation_space["trigger"].shape[1], dtype=np.float32)
     assert not controller.decide(trigger, trigger, deterministic=False, own_age=0.0)  # an interval of 1 < 2
     assert controller.decide(trigger, trigger, deterministic=False, own_age=4.0)  # an interval of 5 reached
+    with pytest.raises(ValueError, match="pass own_age"):
+        controller.decide(trigger, trigger)
 
 
 @pytest.mark.parametrize("window", [(0, 3), (5, 3), (2.5, 4), (2, 3, 4), "24", (True, 3), 16])
@@ -133,3 +137,18 @@ def test_imitation_cannot_move_the_options_the_window_takes() -> None:
     always = th.ones_like(interval, dtype=th.long)  # a broadcast at every step: not within the window
     accuracy = model.policy.imitate_options(obs, always, gradient_steps=300)
     assert accuracy == pytest.approx(float((interval >= 3).float().mean()), abs=1e-6)
+
+
+def test_mu_thresholded_keeps_the_window_at_every_threshold() -> None:
+    model = make((2, 4))
+    env = model.get_env()
+    obs = env.reset()
+    for _ in range(12):  # ages across the whole window
+        action, _ = model.predict(obs, deterministic=False)
+        obs, _, _, _ = env.step(action)
+        silent, broadcast = interval_window(obs["age"], 2, 4)
+        for threshold in (1e-6, 0.5, 1.5):
+            options = ThresholdedOptions(model.policy, threshold)(obs)
+            assert (options[silent] == 0).all() and (options[broadcast] == 1).all()
+        never = ThresholdedOptions(model.policy, 1.5)(obs)
+        np.testing.assert_array_equal(never, broadcast)  # above 1: only the forced broadcasts

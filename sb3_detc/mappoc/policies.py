@@ -489,6 +489,15 @@ class MlpHybridPolicy(BasePolicy):
             raise ValueError("A policy with a broadcast_interval needs the agents' ages to evaluate its options.")
         return pin_options(logits, *interval_window(age, *self.broadcast_interval))
 
+    def mu_logits(self, features: th.Tensor, age: th.Tensor | None) -> th.Tensor:
+        """The logits the options are drawn from, for given features of ``mu`` (only ``mu`` runs).
+
+        :param features: inputs of the policy over options (B, N, ...), :meth:`option_features`
+        :param age: every agent's timer before this step's decisions (B, N, 1), see :meth:`option_logits`
+        :return: (B, N, 2)
+        """
+        return self.option_logits(self.chains.run({"mu": features})["mu"], age)
+
     def control_features(self, obs: PyTorchObs, broadcast: th.Tensor) -> th.Tensor:
         """Inputs of ``pi_i``: networked observation ``x^_i`` after this step's broadcasts.
 
@@ -578,9 +587,7 @@ class MlpHybridPolicy(BasePolicy):
         :param obs: joint observation (B, N, ...)
         :return: probabilities of broadcasting (B, N)
         """
-        return broadcast_probability(
-            self.option_logits(self.chains.run({"mu": self.option_features(obs)})["mu"], obs["age"])
-        )
+        return broadcast_probability(self.mu_logits(self.option_features(obs), obs["age"]))
 
     def imitate_options(
         self,
@@ -615,7 +622,7 @@ class MlpHybridPolicy(BasePolicy):
         self.set_training_mode(True)
         for _ in range(gradient_steps):
             idx = th.randint(len(targets), (min(batch_size, len(targets)),), device=features.device)
-            logits = self.option_logits(self.chains.run({"mu": features[idx]})["mu"], age[idx])
+            logits = self.mu_logits(features[idx], age[idx])
             loss = F.cross_entropy(logits.reshape(-1, 2), targets[idx].reshape(-1))
             optimizer.zero_grad()
             loss.backward()
@@ -623,7 +630,7 @@ class MlpHybridPolicy(BasePolicy):
         optimizer.zero_grad(set_to_none=True)
         self.set_training_mode(training)
         with th.no_grad():
-            mode = self._sample_options(self.option_logits(self.chains.run({"mu": features})["mu"], age), True)
+            mode = self._sample_options(self.mu_logits(features, age), True)
         return float((mode == targets).float().mean())
 
     def option_values(
@@ -1001,17 +1008,28 @@ class AgentController(nn.Module):
 
     @th.no_grad()
     def decide(
-        self, trigger: np.ndarray, trigger_held: np.ndarray, deterministic: bool = True, own_age: float = 0.0
+        self,
+        trigger: np.ndarray,
+        trigger_held: np.ndarray,
+        deterministic: bool = True,
+        own_age: float | None = None,
     ) -> bool:
         """Whether to broadcast now.
 
         :param trigger: own trigger features now (n_trig,)
         :param trigger_held: own trigger features at the own last broadcast (n_trig,)
         :param deterministic: the most likely option instead of a sample
-        :param own_age: steps since the own last broadcast, before this step's decision (read with
-            ``option_age_scale``, and by a ``broadcast_interval``: pass it wherever either is set)
+        :param own_age: steps since the own last broadcast, before this step's decision; needed
+            where the controller reads it (``option_age_scale`` > 0 or a ``broadcast_interval``)
         :return: True to broadcast, False to stay silent
+        :raises ValueError: without ``own_age`` where the controller reads it
         """
+        if own_age is None:
+            if self.option_age_scale > 0 or self.broadcast_interval is not None:
+                raise ValueError(
+                    "This controller reads its own age (option_age_scale > 0 or a broadcast_interval): pass own_age."
+                )
+            own_age = 0.0
         x = option_inputs(
             th.as_tensor(trigger, dtype=th.float32),
             th.as_tensor(trigger_held, dtype=th.float32),
