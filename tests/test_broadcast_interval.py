@@ -12,6 +12,7 @@ from stable_baselines3.common.env_util import make_vec_env
 import sb3_detc  # noqa: F401  (registers the env ids)
 from sb3_detc.evaluation import ThresholdedOptions
 from sb3_detc.mappoc import MAPPOC
+from sb3_detc.mappoc.critics import CRITICS
 from sb3_detc.mappoc.losses import STEP_STATS
 from sb3_detc.mappoc.policies import MlpHybridPolicy
 from sb3_detc.network import interval_window
@@ -26,8 +27,9 @@ def make(window: Any, **policy_kwargs: Any) -> MAPPOC:
     return MAPPOC("MlpHybridPolicy", env, n_steps=64, batch_size=64, n_epochs=2, seed=0, policy_kwargs=kwargs)
 
 
-def test_the_window_decides_outside_it_and_mu_inside_it() -> None:
-    model = make((3, 6))
+@pytest.mark.parametrize("critic", sorted(CRITICS))
+def test_the_window_decides_outside_it_and_mu_inside_it(critic: str) -> None:
+    model = make((3, 6), critic=critic)
     model.learn(128)
     rollout = model.rollout_buffer.tensors()
     interval = rollout.observations["age"][..., 0] + 1  # what a broadcast now would end

@@ -271,6 +271,17 @@ def test_the_shipped_study_files_load():
     assert stages == {"switch": 2000, "period": 16} and joint.budget(schedule_first) == 6_144_000
     assert schedule_first.hyperparams["policy_kwargs"] == learned.hyperparams["policy_kwargs"]
     assert schedule_first.hyperparams["target_savings"] == 0.9375
+    window = load_study(ROOT / "sb3_detc" / "studies" / "multiwalker_window.yml")
+    assert window.fixed_families == joint.fixed_families and window.episodes == joint.episodes
+    (learned_in_window,) = window.algorithms
+    assert window.budget(learned_in_window) == 6_144_000 and len(learned_in_window.seeds) == 5
+    # joint_9375 with the window, starting at about one message in 16 steps inside it
+    same = {"broadcast_prob_init=0.0625, option_age_scale=0.1)": "broadcast_prob_init=0.125, option_age_scale=0.1"}
+    kwargs = learned.hyperparams["policy_kwargs"].replace(*next(iter(same.items())))
+    assert learned_in_window.hyperparams == {
+        **learned.hyperparams,
+        "policy_kwargs": kwargs + ", broadcast_interval=(8, 24))",
+    }
 
 
 def test_command_line_bad_input_is_one_line_with_exit_code_2(tmp_path, capsys):
