@@ -90,7 +90,11 @@ PROGRESS_EVERY = 25
 
 
 class Progress(BaseCallback):
-    """Print the steps, the savings of the last rollout and the time every ``every`` rollouts.
+    """Print the steps, the savings of the last rollout, the recent return and the time every ``every`` rollouts.
+
+    The return is the mean over the last (up to 100) training episodes of the agents' mean return,
+    the communication cost included (SB3's ``ep_info_buffer``, as ``rollout/ep_rew_mean``); it is
+    left out while no episode has ended.
 
     :param label: what is trained, at the start of every line
     :param every: rollouts between two lines
@@ -110,8 +114,10 @@ class Progress(BaseCallback):
         self.rollouts += 1
         if self.rollouts % self.every == 0:
             rate = float(np.mean(self.model.rollout_buffer.broadcast))
+            episodes = [info["r"] for info in self.model.ep_info_buffer or ()]
+            recent = f"return of the last {len(episodes)} episodes {np.mean(episodes):.1f}, " if episodes else ""
             print(
-                f"{self.label}: {self.num_timesteps} steps, savings in the last rollout {1 - rate:.3f}, "
+                f"{self.label}: {self.num_timesteps} steps, savings in the last rollout {1 - rate:.3f}, {recent}"
                 f"{time.monotonic() - self.began:.0f} s",
                 flush=True,
             )

@@ -43,6 +43,8 @@ def test_only_the_policies_over_options_change_and_the_protocol_evaluates_them(t
     label = "ppo_random_skip seed 1"
     assert [(who, int(steps)) for who, steps, _ in progress] == [(f"{label}, critic alone", 2048), (label, 4096)]
     assert all(0.0 <= float(savings) <= 1.0 for *_, savings in progress)
+    recent = re.findall(r"return of the last (\d+) episodes (-?[\d.]+), \d+ s$", printed, re.MULTILINE)
+    assert len(recent) == 2 and all(1 <= int(n) <= 100 for n, _ in recent)  # episodes have ended by either line
     again = run_benchmark(SCRIPT, *arguments, check=True).stdout
     assert "1 of 1 jobs already in" in again  # resumed, not trained again
 
