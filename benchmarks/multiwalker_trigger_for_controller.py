@@ -39,6 +39,12 @@ it only by learning badly. ``--start-dither SKIP EXTRA`` adds random deviations 
 silence broken with ``EXTRA``), in the warm-up and in what ``mu`` imitates, so that the critic
 has seen both options at every age before ``mu`` follows it.
 
+With ``--select-every N`` the policy runs ``--select-episodes`` validation episodes (the seeds right
+after the evaluation's) every ``N`` steps of ``mu``'s training and at its end, options sampled, and
+the one with the highest control return at the target savings (within 0.01 below it, or above) is
+kept instead of the last (:class:`SelectBest`, as rl-zoo3 keeps ``best_model.zip``); the row lists
+every validation.
+
 One job per seed, one after another (each trains with the entry's two rollout-worker
 processes); every finished seed's row is written to ``--out`` at once and a seed already there
 is not trained again (:mod:`sb3_detc.study.sweep`; a job is its settings and the digest of the trial's
@@ -121,6 +127,73 @@ class Progress(BaseCallback):
                 f"{time.monotonic() - self.began:.0f} s",
                 flush=True,
             )
+
+
+class SelectBest(BaseCallback):
+    """Keep the policy that did best on validation episodes, evaluated every ``every`` steps and at the end.
+
+    As rl-zoo3 keeps ``best_model.zip`` by periodic evaluation: the policy runs the validation
+    episodes (seeded, disjoint from the evaluation's) with its options sampled, as trained, and
+    deterministic controls; of the evaluations whose savings lie within ``tolerance`` of the
+    model's ``target_savings`` or above (all, without a target), the one with the highest mean
+    control return is kept, and :meth:`restore` loads it into the policy after training.
+
+    :param env: the env the validation episodes run in (a joint env)
+    :param seeds: the validation episodes' seeds
+    :param every: steps between two evaluations
+    :param tolerance: how far below the target the savings of a kept policy may lie
+    """
+
+    def __init__(self, env: gym.Env, seeds: list[int], every: int, tolerance: float = 0.01) -> None:
+        super().__init__()
+        self.env, self.seeds, self.every, self.tolerance = env, seeds, every, tolerance
+        self.evaluations: list[dict[str, float]] = []
+        self.best: dict[str, Any] | None = None
+        self.last = 0
+
+    def _on_training_start(self) -> None:
+        self.last = self.num_timesteps
+
+    def _on_step(self) -> bool:
+        return True
+
+    def _on_rollout_end(self) -> None:
+        if self.num_timesteps - self.last >= self.every:
+            self.evaluate()
+
+    def _on_training_end(self) -> None:
+        if self.num_timesteps > self.last:
+            self.evaluate()
+
+    def evaluate(self) -> None:
+        """Run the validation episodes with the current policy and keep it if it is the best so far."""
+        self.last = self.num_timesteps
+        episodes = evaluate_episodes(self.model.policy, self.env, self.seeds, sample_options=True)
+        result = {
+            "timesteps": self.num_timesteps,
+            "control_return": float(np.mean(episodes.control_returns)),
+            "savings": episodes.savings,
+        }
+        self.evaluations.append(result)
+        target = self.model.target_savings
+        eligible = target is None or result["savings"] >= target - self.tolerance
+        if eligible and (self.best is None or result["control_return"] > self.best["control_return"]):
+            self.best = {**result, "state": {k: v.detach().clone() for k, v in self.model.policy.state_dict().items()}}
+        print(
+            f"validation at {self.num_timesteps} steps: control return {result['control_return']:.1f}, "
+            f"savings {result['savings']:.3f}{'' if eligible else ' (below the target)'}",
+            flush=True,
+        )
+
+    def restore(self) -> dict[str, Any]:
+        """Load the kept policy into the model's policy (the last one if none was eligible).
+
+        :return: the evaluations and the kept one's steps, control return and savings (None if none was eligible)
+        """
+        if self.best is not None:
+            self.model.policy.load_state_dict(self.best["state"])
+        kept = None if self.best is None else {k: v for k, v in self.best.items() if k != "state"}
+        return {"evaluations": self.evaluations, "kept": kept}
 
 
 def finished_policy(folder: Path, trial: Trial) -> Path | None:
@@ -263,14 +336,17 @@ def run(job: dict[str, Any], progress_every: int = PROGRESS_EVERY) -> dict[str, 
         ``start_period`` (a period: the warm-up under that schedule, ``mu`` started as it) and
         ``start_dither`` (the schedule's skip and extra probabilities, :func:`start_trigger`),
         ``fixed_families`` (optional: the families the evaluation compares, with the learned options
-        sampled), ``policy`` (the trial's policy's digest: a retrained trial is a new job) and
-        ``save_dir`` (where to keep the trained policy; None: not kept)
+        sampled), ``select_every`` and ``select_episodes`` (optional: keep the policy best on that
+        many validation episodes, evaluated every that many steps, :class:`SelectBest`), ``policy``
+        (the trial's policy's digest: a retrained trial is a new job) and ``save_dir`` (where to
+        keep the trained policy; None: not kept)
     :param progress_every: rollouts between two lines of progress (:class:`Progress`)
     :return: the seed, the training seconds, the study protocol's metrics of the learned trigger
         (:func:`~sb3_detc.evaluation.evaluate_policy_modes`), the control return, package travel (None
         where the env reports none), fall rate and savings of a message every ``k`` steps at the nearest
-        savings (None if the trigger never broadcasts), the file of the saved policy and, with
-        ``start_period``, the share of decisions the imitation matched
+        savings (None if the trigger never broadcasts), the file of the saved policy, with
+        ``start_period`` the share of decisions the imitation matched and with ``select_every`` the
+        validations and the kept one (:meth:`SelectBest.restore`)
     """
     th.set_num_threads(1)
     spec = load_folder_study(Path(job["folder"]))
@@ -279,6 +355,7 @@ def run(job: dict[str, Any], progress_every: int = PROGRESS_EVERY) -> dict[str, 
         model, env_kwargs = build(job, Path(log_folder))
         schedule = start_trigger(job)
         began = time.monotonic()
+        validation, selection = None, None
         try:
             model.set_fixed_trigger(schedule)
             model.learn(job["warm_up"], callback=Progress(f"{label}, critic alone", progress_every))
@@ -288,9 +365,19 @@ def run(job: dict[str, Any], progress_every: int = PROGRESS_EVERY) -> dict[str, 
                 model.set_fixed_trigger(None)
             model.set_trained_policies(control_policy=False, broadcast_policy=True)
             rest = job["timesteps"] - job["warm_up"]
-            model.learn(rest, callback=Progress(label, progress_every), reset_num_timesteps=False)
+            callbacks: list[BaseCallback] = [Progress(label, progress_every)]
+            if job.get("select_every"):
+                first = spec.eval_seed + spec.episodes  # right after the evaluation's episodes
+                validation = gym.make(spec.env, **env_kwargs)
+                select = SelectBest(validation, list(range(first, first + job["select_episodes"])), job["select_every"])
+                callbacks.append(select)
+            model.learn(rest, callback=callbacks, reset_num_timesteps=False)
+            if validation is not None:
+                selection = select.restore()
         finally:
             model.env.close()
+            if validation is not None:
+                validation.close()
         seconds = time.monotonic() - began
     policy, saved = model.policy, None
     if job["save_dir"] is not None:
@@ -335,6 +422,7 @@ def run(job: dict[str, Any], progress_every: int = PROGRESS_EVERY) -> dict[str, 
         "periodic_nearest": periodic,
         "saved": saved,
         **({"imitation_accuracy": imitation} if schedule is not None else {}),
+        **({"selection": selection} if selection is not None else {}),
     }
 
 
@@ -460,6 +548,15 @@ def main() -> None:
         help="with --start-period: each scheduled message skipped with SKIP, each silence broken with EXTRA",
     )
     parser.add_argument(
+        "--select-every",
+        type=int,
+        help="evaluate the policy on validation episodes every N steps of mu's training and at its end, and keep "
+        "the best one at the target savings (default: keep the last)",
+    )
+    parser.add_argument(
+        "--select-episodes", type=int, default=20, help="validation episodes of --select-every (after the evaluation's)"
+    )
+    parser.add_argument(
         "--fixed-families",
         nargs="+",
         choices=TRIGGER_FAMILIES,
@@ -467,7 +564,7 @@ def main() -> None:
         help="fixed trigger families the evaluation compares at the learned rate (the learned options sampled)",
     )
     args = parser.parse_args()
-    check_at_least_one(parser, args, "timesteps", "progress_every")
+    check_at_least_one(parser, args, "timesteps", "progress_every", "select_every", "select_episodes")
     if not 0 <= args.warm_up < args.timesteps:
         parser.error("--warm-up must be >= 0 and below --timesteps")
     if args.broadcast_cost is not None and not args.broadcast_cost >= 0:
@@ -511,6 +608,8 @@ def main() -> None:
         job["start_period"] = args.start_period
     if args.start_dither is not None:
         job["start_dither"] = args.start_dither
+    if args.select_every is not None:
+        job["select_every"], job["select_episodes"] = args.select_every, args.select_episodes
     jobs = [
         {**job, "seed": seed, "policy": hashlib.sha256(policies[seed].read_bytes()).hexdigest()[:16]} for seed in seeds
     ]

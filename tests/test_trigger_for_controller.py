@@ -6,9 +6,14 @@ import json
 import re
 from pathlib import Path
 
+import gymnasium as gym
+import numpy as np
+import pytest
 import torch as th
 
+from sb3_detc.evaluation import evaluate_episodes
 from sb3_detc.mappoc.policies import MlpHybridPolicy
+from sb3_detc.study.spec import load_folder_study
 
 ROOT = Path(__file__).resolve().parents[1]
 SCRIPT = "multiwalker_trigger_for_controller.py"
@@ -146,3 +151,30 @@ def test_a_fresh_mu_may_decide_inside_a_window_of_broadcast_intervals(tmp_path: 
     # the learned trigger is the schedule (an episode's last interval may end unfinished)
     assert abs(row["metrics"]["savings"] - 0.75) < 0.01
     assert abs(row["metrics"]["control_return"] - row["periodic_nearest"]["control_return"]) < 1e-6
+
+
+def test_the_policy_best_on_validation_episodes_is_kept(tmp_path: Path, run_benchmark) -> None:
+    out, saved = tmp_path / "rows.json", tmp_path / "policies"
+    arguments = ["benchmarks/studies/linear", "--algorithm", "ppo_random_skip", "--seeds", "1", "--option-age-scale"]
+    arguments += ["0.1", "--timesteps", "5120", "--warm-up", "1024", "--out", str(out), "--save-dir", str(saved)]
+    kwargs = "dict(net_arch=[64, 64], learn_log_std=True, critic='afterstate', age_scale=0.0, broadcast_prob_init=0.3)"
+    arguments += ["--set", json.dumps({"target_savings": 0.7, "policy_kwargs": kwargs})]
+    done = run_benchmark(SCRIPT, *arguments, "--select-every", "2048", "--select-episodes", "3", check=True)
+    (row,) = json.loads(out.read_text())
+    evaluations, kept = row["selection"]["evaluations"], row["selection"]["kept"]
+    # every 2048 steps of mu's training (rollouts of 1024 steps) and at its end
+    assert [e["timesteps"] for e in evaluations] == [3072, 5120]
+    assert len(re.findall(r"^validation at \d+ steps: control return", done.stdout, re.MULTILINE)) == 2
+    eligible = [e for e in evaluations if e["savings"] >= 0.7 - 0.01]
+    assert kept == max(eligible, key=lambda e: e["control_return"])
+    assert kept["timesteps"] == 3072  # the last one fell below the target: an earlier policy is restored
+    # the saved policy is the kept one: it repeats its validation episodes (right after the evaluation's)
+    spec = load_folder_study(ROOT / "benchmarks" / "studies" / "linear")
+    policy = MlpHybridPolicy.load(str(saved / row["saved"]), device="cpu")
+    first = spec.eval_seed + spec.episodes
+    with gym.make(spec.env, **row["env_kwargs"]) as env:
+        episodes = evaluate_episodes(policy, env, list(range(first, first + 3)), sample_options=True)
+    assert float(np.mean(episodes.control_returns)) == pytest.approx(kept["control_return"], rel=1e-6)
+    assert episodes.savings == pytest.approx(kept["savings"])
+    bad = run_benchmark(SCRIPT, *arguments[:5], "--select-every", "0")
+    assert bad.returncode == 2 and "--select-every must be at least 1" in bad.stderr
