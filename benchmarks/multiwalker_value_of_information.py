@@ -89,7 +89,14 @@ def row(control_returns: Any, package_travel: Any, failed: Any, savings: float) 
     }
 
 
-def sweep(folder: Path, out: Path, rates: list[float], periods: list[int], deltas: list[float]) -> dict[str, Any]:
+def sweep(
+    folder: Path,
+    out: Path,
+    rates: list[float],
+    periods: list[int],
+    deltas: list[float],
+    algorithms: list[str] | None = None,
+) -> dict[str, Any]:
     """Evaluate every finished trial under every trigger not in ``out`` yet; return all results.
 
     :param folder: the study folder
@@ -97,6 +104,7 @@ def sweep(folder: Path, out: Path, rates: list[float], periods: list[int], delta
     :param rates: skip probabilities of the random triggers
     :param periods: periods of the periodic triggers
     :param deltas: thresholds of the send-on-delta triggers
+    :param algorithms: the labels of the algorithms whose trials to evaluate (None: all)
     :return: trial name -> trigger name -> metrics
     """
     spec = load_folder_study(folder)
@@ -107,6 +115,8 @@ def sweep(folder: Path, out: Path, rates: list[float], periods: list[int], delta
         replace_atomically(out, lambda scratch: scratch.write_text(json.dumps(results, indent=1) + "\n"))
 
     for trial in spec.trials():
+        if algorithms is not None and trial.algorithm.label not in algorithms:
+            continue
         trial_dir = trial_folder(folder, trial)
         if read_status(trial_dir)["status"] != "done" or not (trial_dir / "policy.pt").is_file():
             continue
@@ -380,7 +390,13 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("folder", type=Path, help="a study folder with finished trials")
     parser.add_argument("--out", type=Path, required=True, help="JSON file of the results (resumed if present)")
-    parser.add_argument("--rates", type=float, nargs="+", default=list(RATES), help="skip probabilities")
+    parser.add_argument(
+        "--rates",
+        type=float,
+        nargs="*",
+        default=list(RATES),
+        help="skip probabilities (none given: evaluate no new ones)",
+    )
     parser.add_argument("--periods", type=int, nargs="+", default=list(PERIODS), help="periods in steps")
     parser.add_argument(
         "--deltas",
@@ -388,6 +404,9 @@ def main() -> None:
         nargs="*",
         default=list(DELTAS),
         help="send-on-delta thresholds (none given: evaluate no new ones)",
+    )
+    parser.add_argument(
+        "--algorithms", nargs="+", help="labels of the algorithms whose trials to evaluate (default: all)"
     )
     parser.add_argument("--plot", action="store_true", help="draw <out>.png")
     parser.add_argument(
@@ -407,7 +426,8 @@ def main() -> None:
         parser.error("--columns needs --splice")
     try:  # what can be checked before the sweep
         spec = load_folder_study(args.folder)
-        unknown = sorted(set(args.columns or []) - {algorithm.label for algorithm in spec.algorithms})
+        named = set(args.columns or []) | set(args.algorithms or [])
+        unknown = sorted(named - {algorithm.label for algorithm in spec.algorithms})
         if unknown:
             raise StudyError(f"{args.folder}: no algorithm {', '.join(unknown)} in the study")
         if args.splice:
@@ -416,7 +436,7 @@ def main() -> None:
     except StudyError as error:
         parser.exit(2, f"error: {error}\n")
     th.set_num_threads(1)
-    results = sweep(args.folder, args.out, args.rates, args.periods, args.deltas)
+    results = sweep(args.folder, args.out, args.rates, args.periods, args.deltas, args.algorithms)
     table = summary(args.folder, results)
     print(markdown(table))
     if args.plot and table:

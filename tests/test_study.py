@@ -638,6 +638,30 @@ def test_the_value_of_information_sweep_runs_fixed_triggers_and_the_mode_of_lear
             assert rows["mode of mu"]["savings"] == pytest.approx(episodes.savings)
             assert rows["mode of mu"]["control_return"] == pytest.approx(np.mean(episodes.control_returns))
     assert "### learned" in printed and "| mode of mu | 2 |" in printed
+    # a further period for one algorithm's trials only, nothing else evaluated again
+    only = run_benchmark(
+        VOI,
+        str(out),
+        "--out",
+        str(results_file),
+        "--rates",
+        "--periods",
+        "3",
+        "--deltas",
+        "--algorithms",
+        "learned",
+        check=True,
+    )
+    more = json.loads(results_file.read_text())
+    for trial in spec.trials():
+        added = set(more[trial.name]) - set(results[trial.name])
+        assert added == ({"periodic 3"} if trial.algorithm.label == "learned" else set()), trial.name
+    assert only.stdout.count(" periodic 3: control return") == sum(
+        t.algorithm.label == "learned" for t in spec.trials()
+    )
+    results_file.write_text(json.dumps(results))  # as before, for what follows
+    bad = run_benchmark_here(VOI, str(out), "--out", str(results_file), "--algorithms", "nothing")
+    assert bad.returncode == 2 and "no algorithm nothing in the study" in bad.stderr
     # A trigger that only a later seed has still counts, over the seeds that have it (the study's
     # file alone: no trial finished there, nothing evaluated)
     first = next(trial.name for trial in spec.trials() if trial.algorithm.label == "learned")
