@@ -355,7 +355,7 @@ def run(job: dict[str, Any], progress_every: int = PROGRESS_EVERY) -> dict[str, 
         model, env_kwargs = build(job, Path(log_folder))
         schedule = start_trigger(job)
         began = time.monotonic()
-        validation, selection = None, None
+        select, selection = None, None
         try:
             model.set_fixed_trigger(schedule)
             model.learn(job["warm_up"], callback=Progress(f"{label}, critic alone", progress_every))
@@ -368,16 +368,16 @@ def run(job: dict[str, Any], progress_every: int = PROGRESS_EVERY) -> dict[str, 
             callbacks: list[BaseCallback] = [Progress(label, progress_every)]
             if job.get("select_every"):
                 first = spec.eval_seed + spec.episodes  # right after the evaluation's episodes
-                validation = gym.make(spec.env, **env_kwargs)
-                select = SelectBest(validation, list(range(first, first + job["select_episodes"])), job["select_every"])
+                seeds = list(range(first, first + job["select_episodes"]))
+                select = SelectBest(gym.make(spec.env, **env_kwargs), seeds, job["select_every"])
                 callbacks.append(select)
             model.learn(rest, callback=callbacks, reset_num_timesteps=False)
-            if validation is not None:
+            if select is not None:
                 selection = select.restore()
         finally:
             model.env.close()
-            if validation is not None:
-                validation.close()
+            if select is not None:
+                select.env.close()
         seconds = time.monotonic() - began
     policy, saved = model.policy, None
     if job["save_dir"] is not None:

@@ -390,21 +390,14 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("folder", type=Path, help="a study folder with finished trials")
     parser.add_argument("--out", type=Path, required=True, help="JSON file of the results (resumed if present)")
-    parser.add_argument(
-        "--rates",
-        type=float,
-        nargs="*",
-        default=list(RATES),
-        help="skip probabilities (none given: evaluate no new ones)",
-    )
+    for flag, default, what in (
+        ("--rates", RATES, "skip probabilities"),
+        ("--deltas", DELTAS, "send-on-delta thresholds"),
+    ):
+        parser.add_argument(
+            flag, type=float, nargs="*", default=list(default), help=f"{what} (none given: evaluate no new ones)"
+        )
     parser.add_argument("--periods", type=int, nargs="+", default=list(PERIODS), help="periods in steps")
-    parser.add_argument(
-        "--deltas",
-        type=float,
-        nargs="*",
-        default=list(DELTAS),
-        help="send-on-delta thresholds (none given: evaluate no new ones)",
-    )
     parser.add_argument(
         "--algorithms", nargs="+", help="labels of the algorithms whose trials to evaluate (default: all)"
     )
