@@ -277,7 +277,8 @@ def build(job: dict[str, Any], log_folder: Path) -> tuple[Any, dict[str, Any]]:
         policy_kwargs = hyperparams.get("policy_kwargs", algorithm.entry.get("policy_kwargs"))
         policy_kwargs = python_value(policy_kwargs, "policy_kwargs", f"{folder} {trial.name}") or {}
         hyperparams["policy_kwargs"] = {**policy_kwargs, "option_age_scale": job["option_age_scale"]}
-        free |= {"option_age_scale", "broadcast_prob_init", "broadcast_interval"}  # mu's inputs, start and window
+        # mu's inputs, start and window
+        free |= {"option_age_scale", "option_others_age_scale", "broadcast_prob_init", "broadcast_interval"}
     model, _ = trial_manager(spec, trial, log_folder, job["timesteps"], hyperparams).setup_experiment()
     saved = MlpHybridPolicy.load(str(path), device="cpu")
     entry = model.policy.constructor_parameters()

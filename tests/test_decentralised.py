@@ -24,6 +24,7 @@ def fresh_model(
     option_age_scale: float = 0.0,
     option_distance_scale: float = 0.0,
     broadcast_interval: tuple[int, int] | None = None,
+    option_others_age_scale: float = 0.0,
 ) -> MAPPOC:
     """A model deployed with the mode of mu, so that the joint and the decentralised options agree."""
     return MAPPOC(
@@ -35,6 +36,7 @@ def fresh_model(
             "option_age_scale": option_age_scale,
             "option_distance_scale": option_distance_scale,
             "broadcast_interval": broadcast_interval,
+            "option_others_age_scale": option_others_age_scale,
         },
         seed=3,
         device="cpu",
@@ -95,8 +97,14 @@ def lockstep(model: MAPPOC, module, kwargs: dict, seed: int, n_steps: int = 40) 
 
 
 @pytest.mark.parametrize(
-    ("share_parameters", "option_age_scale", "option_distance_scale", "broadcast_interval"),
-    [(False, 0.0, 0.0, None), (True, 0.0, 0.0, None), (False, 0.5, 0.0, None), (True, 0.5, 2.0, (2, 5))],
+    ("share_parameters", "option_age_scale", "option_distance_scale", "broadcast_interval", "option_others_age_scale"),
+    [
+        (False, 0.0, 0.0, None, 0.0),
+        (True, 0.0, 0.0, None, 0.0),
+        (False, 0.5, 0.0, None, 0.0),
+        (True, 0.5, 2.0, (2, 5), 0.0),
+        (False, 0.5, 0.0, (2, 5), 0.5),
+    ],
 )
 @pytest.mark.parametrize("env_name", sorted(ENVS))
 def test_decentralised_controllers_match_joint_policy(
@@ -105,9 +113,18 @@ def test_decentralised_controllers_match_joint_policy(
     option_age_scale: float,
     option_distance_scale: float,
     broadcast_interval: tuple[int, int] | None,
+    option_others_age_scale: float,
 ) -> None:
     module, kwargs = ENVS[env_name]
-    model = fresh_model(module, kwargs, share_parameters, option_age_scale, option_distance_scale, broadcast_interval)
+    model = fresh_model(
+        module,
+        kwargs,
+        share_parameters,
+        option_age_scale,
+        option_distance_scale,
+        broadcast_interval,
+        option_others_age_scale,
+    )
     options = lockstep(model, module, kwargs, seed=11)
     # An untrained policy over options hardly depends on its inputs, so it may never broadcast
     # (or never stay silent). Until an episode has both options, also compare sharper ones.

@@ -224,6 +224,47 @@ def test_mu_reads_the_distance_from_its_last_broadcast_only_where_asked(option_a
         make(policy_kwargs={"option_distance_scale": -1.0})
 
 
+def test_mu_reads_the_others_ages_only_where_asked(tmp_path) -> None:
+    kwargs = {"net_arch": [8], "option_age_scale": 0.25, "option_others_age_scale": 0.5}
+    policy = make(policy_kwargs=kwargs).policy
+    n = policy.n_agents
+    obs = {key: th.as_tensor(value)[None] for key, value in policy.observation_space.sample().items()}
+    obs["age"] = th.arange(n, dtype=th.float32).reshape(1, n, 1) * 3.0  # agent j's age 3 j
+    features = policy.option_features(obs)
+    n_trig = obs["trigger"].shape[-1]
+    assert features.shape == (1, n, 2 * n_trig + 1 + (n - 1))
+    assert policy.chains.specs["mu"].in_features == features.shape[-1]
+    for i in range(n):
+        others = [3.0 * j * 0.5 for j in range(n) if j != i]  # the others in increasing order
+        th.testing.assert_close(features[0, i, -(n - 1) :], th.tensor(others))
+        th.testing.assert_close(features[0, i, 2 * n_trig], th.tensor(3.0 * i * 0.25))
+    policy.save(str(tmp_path / "policy.pt"))
+    loaded = type(policy).load(str(tmp_path / "policy.pt"), device="cpu")
+    assert loaded.option_others_age_scale == 0.5
+    th.testing.assert_close(loaded.broadcast_probabilities(obs), policy.broadcast_probabilities(obs))
+    with pytest.raises(ValueError, match="option_others_age_scale must be a finite number >= 0"):
+        make(policy_kwargs={"option_others_age_scale": float("nan")})
+
+
+def test_an_agent_controller_on_the_others_ages_decides_from_them() -> None:
+    """A policy over options set by hand to broadcast two steps after agent 0 did, as a controller."""
+    model = make(policy_kwargs={"net_arch": [8], "option_others_age_scale": 1.0})
+    n_trig = model.observation_space["trigger"].shape[1]
+    option_net = th.nn.Linear(2 * n_trig + 1, 2)  # two agents: agent 1 reads agent 0's age
+    with th.no_grad():
+        option_net.weight.zero_()
+        option_net.bias.zero_()
+        option_net.weight[1, -1] = -10.0
+        option_net.bias[1] = 5.0  # broadcast while agent 0's age is below 0.5
+    controller = model.policy.agent_controller(1)
+    controller.option_net = option_net
+    trigger = np.zeros(n_trig)
+    assert controller.decide(trigger, trigger, True, own_age=4.0, others_age=np.array([0.0]))
+    assert not controller.decide(trigger, trigger, True, own_age=4.0, others_age=np.array([2.0]))
+    with pytest.raises(ValueError, match="pass others_age"):
+        controller.decide(trigger, trigger)
+
+
 def test_mu_with_the_distance_and_its_own_age_can_represent_send_on_delta_with_a_maximum_age() -> None:
     """A policy over options on the distance and the own age, set by hand, is send-on-delta with a maximum age."""
     model = make(policy_kwargs={"net_arch": [8], "option_age_scale": 1.0, "option_distance_scale": 1.0})

@@ -144,10 +144,11 @@ def test_a_fresh_mu_may_decide_inside_a_window_of_broadcast_intervals(tmp_path: 
     arguments += ["0.1", "--timesteps", "2048", "--warm-up", "1024", "--out", str(out), "--save-dir", str(saved)]
     # a window of one interval leaves mu no choice: a message every 4th step, whatever mu learned
     kwargs = "dict(net_arch=[64, 64], learn_log_std=True, critic='afterstate', age_scale=0.0, "
-    kwargs += "broadcast_interval=(4, 4))"
+    kwargs += "broadcast_interval=(4, 4), option_others_age_scale=0.1)"  # a fresh mu may read the others' ages too
     run_benchmark(SCRIPT, *arguments, "--set", json.dumps({"policy_kwargs": kwargs}), check=True)
     (row,) = json.loads(out.read_text())
-    assert MlpHybridPolicy.load(str(saved / row["saved"]), device="cpu").broadcast_interval == (4, 4)
+    policy = MlpHybridPolicy.load(str(saved / row["saved"]), device="cpu")
+    assert policy.broadcast_interval == (4, 4) and policy.option_others_age_scale == 0.1
     # the learned trigger is the schedule (an episode's last interval may end unfinished)
     assert abs(row["metrics"]["savings"] - 0.75) < 0.01
     assert abs(row["metrics"]["control_return"] - row["periodic_nearest"]["control_return"]) < 1e-6

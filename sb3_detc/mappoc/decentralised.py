@@ -6,7 +6,8 @@ sensors and an :class:`Inbox`, its table of the last message received from every
 with its age. One step of the team (same-step delivery, Sec. 2 of the method reference)
 is :func:`run_decentralised_step`:
 
-(a) every agent decides from its own trigger features whether to broadcast;
+(a) every agent decides from its own trigger features (and the ages in its inbox, where its
+    policy over options reads them) whether to broadcast;
 (b) the broadcasts go out on the radio and every agent files them in its inbox
     (the rule of :mod:`sb3_detc.network`: zero-order hold and age of information);
 (c) every agent builds its view, the others' held messages relative to its own current
@@ -82,6 +83,11 @@ class Inbox:
         """Steps since this agent's own last broadcast (what the others see as the age of its message)."""
         return float(self.age[self.agent, 0])
 
+    @property
+    def others_age(self) -> np.ndarray:
+        """Steps since every other agent's last broadcast, others in increasing order (N - 1,)."""
+        return others_ages(self.age, self._others)[0]
+
     def view(self, own_message: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The others' held messages relative to the own current message, and their ages.
 
@@ -92,7 +98,7 @@ class Inbox:
             raise RuntimeError("the inbox has no messages yet: call reset() at the start of an episode.")
         own = np.asarray(own_message)[None]  # (1, n_msg)
         neighbours = relative_views(self.held, own, self._others)[0]  # (N - 1, n_msg)
-        return neighbours, others_ages(self.age, self._others)[0]
+        return neighbours, self.others_age
 
 
 def run_decentralised_step(
@@ -133,10 +139,10 @@ def run_decentralised_step(
             raise ValueError(
                 f"entry {i} must belong to agent {i}, got controller {controller.agent}, inbox {inbox.agent}."
             )
-    # (a) every agent decides from its own trigger features
+    # (a) every agent decides from its own trigger features and the ages in its inbox
     sent = [
-        int(c.decide(parallel_obs[a]["trigger"], parallel_obs[a]["trigger_held"], not samples, inbox.own_age))
-        for c, inbox, a in zip(controllers, inboxes, agents, strict=True)
+        int(c.decide(obs["trigger"], obs["trigger_held"], not samples, inbox.own_age, inbox.others_age))
+        for c, inbox, obs in zip(controllers, inboxes, (parallel_obs[a] for a in agents), strict=True)
         for samples in [options_sampled(c.sample_options, deterministic) if sample_options is None else sample_options]
     ]
     # (b) the broadcasts go out; every agent files them in its own table

@@ -60,27 +60,39 @@ CLOSED_LOGIT = 1e4
 
 
 def option_inputs(
-    trigger: th.Tensor, trigger_held: th.Tensor, own_age: th.Tensor, age_scale: float, distance_scale: float
+    trigger: th.Tensor,
+    trigger_held: th.Tensor,
+    own_age: th.Tensor,
+    age_scale: float,
+    distance_scale: float,
+    others_age: th.Tensor,
+    others_age_scale: float,
 ) -> th.Tensor:
     """Inputs of a policy over options ``mu_i``, for the joint policy and the decentralised controllers alike.
 
     The trigger features now and at the own last broadcast; with ``age_scale`` > 0 the own age
     (steps since the own last broadcast) times it; with ``distance_scale`` > 0 the Euclidean
     distance between both feature vectors (what send-on-delta thresholds,
-    :meth:`~sb3_detc.triggers.SendOnDelta.distance`) times it.
+    :meth:`~sb3_detc.triggers.SendOnDelta.distance`) times it; with ``others_age_scale`` > 0 the
+    ages of the others' held broadcasts (steps since their last broadcasts, before this step's
+    options) times it.
 
     :param trigger: trigger features now (..., n_trig)
     :param trigger_held: trigger features at the own last broadcast (..., n_trig)
     :param own_age: the own age (..., 1)
     :param age_scale: factor of the own age (0: not an input)
     :param distance_scale: factor of the distance (0: not an input)
-    :return: (..., 2 n_trig), then the scaled age and distance where they are inputs
+    :param others_age: the others' ages, others in increasing order (..., N - 1)
+    :param others_age_scale: factor of the others' ages (0: not an input)
+    :return: (..., 2 n_trig), then the scaled own age, distance and others' ages where they are inputs
     """
     parts = [trigger, trigger_held]
     if age_scale > 0:
         parts.append(own_age * age_scale)
     if distance_scale > 0:
         parts.append(th.linalg.vector_norm(trigger - trigger_held, dim=-1, keepdim=True) * distance_scale)
+    if others_age_scale > 0:
+        parts.append(others_age * others_age_scale)
     return th.cat(parts, dim=-1)
 
 
@@ -226,6 +238,12 @@ class MlpHybridPolicy(BasePolicy):
         rule is a threshold on one input; where the held features are the receivers' predictions
         (``LinearETC-LQR-v0(prediction=True, predicted_held=True)``) the distance is the prediction
         error, and predictive triggering is such a threshold
+    :param option_others_age_scale: factor applied to the ages of the others' held broadcasts (steps
+        since their last broadcasts, as every agent knows them from what it received, before this
+        step's options) before they enter the policy over options as extra inputs (>= 0; 0, the
+        default: no such inputs). With it and ``option_age_scale``, ``mu`` can represent the
+        periodic schedules staggered over the agents as well as those in phase, and keep its
+        messages apart from the others' or together with them
     :param broadcast_interval: a window ``(min_interval, max_interval)`` of steps between two
         broadcasts of an agent (integers, ``1 <= min_interval <= max_interval``), or None (the
         default: ``mu`` decides at every step). With it an agent stays silent while its interval
@@ -279,6 +297,7 @@ class MlpHybridPolicy(BasePolicy):
         age_scale: float = 0.1,
         option_age_scale: float = 0.0,
         option_distance_scale: float = 0.0,
+        option_others_age_scale: float = 0.0,
         broadcast_interval: tuple[int, int] | None = None,
         broadcast_prob_init: float = 0.5,
         critic: str = "option_heads",
@@ -304,6 +323,11 @@ class MlpHybridPolicy(BasePolicy):
             raise ValueError(
                 "option_distance_scale must be a finite number >= 0 (0: mu does not read the distance), "
                 f"got {option_distance_scale}."
+            )
+        if not (np.isfinite(option_others_age_scale) and option_others_age_scale >= 0):
+            raise ValueError(
+                "option_others_age_scale must be a finite number >= 0 (0: mu ignores the others' ages), "
+                f"got {option_others_age_scale}."
             )
         if broadcast_interval is not None:
             broadcast_interval = check_broadcast_interval(broadcast_interval)
@@ -333,6 +357,7 @@ class MlpHybridPolicy(BasePolicy):
         self.age_scale = age_scale
         self.option_age_scale = float(option_age_scale)
         self.option_distance_scale = float(option_distance_scale)
+        self.option_others_age_scale = float(option_others_age_scale)
         self.broadcast_interval = broadcast_interval
         self.broadcast_prob_init = broadcast_prob_init
         self.critic = critic
@@ -350,7 +375,10 @@ class MlpHybridPolicy(BasePolicy):
         self.register_buffer("control_low", th.as_tensor(action_space["control"].low), persistent=False)
         self.register_buffer("control_high", th.as_tensor(action_space["control"].high), persistent=False)
         in_features = {
-            "mu": 2 * n_trig + (self.option_age_scale > 0) + (self.option_distance_scale > 0),
+            "mu": 2 * n_trig
+            + (self.option_age_scale > 0)
+            + (self.option_distance_scale > 0)
+            + (n - 1) * (self.option_others_age_scale > 0),
             "q": n_local + n * (n_msg + 1) + (n - 1) * n_msg,
             "pi": n_local + (n - 1) * (n_msg + 1),
         }
@@ -425,6 +453,7 @@ class MlpHybridPolicy(BasePolicy):
             age_scale=self.age_scale,
             option_age_scale=self.option_age_scale,
             option_distance_scale=self.option_distance_scale,
+            option_others_age_scale=self.option_others_age_scale,
             broadcast_interval=self.broadcast_interval,
             broadcast_prob_init=self.broadcast_prob_init,
             critic=self.critic,
@@ -463,15 +492,21 @@ class MlpHybridPolicy(BasePolicy):
         return hold(obs["held"], obs["message"], broadcast), advance_timer(obs["age"], broadcast)
 
     def option_features(self, obs: PyTorchObs) -> th.Tensor:
-        """Inputs of ``mu_i``: trigger features now and at the own last broadcast, own age and distance where read.
+        """Inputs of ``mu_i``: trigger features now and at the own last broadcast, ages and distance where read.
 
-        :param obs: joint observation (B, N, ...); reads ``trigger`` and ``trigger_held`` (and ``age``
-            with ``option_age_scale``)
-        :return: (B, N, 2 n_trig), then the own age times ``option_age_scale`` and the distance times
-            ``option_distance_scale`` where they are inputs (:func:`option_inputs`)
+        :param obs: joint observation (B, N, ...); reads ``trigger``, ``trigger_held`` and ``age``
+        :return: (B, N, 2 n_trig), then the own age times ``option_age_scale``, the distance times
+            ``option_distance_scale`` and the others' ages times ``option_others_age_scale`` where they
+            are inputs (:func:`option_inputs`)
         """
         return option_inputs(
-            obs["trigger"], obs["trigger_held"], obs["age"], self.option_age_scale, self.option_distance_scale
+            obs["trigger"],
+            obs["trigger_held"],
+            obs["age"],
+            self.option_age_scale,
+            self.option_distance_scale,
+            others_ages(obs["age"], self.others),
+            self.option_others_age_scale,
         )
 
     def option_logits(self, logits: th.Tensor, age: th.Tensor | None) -> th.Tensor:
@@ -932,6 +967,7 @@ class MlpHybridPolicy(BasePolicy):
             age_scale=self.age_scale,
             option_age_scale=self.option_age_scale,
             option_distance_scale=self.option_distance_scale,
+            option_others_age_scale=self.option_others_age_scale,
             broadcast_interval=self.broadcast_interval,
             agent_id=self.agent_id[agent].clone() if self.share_parameters else None,
             control_low=self.control_low[agent].clone(),
@@ -957,6 +993,8 @@ class AgentController(nn.Module):
     :param option_age_scale: factor applied to the own age before it enters ``mu`` (0: ``mu`` does not read it)
     :param option_distance_scale: factor applied to the distance of the trigger features from those at
         the own last broadcast before it enters ``mu`` (0: ``mu`` does not read it)
+    :param option_others_age_scale: factor applied to the others' ages before they enter ``mu`` (0:
+        ``mu`` does not read them)
     :param broadcast_interval: the policy's window of broadcast intervals, which decides the
         options outside it (None: ``mu`` decides at every step)
     :param agent_id: one-hot id input for shared-parameter policies, else None
@@ -981,6 +1019,7 @@ class AgentController(nn.Module):
         sample_options: bool = False,
         option_age_scale: float = 0.0,
         option_distance_scale: float = 0.0,
+        option_others_age_scale: float = 0.0,
         broadcast_interval: tuple[int, int] | None = None,
     ) -> None:
         super().__init__()
@@ -988,6 +1027,7 @@ class AgentController(nn.Module):
         self.broadcast_interval = broadcast_interval
         self.option_age_scale = option_age_scale
         self.option_distance_scale = option_distance_scale
+        self.option_others_age_scale = option_others_age_scale
         self.option_net = option_net
         self.control_net = control_net
         self.agent = agent
@@ -1013,6 +1053,7 @@ class AgentController(nn.Module):
         trigger_held: np.ndarray,
         deterministic: bool = True,
         own_age: float | None = None,
+        others_age: np.ndarray | None = None,
     ) -> bool:
         """Whether to broadcast now.
 
@@ -1021,8 +1062,10 @@ class AgentController(nn.Module):
         :param deterministic: the most likely option instead of a sample
         :param own_age: steps since the own last broadcast, before this step's decision; needed
             where the controller reads it (``option_age_scale`` > 0 or a ``broadcast_interval``)
+        :param others_age: the ages of the others' held broadcasts before this step's exchange, others
+            in increasing order (N - 1,); needed where the controller reads them (``option_others_age_scale`` > 0)
         :return: True to broadcast, False to stay silent
-        :raises ValueError: without ``own_age`` where the controller reads it
+        :raises ValueError: without ``own_age`` or ``others_age`` where the controller reads it
         """
         if own_age is None:
             if self.option_age_scale > 0 or self.broadcast_interval is not None:
@@ -1030,12 +1073,20 @@ class AgentController(nn.Module):
                     "This controller reads its own age (option_age_scale > 0 or a broadcast_interval): pass own_age."
                 )
             own_age = 0.0
+        if others_age is None:
+            if self.option_others_age_scale > 0:
+                raise ValueError(
+                    "This controller reads the others' ages (option_others_age_scale > 0): pass others_age."
+                )
+            others_age = np.zeros(self.n_agents - 1)
         x = option_inputs(
             th.as_tensor(trigger, dtype=th.float32),
             th.as_tensor(trigger_held, dtype=th.float32),
             th.tensor([own_age], dtype=th.float32),
             self.option_age_scale,
             self.option_distance_scale,
+            th.as_tensor(others_age, dtype=th.float32),
+            self.option_others_age_scale,
         )
         logits = self.option_net(self._with_id(x))
         if self.broadcast_interval is not None:
