@@ -42,8 +42,8 @@ has seen both options at every age before ``mu`` follows it.
 With ``--select-every N`` the policy runs ``--select-episodes`` validation episodes (the seeds right
 after the evaluation's) every ``N`` steps of ``mu``'s training and at its end, options sampled, and
 the one with the highest control return at the target savings (within 0.01 below it, or above) is
-kept instead of the last (:class:`SelectBest`, as rl-zoo3 keeps ``best_model.zip``); the row lists
-every validation.
+kept instead of the last (:class:`~sb3_detc.callbacks.SelectBestCallback`, as rl-zoo3 keeps
+``best_model.zip``); the row lists every validation.
 
 One job per seed, one after another (each trains with the entry's two rollout-worker
 processes); every finished seed's row is written to ``--out`` at once and a seed already there
@@ -71,9 +71,10 @@ import numpy as np
 import torch as th
 from stable_baselines3.common.callbacks import BaseCallback
 
-from sb3_detc.callbacks import imitate_trigger
+from sb3_detc.callbacks import SelectBestCallback, imitate_trigger
 from sb3_detc.cli import python_value
 from sb3_detc.evaluation import evaluate_episodes
+from sb3_detc.files import replace_atomically
 from sb3_detc.mappoc.policies import MlpHybridPolicy
 from sb3_detc.study.report import interval_text, metric_estimates
 from sb3_detc.study.spec import StudyError, Trial, load_folder_study
@@ -81,7 +82,6 @@ from sb3_detc.study.sweep import OutError, check_at_least_one, job_key, run_rows
 from sb3_detc.study.trial import (
     evaluate_policy_modes,
     read_status,
-    replace_atomically,
     trial_folder,
     trial_manager,
 )
@@ -127,73 +127,6 @@ class Progress(BaseCallback):
                 f"{time.monotonic() - self.began:.0f} s",
                 flush=True,
             )
-
-
-class SelectBest(BaseCallback):
-    """Keep the policy that did best on validation episodes, evaluated every ``every`` steps and at the end.
-
-    As rl-zoo3 keeps ``best_model.zip`` by periodic evaluation: the policy runs the validation
-    episodes (seeded, disjoint from the evaluation's) with its options sampled, as trained, and
-    deterministic controls; of the evaluations whose savings lie within ``tolerance`` of the
-    model's ``target_savings`` or above (all, without a target), the one with the highest mean
-    control return is kept, and :meth:`restore` loads it into the policy after training.
-
-    :param env: the env the validation episodes run in (a joint env)
-    :param seeds: the validation episodes' seeds
-    :param every: steps between two evaluations
-    :param tolerance: how far below the target the savings of a kept policy may lie
-    """
-
-    def __init__(self, env: gym.Env, seeds: list[int], every: int, tolerance: float = 0.01) -> None:
-        super().__init__()
-        self.env, self.seeds, self.every, self.tolerance = env, seeds, every, tolerance
-        self.evaluations: list[dict[str, float]] = []
-        self.best: dict[str, Any] | None = None
-        self.last = 0
-
-    def _on_training_start(self) -> None:
-        self.last = self.num_timesteps
-
-    def _on_step(self) -> bool:
-        return True
-
-    def _on_rollout_end(self) -> None:
-        if self.num_timesteps - self.last >= self.every:
-            self.evaluate()
-
-    def _on_training_end(self) -> None:
-        if self.num_timesteps > self.last:
-            self.evaluate()
-
-    def evaluate(self) -> None:
-        """Run the validation episodes with the current policy and keep it if it is the best so far."""
-        self.last = self.num_timesteps
-        episodes = evaluate_episodes(self.model.policy, self.env, self.seeds, sample_options=True)
-        result = {
-            "timesteps": self.num_timesteps,
-            "control_return": float(np.mean(episodes.control_returns)),
-            "savings": episodes.savings,
-        }
-        self.evaluations.append(result)
-        target = self.model.target_savings
-        eligible = target is None or result["savings"] >= target - self.tolerance
-        if eligible and (self.best is None or result["control_return"] > self.best["control_return"]):
-            self.best = {**result, "state": {k: v.detach().clone() for k, v in self.model.policy.state_dict().items()}}
-        print(
-            f"validation at {self.num_timesteps} steps: control return {result['control_return']:.1f}, "
-            f"savings {result['savings']:.3f}{'' if eligible else ' (below the target)'}",
-            flush=True,
-        )
-
-    def restore(self) -> dict[str, Any]:
-        """Load the kept policy into the model's policy (the last one if none was eligible).
-
-        :return: the evaluations and the kept one's steps, control return and savings (None if none was eligible)
-        """
-        if self.best is not None:
-            self.model.policy.load_state_dict(self.best["state"])
-        kept = None if self.best is None else {k: v for k, v in self.best.items() if k != "state"}
-        return {"evaluations": self.evaluations, "kept": kept}
 
 
 def finished_policy(folder: Path, trial: Trial) -> Path | None:
@@ -338,16 +271,16 @@ def run(job: dict[str, Any], progress_every: int = PROGRESS_EVERY) -> dict[str, 
         ``start_dither`` (the schedule's skip and extra probabilities, :func:`start_trigger`),
         ``fixed_families`` (optional: the families the evaluation compares, with the learned options
         sampled), ``select_every`` and ``select_episodes`` (optional: keep the policy best on that
-        many validation episodes, evaluated every that many steps, :class:`SelectBest`), ``policy``
-        (the trial's policy's digest: a retrained trial is a new job) and ``save_dir`` (where to
-        keep the trained policy; None: not kept)
+        many validation episodes, evaluated every that many steps,
+        :class:`~sb3_detc.callbacks.SelectBestCallback`), ``policy`` (the trial's policy's digest: a
+        retrained trial is a new job) and ``save_dir`` (where to keep the trained policy; None: not kept)
     :param progress_every: rollouts between two lines of progress (:class:`Progress`)
     :return: the seed, the training seconds, the study protocol's metrics of the learned trigger
         (:func:`~sb3_detc.evaluation.evaluate_policy_modes`), the control return, package travel (None
         where the env reports none), fall rate and savings of a message every ``k`` steps at the nearest
         savings (None if the trigger never broadcasts), the file of the saved policy, with
         ``start_period`` the share of decisions the imitation matched and with ``select_every`` the
-        validations and the kept one (:meth:`SelectBest.restore`)
+        validations and the kept one (:meth:`~sb3_detc.callbacks.SelectBestCallback.restore`)
     """
     th.set_num_threads(1)
     spec = load_folder_study(Path(job["folder"]))
@@ -370,7 +303,8 @@ def run(job: dict[str, Any], progress_every: int = PROGRESS_EVERY) -> dict[str, 
             if job.get("select_every"):
                 first = spec.eval_seed + spec.episodes  # right after the evaluation's episodes
                 seeds = list(range(first, first + job["select_episodes"]))
-                select = SelectBest(gym.make(spec.env, **env_kwargs), seeds, job["select_every"])
+                validation = gym.make(spec.env, **env_kwargs)
+                select = SelectBestCallback(validation, seeds, job["select_every"], sample_options=True)
                 callbacks.append(select)
             model.learn(rest, callback=callbacks, reset_num_timesteps=False)
             if select is not None:
@@ -378,7 +312,7 @@ def run(job: dict[str, Any], progress_every: int = PROGRESS_EVERY) -> dict[str, 
         finally:
             model.env.close()
             if select is not None:
-                select.env.close()
+                select.eval_env.close()
         seconds = time.monotonic() - began
     policy, saved = model.policy, None
     if job["save_dir"] is not None:

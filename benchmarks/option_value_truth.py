@@ -40,10 +40,10 @@ from stable_baselines3.common.env_util import make_vec_env
 
 import sb3_detc  # noqa: F401  (registers the env ids)
 from sb3_detc import MAPPOC
+from sb3_detc.files import replace_atomically
 from sb3_detc.mappoc.critics import CRITICS
 from sb3_detc.renamed import renamed_keys
 from sb3_detc.study.sweep import check_at_least_one
-from sb3_detc.study.trial import replace_atomically
 from sb3_detc.triggers import FixedControl, SendOnDelta
 
 #: MAPPOC settings of the critics' training (those of ``trigger_learning.py``'s sparse variants).

@@ -17,7 +17,9 @@ hyperparameter file, e.g. ``callback: sb3_detc.callbacks.CurriculumCallback``):
   receivers' predictions shown, predictive triggering) and :class:`FixedFirstCallback` (from any
   stateless trigger);
 * :class:`CommMetricsCallback`: communication savings, inter-event times, per-agent
-  returns with and without the communication cost, package travel and fall rate, per rollout.
+  returns with and without the communication cost, package travel and fall rate, per rollout;
+* :class:`SelectBestCallback`: the policy that did best on validation episodes at the rate
+  target, kept instead of the last one (as rl-zoo3 keeps ``best_model.zip``).
 
 **Iterations.** The curriculum counts iterations ``h`` as the paper does: one iteration is
 one rollout (one ``collect_rollouts`` call, ``n_steps * n_envs`` environment steps; the
@@ -30,18 +32,23 @@ rollout, so a rollout and the update that follows it use the values of the same 
 
 from __future__ import annotations
 
+import json
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
+from pathlib import Path
 from typing import Any
 
+import gymnasium as gym
 import numpy as np
 import torch as th
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.type_aliases import Schedule
 
-from sb3_detc.evaluation import EpisodeCounter, Episodes
+from sb3_detc.evaluation import EpisodeCounter, Episodes, evaluate_episodes
+from sb3_detc.files import replace_atomically
 from sb3_detc.mappoc.checks import check_rate_target
 from sb3_detc.mappoc.mappoc import PAPER_ITERATION
+from sb3_detc.mappoc.policies import MlpHybridPolicy
 from sb3_detc.triggers import PeriodicTrigger, RandomTrigger, SendOnDelta, StatelessTrigger
 from sb3_detc.validation import check_integer
 
@@ -59,6 +66,7 @@ __all__ = [
     "PeriodicCommCallback",
     "RandomSkipCallback",
     "ScheduleFirstCallback",
+    "SelectBestCallback",
     "TentNoiseSchedule",
     "linear_decay",
     "tent",
@@ -992,3 +1000,139 @@ class CommMetricsCallback(BaseCallback):
             travel = episodes.package_travel[np.isfinite(episodes.package_travel)]
             if len(travel):
                 record("comm/package_travel", float(np.mean(travel)))
+
+
+class SelectBestCallback(BaseCallback):
+    """Keep the policy that did best on validation episodes at the rate target, instead of the last one.
+
+    As rl-zoo3 keeps ``best_model.zip`` by periodic evaluation: every ``eval_freq`` environment
+    steps (checked at the end of every rollout) and at the end of training, the policy runs the
+    validation episodes (:func:`~sb3_detc.evaluation.evaluate_episodes`: seeded, deterministic
+    controls, the options as ``sample_options`` says). Of the
+    evaluations whose savings lie at or above the model's ``target_savings`` less ``tolerance``
+    (all of them without a target), the one with the highest mean control return is kept, and
+    :meth:`restore` loads it into the model's policy once training is over. Rollouts whose
+    options come from a fixed trigger (``model.fixed_trigger``, e.g. the first stage of a
+    two-stage callback) are not evaluated: the policy over options did not choose them.
+
+    With ``save_path``, every evaluation is written to ``selection.json`` there and the kept
+    policy to ``best_policy.pt`` (policy only, :meth:`MlpHybridPolicy.load
+    <sb3_detc.mappoc.policies.MlpHybridPolicy.load>`); a callback made with the same folder for
+    a run resumed from a checkpoint reads them back, so nothing kept is lost on interruption.
+    Evaluations made after that checkpoint by the interrupted run stay: their policies were
+    trained like any other.
+
+    Keep the validation seeds apart from those the policy is evaluated on afterwards: the kept
+    policy's validation return is biased upwards (it is the maximum of several noisy ones).
+
+    :param eval_env: the joint env the validation episodes run in (not vectorised), or its id
+    :param seeds: the validation episodes' seeds, one episode each
+    :param eval_freq: environment steps between two evaluations (>= 1)
+    :param tolerance: how far below the target the savings of a kept policy may lie (>= 0)
+    :param sample_options: options sampled from the policy over options (True) or its most likely
+        ones (False); None: as the policy is deployed (its ``sample_options``)
+    :param save_path: folder for ``selection.json`` and ``best_policy.pt`` (None: kept in memory only)
+    :param verbose: 1 prints a line per evaluation
+    """
+
+    def __init__(
+        self,
+        eval_env: gym.Env | str,
+        seeds: Sequence[int],
+        eval_freq: int,
+        tolerance: float = 0.01,
+        sample_options: bool | None = None,
+        save_path: str | Path | None = None,
+        verbose: int = 1,
+    ) -> None:
+        super().__init__(verbose)
+        if not seeds:
+            raise ValueError("SelectBestCallback needs at least one validation seed.")
+        if not (math.isfinite(tolerance) and tolerance >= 0):
+            raise ValueError(f"tolerance must be a finite number >= 0, got {tolerance}.")
+        self.eval_env = gym.make(eval_env) if isinstance(eval_env, str) else eval_env
+        self.seeds = [int(seed) for seed in seeds]
+        self.eval_freq = check_integer("eval_freq", eval_freq, 1)
+        self.tolerance = float(tolerance)
+        self.sample_options = sample_options
+        self.save_path = None if save_path is None else Path(save_path)
+        self.evaluations: list[dict[str, Any]] = []
+        self.best: dict[str, Any] | None = None  # the kept evaluation
+        self.best_state: dict[str, th.Tensor] | None = None  # the kept policy's parameters
+        self.last = 0
+
+    def _init_callback(self) -> None:
+        if self.save_path is None or not (self.save_path / "selection.json").is_file():
+            return
+        saved = json.loads((self.save_path / "selection.json").read_text())
+        self.evaluations = saved["evaluations"]
+        self.best = saved["kept"]
+        if self.best is not None:
+            policy = MlpHybridPolicy.load(str(self.save_path / "best_policy.pt"), device="cpu")
+            self.best_state = {key: value.clone() for key, value in policy.state_dict().items()}
+
+    def _on_training_start(self) -> None:
+        self.last = self.num_timesteps
+
+    def _on_step(self) -> bool:
+        return True
+
+    def _on_rollout_end(self) -> None:
+        if self.num_timesteps - self.last >= self.eval_freq:
+            self.evaluate()
+
+    def _on_training_end(self) -> None:
+        if self.num_timesteps > self.last:
+            self.evaluate()
+
+    def eligible(self, savings: float) -> bool:
+        """Whether a policy with these savings may be kept: at or above the target less the tolerance.
+
+        :param savings: the savings on the validation episodes
+        :return: True without a target
+        """
+        target = getattr(self.model, "target_savings", None)
+        return target is None or savings >= target - self.tolerance
+
+    def evaluate(self) -> None:
+        """Run the validation episodes with the current policy and keep it if it is the best so far."""
+        self.last = self.num_timesteps
+        if getattr(self.model, "fixed_trigger", None) is not None:
+            return
+        episodes = evaluate_episodes(self.model.policy, self.eval_env, self.seeds, sample_options=self.sample_options)
+        result = {
+            "timesteps": self.num_timesteps,
+            "control_return": float(np.mean(episodes.control_returns)),
+            "savings": float(episodes.savings),
+        }
+        self.evaluations.append(result)
+        eligible = self.eligible(result["savings"])
+        if eligible and (self.best is None or result["control_return"] > self.best["control_return"]):
+            self.best = result
+            self.best_state = {key: value.detach().clone() for key, value in self.model.policy.state_dict().items()}
+        if self.save_path is not None:
+            folder, policy = self.save_path, self.model.policy
+            folder.mkdir(parents=True, exist_ok=True)
+            if self.best is result:  # the policy first: the record never names a kept policy that is not there
+                replace_atomically(folder / "best_policy.pt", lambda path: policy.save(str(path)), "best.tmp.pt")
+            text = json.dumps({"evaluations": self.evaluations, "kept": self.best}, indent=1)
+            replace_atomically(folder / "selection.json", lambda path: path.write_text(text))
+        self.logger.record("selection/control_return", result["control_return"])
+        self.logger.record("selection/savings", result["savings"])
+        if self.verbose:
+            below = "" if eligible else " (below the target)"
+            print(
+                f"validation at {self.num_timesteps} steps: control return {result['control_return']:.1f}, "
+                f"savings {result['savings']:.3f}{below}",
+                flush=True,
+            )
+
+    def restore(self) -> dict[str, Any]:
+        """Load the kept policy into the model's policy (the last one stays if none was eligible).
+
+        :return: ``evaluations`` (every evaluation's steps, control return and savings) and ``kept``
+            (the kept one's, None if none was eligible)
+        """
+        if self.best_state is not None:
+            self.model.policy.load_state_dict(self.best_state)
+        return {"evaluations": list(self.evaluations), "kept": self.best}

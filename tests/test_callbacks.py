@@ -28,14 +28,17 @@ from sb3_detc.callbacks import (
     PeriodicCommCallback,
     RandomSkipCallback,
     ScheduleFirstCallback,
+    SelectBestCallback,
     TentNoiseSchedule,
     linear_decay,
     set_broadcast_cost,
     tent,
 )
 from sb3_detc.envs import linear_etc_v0, multiwalker_etc_v0
+from sb3_detc.evaluation import evaluate_episodes
 from sb3_detc.mappoc import MAPPOC
 from sb3_detc.mappoc.mappoc import PAPER_ITERATION
+from sb3_detc.mappoc.policies import MlpHybridPolicy
 from sb3_detc.mappoc.workers import RolloutWorker
 from sb3_detc.triggers import PeriodicTrigger, RandomTrigger, SendOnDelta
 
@@ -826,3 +829,64 @@ def test_package_travel_starts_from_each_episodes_own_reset(workers: bool) -> No
     assert len(capture.rows) == 1  # one rollout of 2 x 40 steps
     assert all(row["comm/episodes"] >= 6 for row in capture.rows)
     assert all(abs(row["comm/package_travel"]) < 0.5 for row in capture.rows)
+
+
+# --------------------------------------------------------------------------- selection of the best policy
+def validation_env() -> gym.Env:
+    return gym.make(ENV_ID, n_agents=2, max_cycles=20, broadcast_cost=0.01)
+
+
+def test_the_best_policy_at_the_target_is_kept_saved_and_restored(tmp_path) -> None:
+    model = make_model(target_savings=0.5, learning_rate=3e-3)
+    select = SelectBestCallback(validation_env(), [100, 101], eval_freq=16, save_path=tmp_path, verbose=0)
+    model.learn(80, callback=select)
+    evaluations = select.evaluations
+    assert [e["timesteps"] for e in evaluations] == [16, 32, 48, 64, 80]  # every 16 steps, the last at the end
+    eligible = [e for e in evaluations if e["savings"] >= 0.5 - 0.01]
+    assert eligible, "no policy reached the target: the test checks nothing"
+    kept = max(eligible, key=lambda e: e["control_return"])
+    assert select.best == kept
+    selection = select.restore()
+    assert selection == {"evaluations": evaluations, "kept": kept}
+    # the model's policy is now the kept one, and so is the saved file: both repeat its validation
+    saved = MlpHybridPolicy.load(str(tmp_path / "best_policy.pt"), device="cpu")
+    for policy in (model.policy, saved):
+        episodes = evaluate_episodes(policy, validation_env(), [100, 101])
+        assert float(np.mean(episodes.control_returns)) == pytest.approx(kept["control_return"], rel=1e-6)
+    # a callback made again with the folder (a run resumed from a checkpoint) goes on from there
+    again = SelectBestCallback(validation_env(), [100, 101], eval_freq=16, save_path=tmp_path, verbose=0)
+    again.init_callback(model)
+    assert again.evaluations == evaluations and again.best == kept
+    for key, value in saved.state_dict().items():
+        assert th.equal(again.best_state[key], value)
+
+
+def test_without_an_eligible_policy_the_last_one_stays() -> None:
+    model = make_model(target_savings=0.99)  # far above what a fresh policy over options saves
+    select = SelectBestCallback(validation_env(), [100], eval_freq=8, tolerance=0.0, verbose=0)
+    model.learn(24, callback=select)
+    last = {key: value.clone() for key, value in model.policy.state_dict().items()}
+    assert len(select.evaluations) == 3 and all(e["savings"] < 0.99 for e in select.evaluations)
+    assert select.restore()["kept"] is None
+    for key, value in model.policy.state_dict().items():
+        assert th.equal(value, last[key])
+
+
+def test_rollouts_of_a_fixed_trigger_are_not_evaluated() -> None:
+    model = make_model()
+    model.set_fixed_trigger(PeriodicTrigger(2))
+    select = SelectBestCallback(validation_env(), [100], eval_freq=8, verbose=0)
+    model.learn(16, callback=select)
+    assert select.evaluations == [] and select.restore()["kept"] is None
+    model.set_fixed_trigger(None)
+    model.learn(8, callback=select, reset_num_timesteps=False)
+    assert [e["timesteps"] for e in select.evaluations] == [24]
+
+
+def test_select_best_refuses_bad_settings() -> None:
+    with pytest.raises(ValueError, match="at least one validation seed"):
+        SelectBestCallback(validation_env(), [], eval_freq=8)
+    with pytest.raises(ValueError, match="tolerance must be a finite number >= 0"):
+        SelectBestCallback(validation_env(), [1], eval_freq=8, tolerance=-0.1)
+    with pytest.raises(ValueError, match="eval_freq"):
+        SelectBestCallback(validation_env(), [1], eval_freq=0)

@@ -22,6 +22,7 @@ import yaml
 import sb3_detc
 from sb3_detc import plot
 from sb3_detc.evaluation import evaluate_episodes
+from sb3_detc.files import replace_atomically
 from sb3_detc.mappoc.policies import MlpHybridPolicy
 from sb3_detc.plot import PROGRESS_XZ, progress_file, read_progress
 from sb3_detc.study import report
@@ -37,7 +38,6 @@ from sb3_detc.study.trial import (
     drop_stale_segments,
     entry_fixed_trigger,
     read_status,
-    replace_atomically,
     trial_folder,
 )
 
@@ -1216,3 +1216,56 @@ def test_the_front_of_one_panel_keeps_its_long_title_and_its_legend_off_the_poin
     [ax] = fig.axes
     legend = ax.get_legend().get_window_extent(renderer)
     assert legend.y1 < ax.get_window_extent(renderer).y0 and legend.y0 >= 0
+
+
+def test_a_trial_with_selection_keeps_its_best_policy_across_an_interruption(tmp_path):
+    from sb3_detc.study.trial import run_trial
+
+    selection = {"every": 1024, "episodes": 2}
+    learned = {"algo": "mappoc", "hyperparams": {"target_savings": 0.5}, "selection": selection}
+    spec = load_study(write_study(tmp_path, {**TINY, "seeds": [0], "n_timesteps": 4096, "algorithms": {"a": learned}}))
+    (trial,) = spec.trials()
+    assert spec.validation_seeds(trial.algorithm) == [503, 504]  # right after the evaluation's 3 episodes from 500
+    folder = trial_folder(tmp_path / "out", trial)
+
+    def stop_after_the_first_checkpoint(steps: int) -> None:
+        if steps >= 2048:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        run_trial(spec, trial, tmp_path / "out", on_progress=stop_after_the_first_checkpoint)
+    first = json.loads((folder / "selection.json").read_text())
+    assert [e["timesteps"] for e in first["evaluations"]] == [1024, 2048]  # at the ends of the rollouts
+    status = run_trial(spec, trial, tmp_path / "out")
+    assert status["status"] == "done"
+    record = json.loads((folder / "selection.json").read_text())
+    evaluations = record["evaluations"]
+    assert evaluations[:2] == first["evaluations"]  # the interrupted attempt's validations stay
+    assert [e["timesteps"] for e in evaluations[2:]] == [3072, 4096]
+    eligible = [e for e in evaluations if e["savings"] >= 0.5 - 0.01]
+    assert eligible and record["kept"] == max(eligible, key=lambda e: e["control_return"])
+    assert sorted(p.name for p in folder.iterdir()) == sorted((*FINISHED_FILES, "selection.json"))
+    # the final policy is the kept one: it repeats its validation
+    policy = MlpHybridPolicy.load(str(folder / "policy.pt"), device="cpu")
+    with gym.make(spec.env) as env:
+        episodes = evaluate_episodes(policy, env, [503, 504])
+    assert float(np.mean(episodes.control_returns)) == pytest.approx(record["kept"]["control_return"], rel=1e-6)
+
+
+@pytest.mark.parametrize(
+    ("selection", "message"),
+    [
+        ({"episodes": 5}, "'selection' of 'a' must be a mapping with at least 'every'"),
+        ({"every": 0}, "'selection: every' of 'a' must be an integer >= 1"),
+        ({"every": 10, "often": 1}, "unknown key 'often' in 'selection' of 'a'"),
+        ({"every": 10, "tolerance": 1.5}, r"'selection: tolerance' of 'a' must be a number in \[0, 1\)"),
+        ({"every": 10, "seed": -1}, "'selection: seed' of 'a' must be an integer >= 0"),
+    ],
+)
+def test_a_malformed_selection_is_refused(tmp_path, selection, message):
+    content = {**TINY, "algorithms": {"a": {"algo": "mappoc", "selection": selection}}}
+    with pytest.raises(StudyError, match=message):
+        load_study(write_study(tmp_path, content))
+    good = {**TINY, "algorithms": {"a": {"algo": "mappoc", "selection": {"every": 10, "seed": 7, "episodes": 2}}}}
+    spec = load_study(write_study(tmp_path, good))
+    assert spec.validation_seeds(spec.algorithms[0]) == [7, 8]

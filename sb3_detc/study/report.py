@@ -23,9 +23,10 @@ import numpy as np
 from rliable import library as rly
 from rliable import metrics as rly_metrics
 
+from sb3_detc.files import replace_atomically
 from sb3_detc.plot import LEARNED_POINTS, open_progress, plot_estimates, plot_front, plot_runs, progress_file
 from sb3_detc.study.spec import StudyError, load_folder_study
-from sb3_detc.study.trial import read_status, replace_atomically, trial_folder
+from sb3_detc.study.trial import read_status, trial_folder
 from sb3_detc.triggers import TRIGGER_FAMILIES
 
 __all__ = [

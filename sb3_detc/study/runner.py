@@ -25,13 +25,13 @@ from typing import Any
 import torch as th
 import yaml
 
+from sb3_detc.files import replace_atomically
 from sb3_detc.study.spec import CONF_FOLDER, StudyError, StudySpec, Trial, conf_copy, load_folder_study, same_study
 from sb3_detc.study.trial import (
     LEARNER_THREADS,
     evaluate_trial,
     exclusive,
     read_status,
-    replace_atomically,
     run_trial,
     trial_folder,
 )

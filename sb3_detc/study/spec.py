@@ -20,13 +20,20 @@ A study file is YAML::
         conf: my_hyperparams.yml         # optional: another hyperparameter file (relative to the study file)
         hyperparams:                     # optional: overrides of the entry, as rl-zoo3's --hyperparams
           broadcast_ent_coef: 0.03
+        selection:                       # optional: keep the policy best on validation episodes, not the last
+          every: 102400                  # environment steps between two validations
+          episodes: 20                   # optional: validation episodes (default 20)
+          seed: 20000                    # optional: the first one's seed (default: after the evaluation's)
+          tolerance: 0.01                # optional: how far below the rate target a kept policy may save
 
 The entry of ``env`` is taken from the package's hyperparameter file of the algorithm
 (``sb3_detc/hyperparams/<algo>.yml``) unless ``conf`` names another one. A trial uses as
 many cores as its entry's rollout workers (``n_envs`` with
 :class:`~sb3_detc.mappoc.workers.RolloutWorker` envs), otherwise one; its learner uses one torch
 thread (:data:`~sb3_detc.study.trial.LEARNER_THREADS`): the workers wait while the learner
-updates, and it waits while they collect.
+updates, and it waits while they collect. With ``selection`` a trial's final policy is the one
+that did best on the validation episodes at the entry's rate target
+(:class:`~sb3_detc.callbacks.SelectBestCallback`).
 """
 
 from __future__ import annotations
@@ -47,6 +54,7 @@ from sb3_detc.zoo import ALGORITHMS, HYPERPARAMS_DIR, uses_rollout_workers
 __all__ = [
     "CONF_FOLDER",
     "AlgorithmSpec",
+    "Selection",
     "StudyError",
     "StudySpec",
     "Trial",
@@ -58,7 +66,8 @@ __all__ = [
 
 #: Keys of a study file and of one algorithm's settings.
 STUDY_KEYS = frozenset({"env", "seeds", "n_timesteps", "checkpoint_interval", "evaluation", "algorithms"})
-ALGORITHM_KEYS = frozenset({"algo", "seeds", "cpus", "conf", "hyperparams"})
+ALGORITHM_KEYS = frozenset({"algo", "seeds", "cpus", "conf", "hyperparams", "selection"})
+SELECTION_KEYS = frozenset({"every", "episodes", "seed", "tolerance"})
 
 #: A study folder's copies of the hyperparameter files its study file names (``conf``), one per algorithm,
 #: ``<label><suffix>``: the folder is read without the files the study was started from.
@@ -73,6 +82,23 @@ class StudyError(InputError):
 
 
 @dataclass(frozen=True)
+class Selection:
+    """How a trial keeps the policy best on validation episodes (:class:`~sb3_detc.callbacks.SelectBestCallback`).
+
+    :param every: environment steps between two validations
+    :param episodes: validation episodes
+    :param seed: the first validation episode's seed (episode k: seed + k); None: right after the
+        study's evaluation episodes
+    :param tolerance: how far below the rate target the savings of a kept policy may lie
+    """
+
+    every: int
+    episodes: int = 20
+    seed: int | None = None
+    tolerance: float = 0.01
+
+
+@dataclass(frozen=True)
 class AlgorithmSpec:
     """One algorithm of a study: a hyperparameter entry, its overrides and its seeds.
 
@@ -84,6 +110,7 @@ class AlgorithmSpec:
     :param cpus: cores per trial
     :param entry: the entry of the study's env in ``conf``, with the overrides applied
     :param named_conf: whether the study file names ``conf`` (else it is sb3-detc's file of ``algo``)
+    :param selection: how the trials keep the policy best on validation episodes (None: the last one)
     """
 
     label: str
@@ -94,6 +121,7 @@ class AlgorithmSpec:
     cpus: int
     entry: dict[str, Any]
     named_conf: bool = False
+    selection: Selection | None = None
 
 
 @dataclass(frozen=True)
@@ -153,6 +181,18 @@ class StudySpec:
             for k, seed in enumerate(algorithm.seeds)
         ]
         return [trial for _, _, trial in sorted(trials, key=lambda item: item[:2])]
+
+    def validation_seeds(self, algorithm: AlgorithmSpec) -> list[int]:
+        """The seeds of an algorithm's validation episodes (its ``selection``), one per episode.
+
+        :param algorithm: one of :attr:`algorithms`, with a ``selection``
+        :return: ``episodes`` seeds from its ``seed``, by default right after the evaluation's episodes
+        """
+        selection = algorithm.selection
+        if selection is None:
+            raise ValueError(f"algorithm {algorithm.label!r} has no selection")
+        first = self.eval_seed + self.episodes if selection.seed is None else selection.seed
+        return list(range(first, first + selection.episodes))
 
     def budget(self, algorithm: AlgorithmSpec) -> int:
         """Training steps of one trial of ``algorithm``.
@@ -288,7 +328,31 @@ def _algorithm(
     if cpus is None:
         cpus = int(entry.get("n_envs", 1)) if uses_rollout_workers(entry) else 1
     cpus = _int(path, f"'cpus' of {label!r}", cpus, 1)
-    return AlgorithmSpec(label, algo, conf, dict(hyperparams), trial_seeds, cpus, entry, "conf" in settings)
+    selection = _selection(path, label, settings["selection"]) if "selection" in settings else None
+    return AlgorithmSpec(label, algo, conf, dict(hyperparams), trial_seeds, cpus, entry, "conf" in settings, selection)
+
+
+def _selection(path: Path, label: str, settings: Any) -> Selection:
+    """The checked ``selection`` of an algorithm.
+
+    :param path: the study file
+    :param label: the algorithm's label
+    :param settings: the parsed mapping
+    :return: the selection
+    :raises StudyError: if it is no mapping with ``every``, has unknown keys or a value out of range
+    """
+    where = f"'selection' of {label!r}"
+    if not isinstance(settings, dict) or "every" not in settings:
+        raise _fail(path, f"{where} must be a mapping with at least 'every', got {settings!r}")
+    _unknown(path, where, settings, SELECTION_KEYS)
+    every = _int(path, f"'selection: every' of {label!r}", settings["every"], 1)
+    episodes = _int(path, f"'selection: episodes' of {label!r}", settings.get("episodes", 20), 1)
+    seed = settings.get("seed")
+    seed = None if seed is None else _int(path, f"'selection: seed' of {label!r}", seed, 0)
+    tolerance = settings.get("tolerance", 0.01)
+    if isinstance(tolerance, bool) or not isinstance(tolerance, int | float) or not 0 <= tolerance < 1:
+        raise _fail(path, f"'selection: tolerance' of {label!r} must be a number in [0, 1), got {tolerance!r}")
+    return Selection(every, episodes, seed, float(tolerance))
 
 
 def _checked_entry(

@@ -40,7 +40,8 @@ from functools import partial
 from pathlib import Path
 from typing import Any
 
-from sb3_detc.study.trial import exclusive, replace_atomically
+from sb3_detc.files import replace_atomically
+from sb3_detc.study.trial import exclusive
 
 #: The key of a row that holds its job (as JSON).
 JOB = "job"

@@ -18,7 +18,10 @@ A trial's folder (``<study dir>/trials/<label>/seed<seed>/``) holds plain files:
 * when done: ``policy.pt`` (the final policy only, :meth:`MlpHybridPolicy.load`) and
   ``evaluation.json`` (:func:`evaluate_policy_modes`); the checkpoint and the segments are
   removed, so that a finished trial holds :data:`FINISHED_FILES` alone;
-* ``error.txt``: the traceback of the last failure (removed when the trial is done).
+* ``error.txt``: the traceback of the last failure (removed when the trial is done);
+* for an algorithm with a ``selection``: ``selection.json``, every validation and the kept one
+  (:class:`~sb3_detc.callbacks.SelectBestCallback`), which stays, and while it trains
+  ``best_policy.pt``, the kept policy, which becomes ``policy.pt``.
 """
 
 from __future__ import annotations
@@ -46,8 +49,9 @@ from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.save_util import load_from_zip_file
 
 import sb3_detc
-from sb3_detc.callbacks import FixedTriggerCallback
+from sb3_detc.callbacks import FixedTriggerCallback, SelectBestCallback
 from sb3_detc.evaluation import MODES, SUCCESS_NO_FALL, SUCCESS_TRAVEL, carries_package, evaluate_policy_modes
+from sb3_detc.files import replace_atomically
 from sb3_detc.mappoc.policies import MlpHybridPolicy
 from sb3_detc.plot import PROGRESS_CSV, PROGRESS_XZ
 from sb3_detc.renamed import renamed_column
@@ -71,7 +75,6 @@ __all__ = [
     "merged_progress",
     "progress_number",
     "read_status",
-    "replace_atomically",
     "run_trial",
     "trial_folder",
 ]
@@ -93,21 +96,6 @@ def trial_folder(directory: str | os.PathLike, trial: Trial) -> Path:
     :return: ``<directory>/trials/<label>/seed<seed>`` (not created here)
     """
     return Path(directory) / "trials" / trial.algorithm.label / f"seed{trial.seed}"
-
-
-def replace_atomically(path: Path, write: Callable[[Path], Any], scratch_name: str | None = None) -> None:
-    """Write a file through a scratch file next to it, then put it in place at once.
-
-    Readers never see half of it, and an interruption leaves the file as it was (a scratch
-    file at most, which the next write replaces).
-
-    :param path: the file
-    :param write: writes the content to the path it is given
-    :param scratch_name: the scratch file's name (default: the file's with the suffix ``.tmp``)
-    """
-    scratch = path.with_name(scratch_name) if scratch_name else path.with_suffix(".tmp")
-    write(scratch)
-    os.replace(scratch, path)
 
 
 def exclusive(lock: Path) -> contextlib.AbstractContextManager[Any]:
@@ -414,11 +402,17 @@ def _train(spec: StudySpec, trial: Trial, folder: Path, on_progress: Callable[[i
 
     checkpoints = TrialCheckpoint(folder, spec.checkpoint_interval, on_progress, saved)
     manager.callbacks.append(checkpoints)
+    select = selection_callback(spec, trial, folder)
+    if select is not None:
+        manager.callbacks.append(select)
     interrupted = False
     try:
         manager.learn(model)
     except (KeyboardInterrupt, SystemExit):  # what rl-zoo3's learn() does not catch itself
         interrupted = True
+    finally:
+        if select is not None:
+            select.eval_env.close()
     if interrupted or model.num_timesteps < budget:  # rl-zoo3's learn() ends quietly on a KeyboardInterrupt
         # said first: Ray may end the process before the checkpoint is written
         _write_json(folder / "status.json", {**read_status(folder), "status": "interrupted"})
@@ -430,7 +424,28 @@ def _train(spec: StudySpec, trial: Trial, folder: Path, on_progress: Callable[[i
     seconds = earlier + time.monotonic() - began
     _write_json(folder / "status.json", {**read_status(folder), "timesteps": model.num_timesteps, "seconds": seconds})
     _write_progress(folder)  # first: a trial with its policy never trains again, and its segments go when it is done
+    if select is not None:
+        select.restore()  # the policy kept on the validation episodes (selection.json says which)
     replace_atomically(folder / "policy.pt", lambda scratch: model.policy.save(str(scratch)), "policy.tmp.pt")
+
+
+def selection_callback(spec: StudySpec, trial: Trial, folder: Path) -> SelectBestCallback | None:
+    """The callback that keeps a trial's policy best on its algorithm's validation episodes.
+
+    Its record (``selection.json``) and the kept policy (``best_policy.pt``) are in the trial's
+    folder, so that a resumed trial goes on with them.
+
+    :param spec: the study
+    :param trial: the trial
+    :param folder: the trial's folder
+    :return: the callback; None if the algorithm has no ``selection``
+    """
+    selection = trial.algorithm.selection
+    if selection is None:
+        return None
+    env = gym.make(spec.env, **(trial.algorithm.entry.get("env_kwargs") or {}))
+    seeds = spec.validation_seeds(trial.algorithm)
+    return SelectBestCallback(env, seeds, selection.every, selection.tolerance, save_path=folder, verbose=0)
 
 
 def drop_stale_segments(folder: Path, start: int) -> None:
@@ -513,7 +528,7 @@ def run_trial(
         if not (folder / "policy.pt").is_file():
             _train(spec, trial, folder, on_progress)
         evaluate_trial(spec, trial, directory)
-        for leftover in ("checkpoint.zip", "checkpoint.json", "error.txt"):
+        for leftover in ("checkpoint.zip", "checkpoint.json", "error.txt", "best_policy.pt"):
             (folder / leftover).unlink(missing_ok=True)
         shutil.rmtree(folder / "segments", ignore_errors=True)
         status = {**read_status(folder), "status": "done"}
