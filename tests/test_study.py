@@ -972,16 +972,18 @@ def test_intervals_are_the_same_on_every_call_and_leave_numpys_generator_alone()
     np.testing.assert_array_equal(interval_estimates(scores)[1]["a"], first)
 
 
+def stop_after_the_first_checkpoint(steps: int) -> None:
+    """A trial's progress hook: stop at the first rollout from step 2048 on (the tiny study's checkpoint)."""
+    if steps >= 2048:
+        raise KeyboardInterrupt
+
+
 def test_an_interrupted_trial_says_so_and_the_next_run_finishes_it(tmp_path):
     from sb3_detc.study.trial import run_trial
 
     spec = load_study(write_study(tmp_path, {**TINY, "seeds": [0], "n_timesteps": 4096}))
     trial = spec.trials()[0]
     folder = trial_folder(tmp_path / "out", trial)
-
-    def stop_after_the_first_checkpoint(steps: int) -> None:
-        if steps >= 2048:
-            raise KeyboardInterrupt
 
     with pytest.raises(KeyboardInterrupt):
         run_trial(spec, trial, tmp_path / "out", on_progress=stop_after_the_first_checkpoint)
@@ -1227,10 +1229,6 @@ def test_a_trial_with_selection_keeps_its_best_policy_across_an_interruption(tmp
     (trial,) = spec.trials()
     assert spec.validation_seeds(trial.algorithm) == [503, 504]  # right after the evaluation's 3 episodes from 500
     folder = trial_folder(tmp_path / "out", trial)
-
-    def stop_after_the_first_checkpoint(steps: int) -> None:
-        if steps >= 2048:
-            raise KeyboardInterrupt
 
     with pytest.raises(KeyboardInterrupt):
         run_trial(spec, trial, tmp_path / "out", on_progress=stop_after_the_first_checkpoint)
