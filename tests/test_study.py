@@ -219,7 +219,11 @@ def test_the_shipped_study_files_load():
         "predicted_held_90_lambda50": 0.9,
         "predictive_first_90_lambda50_switch200": 0.9,
         "predictive_first_90_lambda50_clip05": 0.9,
+        "predictive_first_90_lambda50_select": 0.9,
     }
+    (selected,) = [a for a in rate.algorithms if a.selection is not None]
+    assert selected.label == "predictive_first_90_lambda50_select" and selected.selection.every == 25600
+    assert rate.validation_seeds(selected) == list(range(10050, 10100))  # after the evaluation's 50 episodes
     # the receivers' predictions shown, at five times the others' budget, at the same and at twenty times
     held = {a.label: a for a in rate.algorithms if a.label.startswith("predicted_held")}
     assert all(a.hyperparams["env_kwargs"]["predicted_held"] for a in held.values())
