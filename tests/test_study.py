@@ -1232,7 +1232,7 @@ def test_a_trial_with_selection_keeps_its_best_policy_across_an_interruption(tmp
     spec = load_study(write_study(tmp_path, {**TINY, "seeds": [0], "n_timesteps": 4096, "algorithms": {"a": learned}}))
     (trial,) = spec.trials()
     assert spec.validation_seeds(trial.algorithm) == [503, 504]  # right after the evaluation's 3 episodes from 500
-    folder = trial_folder(tmp_path / "out", trial)
+    folder = trial_folder(prepare_folder(spec, tmp_path / "out"), trial)
 
     with pytest.raises(KeyboardInterrupt):
         run_trial(spec, trial, tmp_path / "out", on_progress=stop_after_the_first_checkpoint)
@@ -1252,6 +1252,10 @@ def test_a_trial_with_selection_keeps_its_best_policy_across_an_interruption(tmp
     with gym.make(spec.env) as env:
         episodes = evaluate_episodes(policy, env, [503, 504])
     assert float(np.mean(episodes.control_returns)) == pytest.approx(record["kept"]["control_return"], rel=1e-6)
+    # the report says which policy each seed kept
+    text = report_study(tmp_path / "out", plot=False)
+    assert "best on 2 validation episodes (seeds 503 to 504)" in text
+    assert f"- seed 0: kept at {record['kept']['timesteps']:,} steps of 4 validations" in text
 
 
 @pytest.mark.parametrize(

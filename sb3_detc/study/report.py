@@ -25,7 +25,7 @@ from rliable import metrics as rly_metrics
 
 from sb3_detc.files import replace_atomically
 from sb3_detc.plot import LEARNED_POINTS, open_progress, plot_estimates, plot_front, plot_runs, progress_file
-from sb3_detc.study.spec import StudyError, load_folder_study
+from sb3_detc.study.spec import AlgorithmSpec, StudyError, StudySpec, Trial, load_folder_study
 from sb3_detc.study.trial import read_status, trial_folder
 from sb3_detc.triggers import TRIGGER_FAMILIES
 
@@ -296,6 +296,8 @@ def _markdown(directory: Path, spec: Any, summary: dict[str, Any]) -> str:
                 f"Learned minus random options at the learned rate (control return, paired episodes): "
                 f"{_number(difference)} [{_number(low)}, {_number(high)}]."
             )
+        if algorithm.selection is not None:
+            lines += selection_lines(directory, spec, algorithm, sorted(seeds))
         if entry.get("success_count") is not None:
             lines.append(f"Seeds succeeding: {entry['success_count']} of {len(seeds)}.")
         lines.append(f"Interquartile mean of the control return: {_number(entry['iqm_control_return'])}.")
@@ -332,6 +334,40 @@ def _markdown(directory: Path, spec: Any, summary: dict[str, Any]) -> str:
             lines.append(f"| {row['better']} | {row['than']} | {row['probability']:.2f} | [{low:.2f}, {high:.2f}] |")
         lines.append("")
     return "\n".join(lines)
+
+
+def selection_lines(directory: Path, spec: StudySpec, algorithm: AlgorithmSpec, seeds: list[int]) -> list[str]:
+    """What the report says of an algorithm's ``selection``: the validations and, per seed, the kept policy.
+
+    :param directory: the study folder
+    :param spec: the study
+    :param algorithm: an algorithm with a ``selection``
+    :param seeds: its finished seeds
+    :return: the lines (a sentence, then one line per seed)
+    """
+    selection = algorithm.selection
+    validation = spec.validation_seeds(algorithm)
+    first, last = validation[0], validation[-1]
+    lines = [
+        f"The final policy of every seed is the one that did best on {selection.episodes} validation episodes "
+        f"(seeds {first} to {last}) at the target savings (at most {selection.tolerance} below it), validated "
+        f"every {selection.every:,} steps:"
+    ]
+    for seed in seeds:
+        record = trial_folder(directory, Trial(algorithm, seed)) / "selection.json"
+        if not record.is_file():
+            lines.append(f"- seed {seed}: no record of the validations")
+            continue
+        saved = json.loads(record.read_text())
+        kept, count = saved["kept"], len(saved["evaluations"])
+        if kept is None:
+            lines.append(f"- seed {seed}: none of {count} validations at the target, the last policy kept")
+        else:
+            lines.append(
+                f"- seed {seed}: kept at {kept['timesteps']:,} steps of {count} validations (validation control "
+                f"return {_number(kept['control_return'])} at savings {_number(kept['savings'], 3)})"
+            )
+    return [*lines, ""]
 
 
 def _logged_iterations(run: Path) -> int:
