@@ -43,6 +43,8 @@ def test_bad_input_is_a_usage_error(tmp_path: Path, arguments: list[str], messag
         ("rate_target_stability.py", ["--price-lr", "0"], "broadcast_price_lr must be > 0"),
         ("option_age_profile.py", ["README.md", "--episodes", "0"], "--episodes must be at least 1"),
         ("option_age_profile.py", ["README.md"], "README.md is not a saved MAPPOC model"),
+        ("broadcast_synchrony.py", ["README.md", "--episodes", "0"], "--episodes must be at least 1"),
+        ("broadcast_synchrony.py", ["README.md"], "README.md is not a saved MAPPOC model"),
         ("critic_gap_ranking.py", ["benchmarks/studies/linear_lqr_rate", "--arms", "best"], "no arms ['best']"),
         ("critic_gap_ranking.py", ["benchmarks", "--arms", "a"], "benchmarks is not a study folder (no study.yml)"),
         ("critic_gap_ranking.py", [".", "--arms", "a", "--episodes", "0"], "--episodes must be at least 1"),
