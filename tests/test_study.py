@@ -29,7 +29,7 @@ from sb3_detc.study import report
 from sb3_detc.study.__main__ import main as study_main
 from sb3_detc.study.report import report_study, splice, summarise
 from sb3_detc.study.runner import prepare_folder, run_study, trials_to_run
-from sb3_detc.study.spec import StudyError, load_folder_study, load_study
+from sb3_detc.study.spec import Selection, StudyError, load_folder_study, load_study
 from sb3_detc.study.trial import (
     FINISHED_FILES,
     MODES,
@@ -286,6 +286,8 @@ def test_the_shipped_study_files_load():
         **learned.hyperparams,
         "policy_kwargs": kwargs + ", broadcast_interval=(8, 24))",
     }
+    assert learned_in_window.selection == Selection(every=307_200, episodes=20)  # the validation-best policy kept
+    assert window.validation_seeds(learned_in_window) == list(range(10050, 10070))
 
 
 def test_command_line_bad_input_is_one_line_with_exit_code_2(tmp_path, capsys):
