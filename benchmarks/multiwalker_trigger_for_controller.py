@@ -301,8 +301,7 @@ def run(job: dict[str, Any], progress_every: int = PROGRESS_EVERY) -> dict[str, 
             rest = job["timesteps"] - job["warm_up"]
             callbacks: list[BaseCallback] = [Progress(label, progress_every)]
             if job.get("select_every"):
-                first = spec.eval_seed + spec.episodes  # right after the evaluation's episodes
-                seeds = list(range(first, first + job["select_episodes"]))
+                seeds = spec.validation_seeds(job["select_episodes"])  # right after the evaluation's episodes
                 validation = gym.make(spec.env, **env_kwargs)
                 select = SelectBestCallback(validation, seeds, job["select_every"], sample_options=True)
                 callbacks.append(select)

@@ -40,8 +40,8 @@ from sb3_detc.evaluation import evaluate_episodes
 from sb3_detc.files import replace_atomically
 from sb3_detc.mappoc.policies import MlpHybridPolicy
 from sb3_detc.study.report import interval_estimates, interval_text, mark_lines, splice, splice_marks
-from sb3_detc.study.spec import StudyError, load_folder_study
-from sb3_detc.study.trial import entry_fixed_trigger, read_status, trial_folder
+from sb3_detc.study.spec import StudyError, entry_fixed_trigger, load_folder_study
+from sb3_detc.study.trial import read_status, trial_folder
 from sb3_detc.triggers import PeriodicTrigger, RandomTrigger, SendOnDelta
 
 #: Skip probabilities of the random triggers.

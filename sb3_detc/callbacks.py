@@ -1005,8 +1005,9 @@ class CommMetricsCallback(BaseCallback):
 class SelectBestCallback(BaseCallback):
     """Keep the policy that did best on validation episodes at the rate target, instead of the last one.
 
-    As rl-zoo3 keeps ``best_model.zip`` by periodic evaluation: every ``eval_freq`` environment
-    steps (checked at the end of every rollout) and at the end of training, the policy runs the
+    As rl-zoo3 keeps ``best_model.zip`` by periodic evaluation: at the start of the first rollout
+    from every multiple of ``eval_freq`` environment steps on (the policy after the update before
+    it, the one a checkpoint then holds) and at the end of training, the policy runs the
     validation episodes (:func:`~sb3_detc.evaluation.evaluate_episodes`: seeded, deterministic
     controls, the options as ``sample_options`` says). Of the
     evaluations whose savings lie at or above the model's ``target_savings`` less ``tolerance``
@@ -1017,15 +1018,17 @@ class SelectBestCallback(BaseCallback):
 
     With ``save_path``, every evaluation is written to ``selection.json`` there and the kept
     policy to ``best_policy.pt`` (policy only, :meth:`MlpHybridPolicy.load
-    <sb3_detc.mappoc.policies.MlpHybridPolicy.load>`); a callback made with the same folder for
-    a run resumed from a checkpoint reads them back, so nothing kept is lost on interruption.
-    Evaluations made after that checkpoint by the interrupted run stay: their policies were
-    trained like any other.
+    <sb3_detc.mappoc.policies.MlpHybridPolicy.load>`; written before the record); a callback
+    made with the same folder for a run resumed from a checkpoint reads them back and goes on
+    after the last evaluation, so nothing kept is lost on interruption. Whatever is in the folder
+    is read: evaluations made after that checkpoint by the interrupted run stay (their policies
+    were trained like any other); remove the files to start afresh. The logged values
+    ``selection/control_return`` and ``selection/savings`` go out with the rollout's.
 
     Keep the validation seeds apart from those the policy is evaluated on afterwards: the kept
     policy's validation return is biased upwards (it is the maximum of several noisy ones).
 
-    :param eval_env: the joint env the validation episodes run in (not vectorised), or its id
+    :param eval_env: the joint env the validation episodes run in (not vectorised; the caller closes it)
     :param seeds: the validation episodes' seeds, one episode each
     :param eval_freq: environment steps between two evaluations (>= 1)
     :param tolerance: how far below the target the savings of a kept policy may lie (>= 0)
@@ -1037,7 +1040,7 @@ class SelectBestCallback(BaseCallback):
 
     def __init__(
         self,
-        eval_env: gym.Env | str,
+        eval_env: gym.Env,
         seeds: Sequence[int],
         eval_freq: int,
         tolerance: float = 0.01,
@@ -1050,7 +1053,7 @@ class SelectBestCallback(BaseCallback):
             raise ValueError("SelectBestCallback needs at least one validation seed.")
         if not (math.isfinite(tolerance) and tolerance >= 0):
             raise ValueError(f"tolerance must be a finite number >= 0, got {tolerance}.")
-        self.eval_env = gym.make(eval_env) if isinstance(eval_env, str) else eval_env
+        self.eval_env = eval_env
         self.seeds = [int(seed) for seed in seeds]
         self.eval_freq = check_integer("eval_freq", eval_freq, 1)
         self.tolerance = float(tolerance)
@@ -1059,7 +1062,7 @@ class SelectBestCallback(BaseCallback):
         self.evaluations: list[dict[str, Any]] = []
         self.best: dict[str, Any] | None = None  # the kept evaluation
         self.best_state: dict[str, th.Tensor] | None = None  # the kept policy's parameters
-        self.last = 0
+        self.last = 0  # the steps of the last evaluation
 
     def _init_callback(self) -> None:
         if self.save_path is None or not (self.save_path / "selection.json").is_file():
@@ -1067,22 +1070,20 @@ class SelectBestCallback(BaseCallback):
         saved = json.loads((self.save_path / "selection.json").read_text())
         self.evaluations = saved["evaluations"]
         self.best = saved["kept"]
+        self.last = max((e["timesteps"] for e in self.evaluations), default=0)
         if self.best is not None:
             policy = MlpHybridPolicy.load(str(self.save_path / "best_policy.pt"), device="cpu")
             self.best_state = {key: value.clone() for key, value in policy.state_dict().items()}
 
-    def _on_training_start(self) -> None:
-        self.last = self.num_timesteps
-
     def _on_step(self) -> bool:
         return True
 
-    def _on_rollout_end(self) -> None:
-        if self.num_timesteps - self.last >= self.eval_freq:
+    def _on_rollout_start(self) -> None:
+        if self.model.num_timesteps // self.eval_freq > self.last // self.eval_freq:
             self.evaluate()
 
     def _on_training_end(self) -> None:
-        if self.num_timesteps > self.last:
+        if self.model.num_timesteps > self.last:
             self.evaluate()
 
     def eligible(self, savings: float) -> bool:
@@ -1096,12 +1097,12 @@ class SelectBestCallback(BaseCallback):
 
     def evaluate(self) -> None:
         """Run the validation episodes with the current policy and keep it if it is the best so far."""
-        self.last = self.num_timesteps
+        self.last = self.model.num_timesteps
         if getattr(self.model, "fixed_trigger", None) is not None:
             return
         episodes = evaluate_episodes(self.model.policy, self.eval_env, self.seeds, sample_options=self.sample_options)
         result = {
-            "timesteps": self.num_timesteps,
+            "timesteps": self.model.num_timesteps,
             "control_return": float(np.mean(episodes.control_returns)),
             "savings": float(episodes.savings),
         }
@@ -1122,7 +1123,7 @@ class SelectBestCallback(BaseCallback):
         if self.verbose:
             below = "" if eligible else " (below the target)"
             print(
-                f"validation at {self.num_timesteps} steps: control return {result['control_return']:.1f}, "
+                f"validation at {self.model.num_timesteps} steps: control return {result['control_return']:.1f}, "
                 f"savings {result['savings']:.3f}{below}",
                 flush=True,
             )

@@ -59,8 +59,7 @@ from sb3_detc.evaluation import EVAL_SEED, Episodes, evaluate_episodes, evaluate
 from sb3_detc.mappoc import MAPPOC
 from sb3_detc.mappoc.mappoc import FixedTrigger
 from sb3_detc.mappoc.policies import MlpHybridPolicy
-from sb3_detc.study.spec import load_folder_study
-from sb3_detc.study.trial import entry_fixed_trigger
+from sb3_detc.study.spec import entry_fixed_trigger, load_folder_study
 from sb3_detc.triggers import TRIGGER_FAMILIES, RandomTrigger
 
 __all__ = ["EPISODES", "Saved", "load_saved", "main", "modes_table", "read_policy", "record_episode"]

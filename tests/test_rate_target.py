@@ -247,7 +247,7 @@ def test_mu_reads_the_others_ages_only_where_asked(tmp_path) -> None:
 
 
 def test_an_agent_controller_on_the_others_ages_decides_from_them() -> None:
-    """A policy over options set by hand to broadcast two steps after agent 0 did, as a controller."""
+    """A policy over options set by hand to broadcast in the step after one in which agent 0 broadcast."""
     model = make(policy_kwargs={"net_arch": [8], "option_others_age_scale": 1.0})
     n_trig = model.observation_space["trigger"].shape[1]
     option_net = th.nn.Linear(2 * n_trig + 1, 2)  # two agents: agent 1 reads agent 0's age

@@ -29,14 +29,13 @@ from sb3_detc.study import report
 from sb3_detc.study.__main__ import main as study_main
 from sb3_detc.study.report import report_study, splice, summarise
 from sb3_detc.study.runner import prepare_folder, run_study, trials_to_run
-from sb3_detc.study.spec import Selection, StudyError, load_folder_study, load_study
+from sb3_detc.study.spec import Selection, StudyError, entry_fixed_trigger, load_folder_study, load_study
 from sb3_detc.study.trial import (
     FINISHED_FILES,
     MODES,
     PROGRESS_DIGITS,
     code_commit,
     drop_stale_segments,
-    entry_fixed_trigger,
     read_status,
     trial_folder,
 )
@@ -223,7 +222,7 @@ def test_the_shipped_study_files_load():
     }
     (selected,) = [a for a in rate.algorithms if a.selection is not None]
     assert selected.label == "predictive_first_90_lambda50_select" and selected.selection.every == 25600
-    assert rate.validation_seeds(selected) == list(range(10050, 10100))  # after the evaluation's 50 episodes
+    assert rate.validation_seeds(50) == list(range(10050, 10100))  # after the evaluation's 50 episodes
     # the receivers' predictions shown, at five times the others' budget, at the same and at twenty times
     held = {a.label: a for a in rate.algorithms if a.label.startswith("predicted_held")}
     assert all(a.hyperparams["env_kwargs"]["predicted_held"] for a in held.values())
@@ -287,7 +286,7 @@ def test_the_shipped_study_files_load():
         "policy_kwargs": kwargs + ", broadcast_interval=(8, 24))",
     }
     assert learned_in_window.selection == Selection(every=307_200, episodes=20)  # the validation-best policy kept
-    assert window.validation_seeds(learned_in_window) == list(range(10050, 10070))
+    assert window.validation_seeds(20) == list(range(10050, 10070))
 
 
 def test_command_line_bad_input_is_one_line_with_exit_code_2(tmp_path, capsys):
@@ -1233,19 +1232,19 @@ def test_a_trial_with_selection_keeps_its_best_policy_across_an_interruption(tmp
     learned = {"algo": "mappoc", "hyperparams": {"target_savings": 0.5}, "selection": selection}
     spec = load_study(write_study(tmp_path, {**TINY, "seeds": [0], "n_timesteps": 4096, "algorithms": {"a": learned}}))
     (trial,) = spec.trials()
-    assert spec.validation_seeds(trial.algorithm) == [503, 504]  # right after the evaluation's 3 episodes from 500
+    assert spec.validation_seeds(2) == [503, 504]  # right after the evaluation's 3 episodes from 500
     folder = trial_folder(prepare_folder(spec, tmp_path / "out"), trial)
 
     with pytest.raises(KeyboardInterrupt):
         run_trial(spec, trial, tmp_path / "out", on_progress=stop_after_the_first_checkpoint)
     first = json.loads((folder / "selection.json").read_text())
-    assert [e["timesteps"] for e in first["evaluations"]] == [1024, 2048]  # at the ends of the rollouts
+    assert [e["timesteps"] for e in first["evaluations"]] == [1024]  # stopped at the start of the rollout from 2048
     status = run_trial(spec, trial, tmp_path / "out")
     assert status["status"] == "done"
     record = json.loads((folder / "selection.json").read_text())
     evaluations = record["evaluations"]
-    assert evaluations[:2] == first["evaluations"]  # the interrupted attempt's validations stay
-    assert [e["timesteps"] for e in evaluations[2:]] == [3072, 4096]
+    assert evaluations[:1] == first["evaluations"]  # the interrupted attempt's validations stay
+    assert [e["timesteps"] for e in evaluations[1:]] == [2048, 3072, 4096]  # from the checkpoint on, on schedule
     eligible = [e for e in evaluations if e["savings"] >= 0.5 - 0.01]
     assert eligible and record["kept"] == max(eligible, key=lambda e: e["control_return"])
     assert sorted(p.name for p in folder.iterdir()) == sorted((*FINISHED_FILES, "selection.json"))
@@ -1268,12 +1267,16 @@ def test_a_trial_with_selection_keeps_its_best_policy_across_an_interruption(tmp
         ({"every": 10, "often": 1}, "unknown key 'often' in 'selection' of 'a'"),
         ({"every": 10, "tolerance": 1.5}, r"'selection: tolerance' of 'a' must be a number in \[0, 1\)"),
         ({"every": 10, "seed": -1}, "'selection: seed' of 'a' must be an integer >= 0"),
+        ({"every": 10, "seed": 498}, r"the validation episodes of 'a' \('selection: seed'\) overlap the evaluation's"),
     ],
 )
 def test_a_malformed_selection_is_refused(tmp_path, selection, message):
     content = {**TINY, "algorithms": {"a": {"algo": "mappoc", "selection": selection}}}
     with pytest.raises(StudyError, match=message):
         load_study(write_study(tmp_path, content))
+    fixed = {**TINY, "algorithms": {"a": {"algo": "ppo_random_skip", "selection": {"every": 10}}}}
+    with pytest.raises(StudyError, match="'a' trains under a fixed trigger .*nothing to select"):
+        load_study(write_study(tmp_path, fixed))
     good = {**TINY, "algorithms": {"a": {"algo": "mappoc", "selection": {"every": 10, "seed": 7, "episodes": 2}}}}
     spec = load_study(write_study(tmp_path, good))
-    assert spec.validation_seeds(spec.algorithms[0]) == [7, 8]
+    assert spec.algorithms[0].selection == Selection(every=10, episodes=2, seed=7)

@@ -346,7 +346,7 @@ def selection_lines(directory: Path, spec: StudySpec, algorithm: AlgorithmSpec, 
     :return: the lines (a sentence, then one line per seed)
     """
     selection = algorithm.selection
-    validation = spec.validation_seeds(algorithm)
+    validation = spec.validation_seeds(selection.episodes, selection.seed)
     first, last = validation[0], validation[-1]
     lines = [
         f"The final policy of every seed is the one that did best on {selection.episodes} validation episodes "

@@ -54,7 +54,17 @@ STOP_FILE = ".stop"
 LOCK_FILE = ".lock"
 
 #: The lines of a study folder's ``.gitignore`` (:func:`prepare_folder`).
-IGNORED = (".ray/", STOP_FILE, LOCK_FILE, "*.tmp", "*.tmp.*", "checkpoint.zip", "checkpoint.json", "segments/")
+IGNORED = (
+    ".ray/",
+    STOP_FILE,
+    LOCK_FILE,
+    "*.tmp",
+    "*.tmp.*",
+    "checkpoint.zip",
+    "checkpoint.json",
+    "segments/",
+    "best_policy.pt",
+)
 
 
 def prepare_folder(spec: StudySpec, directory: str | os.PathLike) -> Path:
@@ -63,7 +73,7 @@ def prepare_folder(spec: StudySpec, directory: str | os.PathLike) -> Path:
     The folder keeps a copy of the study file (``study.yml``), of every hyperparameter file
     that it names (``conf/<label><suffix>``, see :func:`~sb3_detc.study.spec.load_folder_study`)
     and a ``.gitignore`` for Ray's files, scratch files and what a trial keeps only while it
-    trains (its checkpoint and its segments, :mod:`sb3_detc.study.trial`): a committed study
+    trains (its checkpoint, its segments and a selection's kept policy, :mod:`sb3_detc.study.trial`): a committed study
     holds its trials' results, and an unfinished trial resumes from its checkpoint on the
     machine that trains it.
 

@@ -44,7 +44,9 @@ from pathlib import Path
 from typing import Any
 
 import yaml
+from rl_zoo3.utils import get_callback_list
 
+from sb3_detc.callbacks import FixedTriggerCallback
 from sb3_detc.cli import InputError, check_algorithm, check_env, check_hyperparams_file
 from sb3_detc.renamed import renamed_keys
 from sb3_detc.triggers import TRIGGER_FAMILIES
@@ -59,6 +61,7 @@ __all__ = [
     "StudySpec",
     "Trial",
     "conf_copy",
+    "entry_fixed_trigger",
     "load_folder_study",
     "load_study",
     "same_study",
@@ -182,17 +185,15 @@ class StudySpec:
         ]
         return [trial for _, _, trial in sorted(trials, key=lambda item: item[:2])]
 
-    def validation_seeds(self, algorithm: AlgorithmSpec) -> list[int]:
-        """The seeds of an algorithm's validation episodes (its ``selection``), one per episode.
+    def validation_seeds(self, episodes: int, seed: int | None = None) -> list[int]:
+        """The seeds of validation episodes (a ``selection``'s), one per episode.
 
-        :param algorithm: one of :attr:`algorithms`, with a ``selection``
-        :return: ``episodes`` seeds from its ``seed``, by default right after the evaluation's episodes
+        :param episodes: how many
+        :param seed: the first one's (None: right after the evaluation's episodes)
+        :return: ``seed``, ``seed + 1``, ...
         """
-        selection = algorithm.selection
-        if selection is None:
-            raise ValueError(f"algorithm {algorithm.label!r} has no selection")
-        first = self.eval_seed + self.episodes if selection.seed is None else selection.seed
-        return list(range(first, first + selection.episodes))
+        first = self.eval_seed + self.episodes if seed is None else seed
+        return list(range(first, first + episodes))
 
     def budget(self, algorithm: AlgorithmSpec) -> int:
         """Training steps of one trial of ``algorithm``.
@@ -201,6 +202,19 @@ class StudySpec:
         :return: the study's ``n_timesteps`` if it has one, else the ``n_timesteps`` of the algorithm's entry
         """
         return int(self.n_timesteps if self.n_timesteps is not None else algorithm.entry["n_timesteps"])
+
+
+def entry_fixed_trigger(entry: dict[str, Any]) -> Any:
+    """The trigger of a fixed-trigger callback in a hyperparameter entry (the random-skip baseline), else None.
+
+    :param entry: a hyperparameter entry (its ``callback`` is read)
+    :return: the trigger the entry trains with instead of the policy over options, or None
+    """
+    if "callback" not in entry:
+        return None
+    callbacks = get_callback_list({"callback": entry["callback"]})
+    triggers = [c.trigger for c in callbacks if isinstance(c, FixedTriggerCallback)]
+    return triggers[0] if triggers else None
 
 
 def _fail(path: Path, message: str) -> StudyError:
@@ -329,6 +343,12 @@ def _algorithm(
         cpus = int(entry.get("n_envs", 1)) if uses_rollout_workers(entry) else 1
     cpus = _int(path, f"'cpus' of {label!r}", cpus, 1)
     selection = _selection(path, label, settings["selection"]) if "selection" in settings else None
+    if selection is not None and entry_fixed_trigger(entry) is not None:
+        raise _fail(
+            path,
+            f"algorithm {label!r} trains under a fixed trigger ({entry_fixed_trigger(entry)!r}): its policy over "
+            "options never decides, there is nothing to select ('selection')",
+        )
     return AlgorithmSpec(label, algo, conf, dict(hyperparams), trial_seeds, cpus, entry, "conf" in settings, selection)
 
 
@@ -473,7 +493,16 @@ def load_study(path: str | os.PathLike, conf_folder: str | os.PathLike | None = 
         raise _fail(path, "'algorithms' must be a non-empty mapping of labels to settings")
     specs = tuple(_algorithm(path, env, label, settings, seeds, conf_folder) for label, settings in algorithms.items())
     study = StudySpec(path, text, env, n_timesteps, interval, episodes, eval_seed, specs, tuple(families))
+    evaluated = set(range(eval_seed, eval_seed + episodes))
     for algorithm in specs:
         if study.budget(algorithm) < 1:
             raise _fail(path, f"algorithm {algorithm.label!r} trains 0 steps: its 'n_timesteps' must be >= 1")
+        selection = algorithm.selection
+        if selection is not None and evaluated & set(study.validation_seeds(selection.episodes, selection.seed)):
+            raise _fail(
+                path,
+                f"the validation episodes of {algorithm.label!r} ('selection: seed') overlap the evaluation's "
+                f"(seeds {eval_seed} to {eval_seed + episodes - 1}): the kept policy would be judged on episodes it "
+                "was chosen on",
+            )
     return study

@@ -17,11 +17,12 @@ A trial's folder (``<study dir>/trials/<label>/seed<seed>/``) holds plain files:
   (``config.yml``, monitor files, the logger's ``progress.csv``);
 * when done: ``policy.pt`` (the final policy only, :meth:`MlpHybridPolicy.load`) and
   ``evaluation.json`` (:func:`evaluate_policy_modes`); the checkpoint and the segments are
-  removed, so that a finished trial holds :data:`FINISHED_FILES` alone;
+  removed, so that a finished trial holds :data:`FINISHED_FILES` alone (and ``selection.json``, below);
 * ``error.txt``: the traceback of the last failure (removed when the trial is done);
-* for an algorithm with a ``selection``: ``selection.json``, every validation and the kept one
-  (:class:`~sb3_detc.callbacks.SelectBestCallback`), which stays, and while it trains
-  ``best_policy.pt``, the kept policy, which becomes ``policy.pt``.
+* for an algorithm with a ``selection`` (:data:`SELECTION_FILES`): ``selection.json``, every
+  validation and the kept one (:class:`~sb3_detc.callbacks.SelectBestCallback`), which stays, and
+  while it trains ``best_policy.pt``, the kept policy, which becomes ``policy.pt`` (ignored by git
+  like the checkpoint: carry both to resume elsewhere).
 """
 
 from __future__ import annotations
@@ -44,22 +45,22 @@ from typing import Any
 import gymnasium as gym
 import pandas as pd
 import torch as th
-from rl_zoo3.utils import get_callback_list
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.save_util import load_from_zip_file
 
 import sb3_detc
-from sb3_detc.callbacks import FixedTriggerCallback, SelectBestCallback
+from sb3_detc.callbacks import SelectBestCallback
 from sb3_detc.evaluation import MODES, SUCCESS_NO_FALL, SUCCESS_TRAVEL, carries_package, evaluate_policy_modes
 from sb3_detc.files import replace_atomically
 from sb3_detc.mappoc.policies import MlpHybridPolicy
 from sb3_detc.plot import PROGRESS_CSV, PROGRESS_XZ
 from sb3_detc.renamed import renamed_column
-from sb3_detc.study.spec import StudySpec, Trial
+from sb3_detc.study.spec import StudySpec, Trial, entry_fixed_trigger
 from sb3_detc.zoo import ExperimentManager
 
 __all__ = [
     "FINISHED_FILES",
+    "SELECTION_FILES",
     "MODES",
     "PROGRESS_DIGITS",
     "SUCCESS_NO_FALL",
@@ -67,7 +68,6 @@ __all__ = [
     "TrialCheckpoint",
     "carries_package",
     "code_commit",
-    "entry_fixed_trigger",
     "evaluate_policy_modes",
     "evaluate_trial",
     "exclusive",
@@ -86,6 +86,9 @@ LEARNER_THREADS = 1
 
 #: The files of a finished trial's folder: nothing else is kept.
 FINISHED_FILES = ("evaluation.json", "policy.pt", PROGRESS_XZ, "status.json")
+#: The files of a trial's ``selection`` (:class:`~sb3_detc.callbacks.SelectBestCallback`): the record, which
+#: stays when the trial is done, and the kept policy, which is then ``policy.pt``.
+SELECTION_FILES = ("selection.json", "best_policy.pt")
 
 
 def trial_folder(directory: str | os.PathLike, trial: Trial) -> Path:
@@ -299,19 +302,6 @@ def machine_record() -> dict[str, Any]:
     }
 
 
-def entry_fixed_trigger(entry: dict[str, Any]) -> Any:
-    """The trigger of a fixed-trigger callback in a hyperparameter entry (the random-skip baseline), else None.
-
-    :param entry: a hyperparameter entry (its ``callback`` is read)
-    :return: the trigger the entry trains with instead of the policy over options, or None
-    """
-    if "callback" not in entry:
-        return None
-    callbacks = get_callback_list({"callback": entry["callback"]})
-    triggers = [c.trigger for c in callbacks if isinstance(c, FixedTriggerCallback)]
-    return triggers[0] if triggers else None
-
-
 def trial_manager(
     spec: StudySpec,
     trial: Trial,
@@ -402,7 +392,7 @@ def _train(spec: StudySpec, trial: Trial, folder: Path, on_progress: Callable[[i
 
     checkpoints = TrialCheckpoint(folder, spec.checkpoint_interval, on_progress, saved)
     manager.callbacks.append(checkpoints)
-    select = selection_callback(spec, trial, folder)
+    select = selection_callback(spec, trial, folder, start)
     if select is not None:
         manager.callbacks.append(select)
     interrupted = False
@@ -429,23 +419,37 @@ def _train(spec: StudySpec, trial: Trial, folder: Path, on_progress: Callable[[i
     replace_atomically(folder / "policy.pt", lambda scratch: model.policy.save(str(scratch)), "policy.tmp.pt")
 
 
-def selection_callback(spec: StudySpec, trial: Trial, folder: Path) -> SelectBestCallback | None:
+def selection_callback(spec: StudySpec, trial: Trial, folder: Path, start: int) -> SelectBestCallback | None:
     """The callback that keeps a trial's policy best on its algorithm's validation episodes.
 
     Its record (``selection.json``) and the kept policy (``best_policy.pt``) are in the trial's
-    folder, so that a resumed trial goes on with them.
+    folder, so that a trial resumed from its checkpoint goes on with them; a trial that starts
+    afresh (``start`` 0) drops those of an attempt that left no checkpoint.
 
     :param spec: the study
     :param trial: the trial
     :param folder: the trial's folder
-    :return: the callback; None if the algorithm has no ``selection``
+    :param start: the step the trial resumes from (0 without a checkpoint)
+    :return: the callback (its validation env to be closed by the caller); None if the algorithm has no ``selection``
     """
     selection = trial.algorithm.selection
     if selection is None:
         return None
-    env = gym.make(spec.env, **(trial.algorithm.entry.get("env_kwargs") or {}))
-    seeds = spec.validation_seeds(trial.algorithm)
-    return SelectBestCallback(env, seeds, selection.every, selection.tolerance, save_path=folder, verbose=0)
+    if start == 0:
+        for stale in SELECTION_FILES:
+            (folder / stale).unlink(missing_ok=True)
+    seeds = spec.validation_seeds(selection.episodes, selection.seed)
+    return SelectBestCallback(trial_env(spec, trial), seeds, selection.every, selection.tolerance, save_path=folder)
+
+
+def trial_env(spec: StudySpec, trial: Trial) -> gym.Env:
+    """A (not vectorised) env of a trial's entry, with its settings, as its evaluation runs it.
+
+    :param spec: the study
+    :param trial: the trial
+    :return: the env, for the caller to close
+    """
+    return gym.make(spec.env, **(trial.algorithm.entry.get("env_kwargs") or {}))
 
 
 def drop_stale_segments(folder: Path, start: int) -> None:
@@ -481,7 +485,7 @@ def evaluate_trial(spec: StudySpec, trial: Trial, directory: str | os.PathLike) 
     """
     folder = trial_folder(directory, trial)
     policy = MlpHybridPolicy.load(str(folder / "policy.pt"), device="cpu")
-    env = gym.make(spec.env, **(trial.algorithm.entry.get("env_kwargs") or {}))
+    env = trial_env(spec, trial)
     try:
         evaluation = evaluate_policy_modes(
             policy,
