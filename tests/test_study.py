@@ -34,6 +34,7 @@ from sb3_detc.study.trial import (
     FINISHED_FILES,
     MODES,
     PROGRESS_DIGITS,
+    SELECTION_FILES,
     code_commit,
     drop_stale_segments,
     read_status,
@@ -563,10 +564,10 @@ def test_a_committed_study_keeps_what_its_report_reads_and_nothing_else():
     unfinished = [trial for trial in trials if read_status(trial)["status"] != "done"]
     for trial in trials:
         names = {p.name for p in trial.iterdir()}
-        if trial in unfinished:
-            assert RESUME_FILES <= names <= RESUME_FILES | {PROGRESS_XZ}, trial
-        else:
-            assert sorted(names) == sorted(FINISHED_FILES), trial
+        if trial in unfinished:  # with a selection, also its record and kept policy
+            assert RESUME_FILES <= names <= RESUME_FILES | {PROGRESS_XZ, *SELECTION_FILES}, trial
+        else:  # with a selection, also its record
+            assert sorted(names - {"selection.json"}) == sorted(FINISHED_FILES), trial
     kept = [p for p in (ROOT / "benchmarks" / "studies").rglob("*") if p.is_file()]
     size = sum(p.stat().st_size for p in kept if not any(trial in p.parents for trial in unfinished))
     assert size < 64 * 2**20, f"benchmarks/studies holds {size / 2**20:.0f} MiB"
