@@ -65,7 +65,7 @@ def option_inputs(
     own_age: th.Tensor,
     age_scale: float,
     distance_scale: float,
-    others_age: th.Tensor,
+    others_age: th.Tensor | None,
     others_age_scale: float,
 ) -> th.Tensor:
     """Inputs of a policy over options ``mu_i``, for the joint policy and the decentralised controllers alike.
@@ -82,7 +82,8 @@ def option_inputs(
     :param own_age: the own age (..., 1)
     :param age_scale: factor of the own age (0: not an input)
     :param distance_scale: factor of the distance (0: not an input)
-    :param others_age: the others' ages, others in increasing order (..., N - 1)
+    :param others_age: the others' ages, others in increasing order (..., N - 1); read only with
+        ``others_age_scale`` > 0 (else None will do)
     :param others_age_scale: factor of the others' ages (0: not an input)
     :return: (..., 2 n_trig), then the scaled own age, distance and others' ages where they are inputs
     """
@@ -505,7 +506,7 @@ class MlpHybridPolicy(BasePolicy):
             obs["age"],
             self.option_age_scale,
             self.option_distance_scale,
-            others_ages(obs["age"], self.others),
+            others_ages(obs["age"], self.others) if self.option_others_age_scale > 0 else None,  # none per step unread
             self.option_others_age_scale,
         )
 
@@ -1078,14 +1079,13 @@ class AgentController(nn.Module):
                 raise ValueError(
                     "This controller reads the others' ages (option_others_age_scale > 0): pass others_age."
                 )
-            others_age = np.zeros(self.n_agents - 1)
         x = option_inputs(
             th.as_tensor(trigger, dtype=th.float32),
             th.as_tensor(trigger_held, dtype=th.float32),
             th.tensor([own_age], dtype=th.float32),
             self.option_age_scale,
             self.option_distance_scale,
-            th.as_tensor(others_age, dtype=th.float32),
+            None if others_age is None else th.as_tensor(others_age, dtype=th.float32),
             self.option_others_age_scale,
         )
         logits = self.option_net(self._with_id(x))
