@@ -1,6 +1,7 @@
 """Shared test settings."""
 
 import contextlib
+import importlib.util
 import io
 import os
 import runpy
@@ -10,6 +11,7 @@ import traceback
 import warnings
 from collections.abc import Callable
 from pathlib import Path
+from types import ModuleType
 
 import pytest
 import torch
@@ -41,6 +43,23 @@ def run_benchmark() -> Callable[..., subprocess.CompletedProcess]:
         return subprocess.run(command, check=check, capture_output=True, text=True, cwd=ROOT, env=env)
 
     return run
+
+
+@pytest.fixture(scope="module")
+def benchmark_module() -> Callable[[str], ModuleType]:
+    """Import a script of ``benchmarks/`` as a module, to test its functions.
+
+    The returned function takes the script's file name (e.g. ``"predictive_headroom.py"``) and
+    returns the module; its ``main`` does not run.
+    """
+
+    def load(script: str) -> ModuleType:
+        spec = importlib.util.spec_from_file_location(Path(script).stem, ROOT / "benchmarks" / script)
+        module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+        return module
+
+    return load
 
 
 @pytest.fixture

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 from pathlib import Path
 
@@ -10,16 +9,12 @@ import numpy as np
 import pytest
 
 SCRIPT = "broadcast_synchrony.py"
-PATH = Path(__file__).parents[1] / "benchmarks" / SCRIPT
 
 
 @pytest.fixture(scope="module")
-def script():
+def script(benchmark_module):
     """The benchmark script as a module."""
-    spec = importlib.util.spec_from_file_location("broadcast_synchrony", PATH)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return benchmark_module(SCRIPT)
 
 
 def test_schedules_in_phase_and_staggered_are_the_extremes(script) -> None:

@@ -2,9 +2,6 @@
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
 import numpy as np
 import pytest
 
@@ -12,16 +9,12 @@ from sb3_detc.envs.linear import LinearSystem, lqr_gain
 from sb3_detc.triggers import PredictiveTrigger
 
 SCRIPT = "predictive_headroom.py"
-PATH = Path(__file__).parents[1] / "benchmarks" / SCRIPT
 
 
 @pytest.fixture(scope="module")
-def headroom():
+def headroom(benchmark_module):
     """The benchmark script as a module."""
-    spec = importlib.util.spec_from_file_location("predictive_headroom", PATH)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return benchmark_module(SCRIPT)
 
 
 def growth_of_the_q_function(system: LinearSystem, agent: int, error: np.ndarray, rng: np.random.Generator) -> float:

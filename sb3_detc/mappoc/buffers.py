@@ -210,6 +210,21 @@ class HybridRolloutBuffer:
         self.returns = self.advantages + self.values
         self.broadcast_advantages = self.returns - self.state_values
 
+    def set_broadcast_advantages(
+        self, steps: np.ndarray, envs: np.ndarray, agents: np.ndarray, advantages: np.ndarray
+    ) -> None:
+        """Put broadcast advantages of some decisions in place of the stored ones, and zeros everywhere else.
+
+        For ``broadcast_advantage="replayed"``: ``mu`` learns from the replayed decisions only.
+
+        :param steps: the decisions' steps (K,)
+        :param envs: their envs (K,)
+        :param agents: their agents (K,)
+        :param advantages: their advantages (K,)
+        """
+        self.broadcast_advantages = np.zeros((self.buffer_size, self.n_envs, self.n_agents), dtype=np.float32)
+        self.broadcast_advantages[steps, envs, agents] = advantages
+
     def tensors(self, partial: bool = False) -> HybridRolloutSamples:
         """The whole rollout as tensors, environments and steps flattened into one batch axis.
 

@@ -53,6 +53,8 @@ _HYPERPARAMETER_RULES: dict[str, tuple[Callable[[Any], bool], str]] = {
     "target_kl": (lambda v: v is None or v > 0, "None or > 0"),
     "broadcast_price_lr": (lambda v: v > 0, "> 0"),
     "broadcast_advantage": (lambda v: v in BROADCAST_ADVANTAGES, " or ".join(map(repr, BROADCAST_ADVANTAGES))),
+    "replay_share": (lambda v: 0 < v <= 1, "in (0, 1]"),
+    "replay_horizon": (lambda v: is_integer(v, 1), "a positive integer"),
 }
 
 

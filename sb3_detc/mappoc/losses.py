@@ -3,8 +3,9 @@
 * control policy ``pi``: PPO's clipped surrogate on GAE advantages of the taken option;
 * critic ``Q``: squared error of the taken option's value against the lambda-return;
 * policy over options ``mu``: PPO's clipped surrogate on a broadcast advantage (greedy:
-  ``Q(o) - max_o' Q(o')`` with the current critic, or sampled: the lambda-return minus the
-  state value at collection time), plus an entropy bonus.
+  ``Q(o) - max_o' Q(o')`` with the current critic; sampled: the lambda-return minus the
+  state value at collection time; or replayed: measured in copies of the env,
+  :mod:`sb3_detc.mappoc.replays`), plus an entropy bonus.
 """
 
 from __future__ import annotations
@@ -24,7 +25,7 @@ if TYPE_CHECKING:
 STEP_STATS = ("pi_loss", "mu_loss", "q_loss", "entropy_mu", "clip_pi", "clip_mu", "kl_pi", "kl_mu")
 
 #: Kinds of broadcast advantage in ``mu``'s loss.
-BROADCAST_ADVANTAGES = ("greedy", "return")
+BROADCAST_ADVANTAGES = ("greedy", "return", "replayed")
 
 
 class UpdateInputs(NamedTuple):
@@ -117,7 +118,7 @@ class MAPPOCLoss(nn.Module):
 
     :param policy: the policy whose networks are trained
     :param vf_coef: coefficient of the critic's squared error
-    :param broadcast_advantage: ``"greedy"`` or ``"return"`` (see :class:`~sb3_detc.MAPPOC`)
+    :param broadcast_advantage: ``"greedy"``, ``"return"`` or ``"replayed"`` (see :class:`~sb3_detc.MAPPOC`)
     :param broadcast_advantage_offset: constant added to the broadcast advantages
     :param normalize_broadcast_advantage: divide the greedy broadcast advantages by every agent's
         root mean square broadcast gap over the minibatch (:func:`broadcast_gap_scale`)
@@ -146,6 +147,8 @@ class MAPPOCLoss(nn.Module):
         self.broadcast_advantages: Callable[[HybridEvaluation, HybridRolloutSamples], th.Tensor] = (
             self._sampled
             if broadcast_advantage == "return"
+            else self._replayed
+            if broadcast_advantage == "replayed"
             else self._greedy_normalized
             if normalize_broadcast_advantage
             else self._greedy
@@ -180,6 +183,15 @@ class MAPPOCLoss(nn.Module):
         :return: advantages (B, N)
         """
         return self.normalized(data.broadcast_advantages) + self.offset
+
+    def _replayed(self, evaluation: HybridEvaluation, data: HybridRolloutSamples) -> th.Tensor:
+        """Replayed broadcast advantages as stored (zero where no decision was replayed), without the offset.
+
+        :param evaluation: the current networks' evaluation of the minibatch (unused)
+        :param data: the minibatch (its ``broadcast_advantages``)
+        :return: advantages (B, N)
+        """
+        return data.broadcast_advantages
 
     def forward(self, update: UpdateInputs, idx: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
         """The loss of one gradient step on the minibatch ``idx`` and its statistics.

@@ -11,12 +11,13 @@ import numpy as np
 import torch as th
 from stable_baselines3.common.buffers import RolloutBuffer
 from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.on_policy_algorithm import OnPolicyAlgorithm
 from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.save_util import load_from_zip_file
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
 from stable_baselines3.common.utils import FloatSchedule, explained_variance, obs_as_tensor
-from stable_baselines3.common.vec_env import VecEnv
+from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv
 
 from sb3_detc.envs.wrappers import EventTriggeredNetwork, as_joint_env
 from sb3_detc.mappoc.buffers import HybridRolloutBuffer, HybridRolloutSamples
@@ -31,8 +32,16 @@ from sb3_detc.mappoc.checks import (
 )
 from sb3_detc.mappoc.losses import STEP_STATS, MAPPOCLoss, UpdateInputs
 from sb3_detc.mappoc.policies import MlpHybridPolicy, check_joint_spaces, drawn_broadcast_probability
+from sb3_detc.mappoc.replays import Replays
 from sb3_detc.mappoc.rewards import PRICE_RULES, RewardTransform, agent_rewards, broadcast_costs
-from sb3_detc.mappoc.sampling import FixedTrigger, Rollout, RolloutSampler, StepsTaken, truncated_episodes
+from sb3_detc.mappoc.sampling import (
+    FixedTrigger,
+    ReplayingSampler,
+    Rollout,
+    RolloutSampler,
+    StepsTaken,
+    truncated_episodes,
+)
 from sb3_detc.mappoc.steps import FusedGradientStep, GradientStep, compiles, make_gradient_step
 from sb3_detc.mappoc.workers import default_n_envs, make_rollout_workers
 from sb3_detc.renamed import REMOVED, RENAMED, renamed_action_space, renamed_keys, renamed_saved_data
@@ -74,13 +83,23 @@ class MAPPOC(OnPolicyAlgorithm):
     :param action_noise_std: standard deviation of extra Gaussian noise on the controls
         (the curriculum changes it during training); log-probabilities refer to the noisy controls
     :param broadcast_advantage: advantage of the taken option in ``mu``'s loss: ``"greedy"``
-        (the paper: ``Q(o) - max_o' Q(o')`` with the current critic) or ``"return"`` (the
-        lambda-return minus ``V(s) = sum_o mu(o) Q(s, o)`` at collection time)
-    :param broadcast_advantage_offset: constant added to the greedy broadcast advantage (the
-        paper's code used a 0.1 "deliberation" offset; the paper and the default use 0)
+        (the paper: ``Q(o) - max_o' Q(o')`` with the current critic), ``"return"`` (the
+        lambda-return minus ``V(s) = sum_o mu(o) Q(s, o)`` at collection time) or ``"replayed"``
+        (measured: at a share ``replay_share`` of the steps, one agent's decision is replayed in two
+        copies of the env, broadcasting and silent, with the same noise, :mod:`sb3_detc.mappoc.replays`;
+        ``mu`` learns from those decisions only, with the advantage ``(o - p) (Q(1) - Q(0))``, ``p``
+        its probability of broadcasting, weighted by ``N / replay_share``). ``"replayed"`` needs envs
+        that can be copied, in the learner's process (a ``DummyVecEnv``; MAPPOC builds one from an env id)
+    :param broadcast_advantage_offset: constant added to the greedy and the sampled broadcast advantage
+        (the paper's code used a 0.1 "deliberation" offset; the paper and the default use 0)
+    :param replay_share: with ``broadcast_advantage="replayed"``, the probability that a step of an env has a
+        replayed decision, in (0, 1]
+    :param replay_horizon: with ``broadcast_advantage="replayed"``, the steps a replay follows (at most to the
+        episode's end); the value of a broadcast after them is left out
     :param normalize_broadcast_advantage: divide every agent's greedy broadcast advantages by the
         root mean square of its critic's broadcast gap ``Q(1) - Q(0)`` over the minibatch (the
-        paper: raw advantages)
+        paper: raw advantages), or its replayed values of a broadcast by their root mean square over
+        the rollout
     :param reward_scale: factor applied to rewards for learning only (paper: 0.1)
     :param normalize_reward: divide every agent's (scaled) reward by a running standard
         deviation of its discounted return, clipped to [-10, 10], as ``VecNormalize`` does
@@ -151,6 +170,8 @@ class MAPPOC(OnPolicyAlgorithm):
         broadcast_advantage: str = "greedy",
         broadcast_advantage_offset: float = 0.0,
         normalize_broadcast_advantage: bool = False,
+        replay_share: float = 0.25,
+        replay_horizon: int = 60,
         reward_scale: float = 0.1,
         normalize_reward: bool = False,
         team_reward: bool = False,
@@ -201,13 +222,17 @@ class MAPPOC(OnPolicyAlgorithm):
             normalize_advantage=normalize_advantage,
             broadcast_price_lr=broadcast_price_lr,
             broadcast_advantage=broadcast_advantage,
+            replay_share=replay_share,
+            replay_horizon=replay_horizon,
         )
         policy_kwargs = dict(policy_kwargs or {})
         if share_parameters and not policy_kwargs.get("share_parameters", True):
             raise ValueError("share_parameters=True contradicts policy_kwargs['share_parameters']=False: give one.")
         policy_kwargs.setdefault("share_parameters", share_parameters)
         owns_env = isinstance(env, str)
-        if owns_env:  # after the checks: no worker processes for a model that cannot be built
+        if owns_env and broadcast_advantage == "replayed":  # copied at replayed decisions: in this process
+            env = make_vec_env(env, n_envs=n_envs, seed=seed, vec_env_cls=DummyVecEnv)  # type: ignore[arg-type]
+        elif owns_env:  # after the checks: no worker processes for a model that cannot be built
             env = make_rollout_workers(env, n_envs, seed)  # type: ignore[arg-type]
         try:  # a model refused from here on (e.g. for its policy_kwargs) ends the workers it started
             n_steps, batch_size, n_epochs = int(n_steps), int(batch_size), int(n_epochs)  # e.g. from numpy
@@ -244,6 +269,8 @@ class MAPPOC(OnPolicyAlgorithm):
             self.broadcast_advantage = broadcast_advantage
             self.broadcast_advantage_offset = broadcast_advantage_offset
             self.normalize_broadcast_advantage = normalize_broadcast_advantage
+            self.replay_share = float(replay_share)
+            self.replay_horizon = int(replay_horizon)
             self.reward_scale = reward_scale
             self.normalize_reward = normalize_reward
             self.team_reward = team_reward
@@ -313,7 +340,11 @@ class MAPPOC(OnPolicyAlgorithm):
         :param compiled: whether to compile them
         """
         self._compiled = compiled
-        self.sampler = RolloutSampler(self.policy, compiled)
+        self.sampler = (
+            ReplayingSampler(self.policy, compiled, self.replay_share, self.replay_horizon, self.gamma)
+            if self.broadcast_advantage == "replayed"
+            else RolloutSampler(self.policy, compiled)
+        )
         self.gradient_step: GradientStep | FusedGradientStep = make_gradient_step(
             self.loss, self.policy.optimizer, self.max_grad_norm, self.target_kl, compiled
         )
@@ -544,6 +575,37 @@ class MAPPOC(OnPolicyAlgorithm):
             price,
         )
         buffer.compute_returns_and_advantage(last_values=last_values, dones=rollout.dones[-1])
+        if rollout.replays is not None:
+            buffer.set_broadcast_advantages(
+                rollout.replays.steps, rollout.replays.envs, rollout.replays.agents, self.replayed_advantages(rollout)
+            )
+
+    def replayed_advantages(self, rollout: Rollout) -> np.ndarray:
+        """``mu``'s advantages of the taken options at a rollout's replayed decisions, in the learner's units.
+
+        The value of a broadcast ``Q(1) - Q(0)`` is the replayed difference of the learner's rewards (the
+        environment's through :meth:`RewardTransform.converted`, minus the rate target's price per own
+        broadcast); the taken option ``o`` gets ``(o - p) (Q(1) - Q(0))`` with ``p`` the probability of
+        broadcasting it was drawn with, weighted by ``N / replay_share``: over the rollout, the
+        gradient of every decision's advantage in expectation. With ``normalize_broadcast_advantage``
+        the values are divided by every agent's root mean square value over the rollout's replays.
+
+        :param rollout: a rollout with its replays (:class:`~sb3_detc.mappoc.replays.Replays`)
+        :return: advantages (K,), in the order of the replays
+        """
+        replays: Replays = rollout.replays  # type: ignore[assignment]
+        rows = np.arange(len(replays.agents))
+        value = self.reward_transform.converted(replays.rewards)[rows, replays.agents]
+        value -= self.broadcast_price * replays.broadcasts[rows, replays.agents]
+        if self.normalize_broadcast_advantage:  # every agent's values over the rollout, as the greedy gap's
+            square = np.bincount(replays.agents, value**2, self.n_agents) / np.maximum(
+                np.bincount(replays.agents, minlength=self.n_agents), 1
+            )
+            value = value / (np.sqrt(square)[replays.agents] + 1e-8)
+        taken = rollout.broadcast[replays.steps, replays.envs, replays.agents]
+        p_taken = np.exp(self.rollout_buffer.log_prob_broadcast[replays.steps, replays.envs, replays.agents])
+        p_broadcast = np.where(taken == 1, p_taken, 1.0 - p_taken)
+        return (taken - p_broadcast) * value * (self.n_agents / self.replay_share)
 
     # ------------------------------------------------------------------ updates
     def train(self) -> None:

@@ -101,6 +101,21 @@ class RewardTransform:
             return 1.0
         return np.sqrt(self.return_rms.var + 1e-8)
 
+    def converted(self, rewards: np.ndarray) -> np.ndarray:
+        """Per-agent rewards (or sums of them) in the learner's units, without touching the statistics.
+
+        Scaled, shared by the team, divided by the return spread, as :meth:`__call__` does; the
+        clipping is ignored (as in :meth:`price`). For quantities that are not steps of the training
+        envs, e.g. the replayed differences of :mod:`sb3_detc.mappoc.replays`.
+
+        :param rewards: per-agent rewards (..., N)
+        :return: the same in the learner's units, float64 (..., N)
+        """
+        rewards = self.scale * np.asarray(rewards, dtype=np.float64)
+        if self.team:
+            rewards = np.repeat(rewards.mean(axis=-1, keepdims=True), self.n_agents, axis=-1)
+        return rewards / self.spread()
+
     def price(self, broadcast_cost: np.ndarray) -> np.ndarray:
         """What an agent's own broadcast costs in the learner's reward units, (n_envs, N).
 

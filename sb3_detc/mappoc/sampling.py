@@ -27,6 +27,8 @@ import torch as th
 from stable_baselines3.common.utils import obs_as_tensor
 from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecEnv
 
+from sb3_detc.mappoc.replays import Replays, chosen_decisions, copyable_env, replay, replayed_observations, snapshot
+
 #: Signature of a fixed trigger: a batch of joint observations (B, N, ...) -> options (B, N). A trigger
 #: with ``broadcast_probability(obs)`` (B, N) (without side effects, as :mod:`sb3_detc.triggers` have)
 #: gives the learner its probabilities of broadcasting for the values at the rollout's end and at
@@ -54,6 +56,7 @@ class Rollout(NamedTuple):
     :param dones: episode ends (T, B)
     :param infos: T lists of B infos; at an episode end also ``"reset_info"``
     :param last_obs: joint observations after the last step, (B, N, ...) per key
+    :param replays: the rollout's replayed decisions (:class:`ReplayingSampler`; None: none)
     """
 
     observations: dict[str, np.ndarray]
@@ -62,6 +65,7 @@ class Rollout(NamedTuple):
     dones: np.ndarray
     infos: list[list[dict[str, Any]]]
     last_obs: dict[str, np.ndarray]
+    replays: Replays | None = None
 
     def flat_tensors(self, device: th.device | str) -> tuple[dict[str, th.Tensor], th.Tensor, th.Tensor]:
         """Observations, options and controls of all steps as one batch (T * B, ...), step by step.
@@ -237,17 +241,19 @@ class RolloutSampler:
         space = self.policy.action_space["control"]
         return space.low, space.high
 
-    def _here(self, action_noise_std: float) -> Act:
+    def _here(self, action_noise_std: float, sample: Callable[..., tuple[th.Tensor, th.Tensor]] | None = None) -> Act:
         """Actions of the policy in this process.
 
         :param action_noise_std: extra Gaussian noise on the controls
+        :param sample: the policy's sampling to use (None: the sampler's, compiled where it compiles)
         :return: the ``act`` of :func:`run_steps`
         """
         device = self.policy.device
+        sample_actions = self._sample_actions if sample is None else sample
 
         def act(obs: dict[str, np.ndarray], forced: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
             with th.no_grad():
-                broadcast, control = self._sample_actions(
+                broadcast, control = sample_actions(
                     obs_as_tensor(obs, device),  # type: ignore[arg-type]
                     action_noise_std,
                     None if forced is None else th.as_tensor(forced, device=device),
@@ -309,6 +315,87 @@ class RolloutSampler:
         )
         self._workers_hold = env
         return lambda: joined(collect())
+
+
+class ReplayingSampler(RolloutSampler):
+    """The learner's sampling with replayed decisions, for ``broadcast_advantage="replayed"``.
+
+    Rollouts of ``mu``'s options run in this process (the envs must be copied, so a ``DummyVecEnv``);
+    at every step of every env, with probability ``share``, the env is copied before the step and one
+    random agent's decision is replayed after the rollout (:func:`~sb3_detc.mappoc.replays.replay`)
+    with the policy's parameters of the rollout. Rollouts of a fixed trigger, from which ``mu`` does
+    not learn, are sampled as :class:`RolloutSampler` samples them.
+
+    :param policy: the policy that samples
+    :param compiled: compile the rollout's sampling (the replays' batches change size: they run eagerly)
+    :param share: probability that a step of an env has a replayed decision, in (0, 1]
+    :param horizon: steps of a replay (>= 1)
+    :param gamma: discount factor of the replayed rewards
+    """
+
+    def __init__(self, policy: Any, compiled: bool, share: float, horizon: int, gamma: float) -> None:
+        super().__init__(policy, compiled)
+        self.share, self.horizon, self.gamma = share, horizon, gamma
+
+    def in_workers(self, env: VecEnv, trigger: FixedTrigger | None) -> bool:
+        """Whether a rollout can be sampled in rollout workers: only a fixed trigger's.
+
+        :param env: the training env
+        :param trigger: the fixed trigger (None: ``mu``)
+        :return: True for a fixed trigger that runs in ``env``'s rollout workers
+        """
+        return trigger is not None and super().in_workers(env, trigger)
+
+    def sample(
+        self,
+        env: VecEnv,
+        obs: dict[str, np.ndarray],
+        n_steps: int,
+        action_noise_std: float,
+        trigger: FixedTrigger | None,
+        meanwhile: Callable[[], None] | None = None,
+    ) -> Rollout:
+        """Sample ``n_steps`` steps of every env, and replay some of ``mu``'s decisions.
+
+        :param env: the training env (a ``DummyVecEnv`` for rollouts of ``mu``)
+        :param obs: the envs' current observations
+        :param n_steps: steps per env
+        :param action_noise_std: extra Gaussian noise on the controls, in the rollout and in the replays
+        :param trigger: the fixed trigger that takes the options (None: ``mu``)
+        :param meanwhile: as for :meth:`RolloutSampler.sample`
+        :return: the steps of all envs, with the replays of ``mu``'s rollouts
+        :raises ValueError: if the envs of a rollout of ``mu`` are not in this process or cannot be copied
+        """
+        if trigger is not None:
+            return super().sample(env, obs, n_steps, action_noise_std, trigger, meanwhile)
+        if not isinstance(env, DummyVecEnv):
+            raise ValueError(
+                "broadcast_advantage='replayed' copies the training envs, so they must run in the learner's "
+                f"process (a DummyVecEnv), got {type(env).__name__}."
+            )
+        self.last_in_workers = False
+        envs, bounds = [copyable_env(e) for e in env.envs], self._bounds()
+        seed = int(th.randint(2**31 - 1, ()).item())
+        chosen = chosen_decisions(n_steps, env.num_envs, len(obs["age"][0]), self.share, np.random.default_rng(seed))
+        copies: list[Any] = []
+        vec_env_step, step = self._vec_env_step(env), 0
+
+        def env_step(broadcast: np.ndarray, control: np.ndarray) -> tuple[dict, np.ndarray, list[dict[str, Any]]]:
+            nonlocal step
+            copies.extend(snapshot(envs[idx]) for idx in np.flatnonzero(chosen[step] >= 0))  # before the step
+            step += 1
+            return vec_env_step(broadcast, control)
+
+        rollout = run_steps(self._here(action_noise_std), env_step, obs, n_steps, None, *bounds)
+        steps, env_index = np.nonzero(chosen >= 0)  # step by step, the envs in order: as the copies were taken
+        agents = chosen[steps, env_index]
+        n_agents = rollout.broadcast.shape[-1]
+        rewards, broadcasts = np.zeros((len(agents), n_agents)), np.zeros((len(agents), n_agents))
+        if len(agents):
+            act = self._here(action_noise_std, self.policy.sample_actions)
+            observed = replayed_observations(rollout.observations, steps, env_index)
+            rewards, broadcasts = replay(act, copies, observed, agents, self.horizon, self.gamma, *bounds, seed)
+        return rollout._replace(replays=Replays(steps, env_index, agents, rewards, broadcasts))
 
 
 def joined(rollouts: list[Rollout]) -> Rollout:

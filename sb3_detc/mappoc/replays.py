@@ -1,0 +1,171 @@
+"""Replayed values of a broadcast: two copies of an env, one broadcasting and one silent, the same noise.
+
+A critic estimates what an agent's broadcast is worth from returns whose noise is many times
+larger than that worth, and on the linear system its estimate ranks the decisions unlike their
+true value. Where the env can be copied, the value can be measured instead: at a decision of a
+rollout, the env is copied twice; in one copy the agent broadcasts, in the other it stays silent,
+and both then follow the current policy for a number of steps with the same random numbers (the
+env's noise through its copied generator, the policy's samples through the same seeds). The
+difference of the two copies' discounted rewards is a low-variance sample of
+``Q_i(s, broadcast) - Q_i(s, silent)`` under the current policy (MAPPOC's
+``broadcast_advantage="replayed"``).
+
+:func:`replay` runs the copies of many decisions together, one batched policy evaluation per
+step and branch; :func:`copyable_env` finds what to copy of a training env.
+"""
+
+from __future__ import annotations
+
+import copy
+from collections.abc import Callable
+from typing import Any, NamedTuple
+
+import gymnasium as gym
+import numpy as np
+import torch as th
+from gymnasium.wrappers import OrderEnforcing, PassiveEnvChecker
+from stable_baselines3.common.monitor import Monitor
+
+#: How a batch of joint observations (B, N, ...) and the options to force (B, N) (None: ``mu`` decides)
+#: become options (B, N) and sampled controls (B, N, m), drawing from PyTorch's global generator.
+ReplayAct = Callable[[dict[str, np.ndarray], "np.ndarray | None"], tuple[np.ndarray, np.ndarray]]
+
+
+class Replays(NamedTuple):
+    """Replayed decisions of a rollout (K decisions, N agents).
+
+    :param steps: the rollout step of every decision (K,)
+    :param envs: the env of every decision (K,)
+    :param agents: the deciding agent (K,)
+    :param rewards: discounted sum of every agent's reward after a broadcast minus that after a silence (K, N),
+        in the env's units (``info["agent_rewards"]``, the communication cost included)
+    :param broadcasts: the same difference of every agent's discounted number of broadcasts (K, N)
+    """
+
+    steps: np.ndarray
+    envs: np.ndarray
+    agents: np.ndarray
+    rewards: np.ndarray
+    broadcasts: np.ndarray
+
+
+def copyable_env(env: gym.Env) -> gym.Env:
+    """What to copy of a training env: the env below the wrappers that keep books or check the API.
+
+    SB3's ``Monitor`` and the package's ``RolloutWorker`` keep books of the training episodes (and a
+    monitor file), Gymnasium's ``OrderEnforcing`` and ``PassiveEnvChecker`` check how the env is
+    called; none of them changes what a step does, and a replay is not a training episode.
+
+    :param env: one env of a vector env
+    :return: the first wrapper (or the env) below the outermost such wrappers
+    """
+    from sb3_detc.mappoc.workers import RolloutWorker  # the workers' module imports the sampling's
+
+    while isinstance(env, (Monitor, RolloutWorker, OrderEnforcing, PassiveEnvChecker)):
+        env = env.env
+    return env
+
+
+def snapshot(env: gym.Env) -> gym.Env:
+    """A copy of an env at its current state, its random generators included.
+
+    :param env: the env (:func:`copyable_env` of a training env)
+    :return: the copy
+    :raises ValueError: if the env cannot be copied
+    """
+    try:
+        return copy.deepcopy(env)
+    except Exception as error:  # e.g. a simulator whose objects cannot be copied
+        raise ValueError(
+            f"broadcast_advantage='replayed' copies the training envs, and {env} cannot be copied "
+            f"({type(error).__name__}: {error}); use another broadcast_advantage for this env."
+        ) from error
+
+
+def replay(
+    act: ReplayAct,
+    copies: list[gym.Env],
+    observations: dict[str, np.ndarray],
+    agents: np.ndarray,
+    horizon: int,
+    gamma: float,
+    low: np.ndarray,
+    high: np.ndarray,
+    seed: int,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Replay K decisions, each in two copies of its env: the agent broadcasts in one and stays silent in the other.
+
+    In both copies of a decision the other agents' options of the first step, and everything
+    later, come from ``act`` with the same seeds per step, so the two differ only through the
+    agent's option. Every copy steps until its episode ends or ``horizon`` steps have passed.
+
+    :param act: options and sampled controls of a batch (see :data:`ReplayAct`)
+    :param copies: the K envs at the decisions, copies of their own: the silent branch steps them
+    :param observations: their joint observations, (K, N, ...) per key
+    :param agents: the deciding agent of every decision (K,)
+    :param horizon: steps to follow (>= 1)
+    :param gamma: discount factor
+    :param low: lower bounds of the controls (N, m)
+    :param high: upper bounds of the controls (N, m)
+    :param seed: seed of the policy's samples
+    :return: per decision and agent, the discounted reward of the broadcasting copy minus that of the silent
+        one (K, N), and the same difference of discounted broadcasts (K, N)
+    """
+    k = len(copies)
+    rows = np.arange(k)
+    seeds = np.random.default_rng(seed).integers(2**31 - 1, size=horizon + 1)
+
+    def draw(step_seed: int, obs: dict[str, np.ndarray], forced: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        with th.random.fork_rng(devices=[]):  # the same numbers in both branches; the caller's stream untouched
+            th.manual_seed(int(step_seed))
+            return act(obs, forced)
+
+    first, _ = draw(seeds[0], observations, None)  # the others' options of the first step
+    totals = []
+    for option in (1, 0):
+        envs = [snapshot(env) for env in copies] if option == 1 else copies
+        obs = {key: np.array(value) for key, value in observations.items()}
+        alive = np.ones(k, bool)
+        rewards, broadcasts = np.zeros((k, first.shape[1])), np.zeros((k, first.shape[1]))
+        forced = first.copy()
+        forced[rows, agents] = option
+        for step in range(horizon):
+            options, controls = draw(seeds[step + 1], obs, forced if step == 0 else None)
+            controls = np.minimum(np.maximum(controls, low), high)
+            for i in np.flatnonzero(alive):
+                after, _, terminated, truncated, info = envs[i].step({"broadcast": options[i], "control": controls[i]})
+                rewards[i] += gamma**step * np.asarray(info["agent_rewards"], dtype=np.float64)
+                broadcasts[i] += gamma**step * options[i]
+                for key, value in after.items():
+                    obs[key][i] = value
+                alive[i] = not (terminated or truncated)
+            if not alive.any():
+                break
+        totals.append((rewards, broadcasts))
+    (rewards_1, broadcasts_1), (rewards_0, broadcasts_0) = totals
+    return rewards_1 - rewards_0, broadcasts_1 - broadcasts_0
+
+
+def chosen_decisions(n_steps: int, n_envs: int, n_agents: int, share: float, rng: np.random.Generator) -> np.ndarray:
+    """Which decisions of a rollout to replay: at every step of every env with probability ``share``, one random agent.
+
+    :param n_steps: steps of the rollout
+    :param n_envs: envs
+    :param n_agents: agents N
+    :param share: probability that a step of an env has a replayed decision, in (0, 1]
+    :param rng: the draws
+    :return: the deciding agent per step and env, -1 where none is replayed, (n_steps, n_envs)
+    """
+    agents = rng.integers(n_agents, size=(n_steps, n_envs))
+    return np.where(rng.random((n_steps, n_envs)) < share, agents, -1)
+
+
+def replayed_observations(observations: dict[str, np.ndarray], steps: np.ndarray, envs: np.ndarray) -> dict[str, Any]:
+    """The rollout's observations at the replayed decisions.
+
+    :param observations: the rollout's observations, (T, B, N, ...) per key
+    :param steps: the decisions' steps (K,)
+    :param envs: their envs (K,)
+    :return: (K, N, ...) per key
+    """
+    return {key: value[steps, envs] for key, value in observations.items()}
