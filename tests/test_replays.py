@@ -1,0 +1,186 @@
+"""Replayed values of a broadcast (sb3_detc.mappoc.replays) and MAPPOC's ``broadcast_advantage="replayed"``."""
+
+from __future__ import annotations
+
+import copy
+import threading
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch as th
+from stable_baselines3.common.env_util import make_vec_env
+from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
+
+import sb3_detc  # noqa: F401  (registers the env ids)
+from sb3_detc.mappoc import MAPPOC
+from sb3_detc.mappoc.replays import Replays, chosen_decisions, copyable_env, replay, snapshot
+from sb3_detc.mappoc.rewards import RewardTransform
+from sb3_detc.mappoc.sampling import Rollout
+from sb3_detc.triggers import PeriodicTrigger
+
+ENV_ID = "sb3_detc/LinearETC-v0"
+LOW, HIGH = np.full((3, 1), -10.0), np.full((3, 1), 10.0)
+
+
+def states(env_id: str, seeds: list[int], steps: int = 3, **kwargs: Any) -> tuple[list[gym.Env], dict[str, np.ndarray]]:
+    """Joint envs a few steps into seeded episodes (silent agents, zero controls), and their observations."""
+    envs, observed = [], []
+    for seed in seeds:
+        env = gym.make(env_id, **kwargs)
+        obs, _ = env.reset(seed=seed)
+        for _ in range(steps):
+            obs, *_ = env.step({"broadcast": np.zeros(3, np.int64), "control": np.zeros((3, 1), np.float32)})
+        envs.append(env)
+        observed.append(obs)
+    return envs, {key: np.stack([obs[key] for obs in observed]) for key in observed[0]}
+
+
+def random_act(obs: dict[str, np.ndarray], forced: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """Options and controls drawn from PyTorch's generator, whatever the observation."""
+    batch = len(obs["age"])
+    options = (th.rand(batch, 3) < 0.5).long().numpy() if forced is None else forced
+    return options, th.randn(batch, 3, 1).numpy()
+
+
+def test_both_copies_draw_the_same_numbers() -> None:
+    # Controls that ignore the observation: both copies move alike, so they differ only in the
+    # agent's broadcast of the first step and its cost; any other random draw would set them apart.
+    envs, obs = states(ENV_ID, [1, 2], broadcast_cost=0.3)
+    agents = np.array([0, 2])
+    rewards, broadcasts = replay(random_act, envs, obs, agents, 15, 0.9, LOW, HIGH, seed=7)
+    expected = np.zeros((2, 3))
+    expected[[0, 1], agents] = 1.0
+    np.testing.assert_allclose(broadcasts, expected)
+    np.testing.assert_allclose(rewards, -0.3 * expected, atol=1e-9)
+
+
+def test_replayed_values_are_those_of_two_copies_stepped_by_hand() -> None:
+    envs, obs = states("sb3_detc/LinearETC-LQR-v0", [3, 4, 5], steps=5)  # LQR on held broadcasts takes the controls
+    trigger = PeriodicTrigger(4)
+
+    def act(batch: dict[str, np.ndarray], forced: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        return (trigger(batch) if forced is None else forced), np.zeros((len(batch["age"]), 3, 1), np.float32)
+
+    agents, gamma, horizon = np.array([1, 0, 2]), 0.9, 12
+    expected = np.zeros((3, 3))
+    for k, env in enumerate(envs):
+        for option, sign in ((1, 1.0), (0, -1.0)):
+            branch = copy.deepcopy(env)
+            current = {key: value[k] for key, value in obs.items()}
+            for step in range(horizon):
+                options = trigger({key: value[None] for key, value in current.items()})[0]
+                if step == 0:
+                    options[agents[k]] = option
+                current, _, _, _, info = branch.step({"broadcast": options, "control": np.zeros((3, 1), np.float32)})
+                expected[k] += sign * gamma**step * info["agent_rewards"]
+    rewards, _ = replay(act, [copyable_env(env) for env in envs], obs, agents, horizon, gamma, LOW, HIGH, seed=0)
+    np.testing.assert_allclose(rewards, expected, rtol=1e-9, atol=1e-12)
+    assert np.all(np.abs(rewards[np.arange(3), agents]) > 0)  # the broadcast changes the team's controls
+
+
+class CountingSteps(gym.Wrapper):
+    """Counts the steps taken."""
+
+    steps = 0
+
+    def step(self, action: Any) -> Any:
+        self.steps += 1
+        return self.env.step(action)
+
+
+def test_a_replay_stops_at_the_episode_end() -> None:
+    envs, obs = states(ENV_ID, [0], steps=17, max_cycles=20)  # three steps left
+    counted = CountingSteps(envs[0])
+    replay(random_act, [counted], obs, np.array([1]), 50, 1.0, LOW, HIGH, seed=3)
+    assert counted.steps == 3  # the silent branch steps the given copy
+
+
+def test_chosen_decisions_replay_one_agent_at_a_share_of_the_steps() -> None:
+    chosen = chosen_decisions(400, 5, 3, 0.25, np.random.default_rng(0))
+    assert chosen.shape == (400, 5) and set(np.unique(chosen)) == {-1, 0, 1, 2}
+    assert abs((chosen >= 0).mean() - 0.25) < 0.03
+    assert (chosen_decisions(10, 2, 3, 1.0, np.random.default_rng(0)) >= 0).all()
+
+
+def test_what_is_copied_leaves_out_the_bookkeeping_wrappers() -> None:
+    env = make_vec_env(ENV_ID, n_envs=1).envs[0]  # Monitor(OrderEnforcing(PassiveEnvChecker(JointEnv)))
+    core = copyable_env(env)
+    assert type(core).__name__ == "JointEnv" and core is env.unwrapped
+
+
+def test_an_env_that_cannot_be_copied_is_refused_with_its_reason() -> None:
+    env = gym.make(ENV_ID)
+    env.unwrapped.lock = threading.Lock()
+    with pytest.raises(ValueError, match="cannot be copied .*lock.*use another broadcast_advantage"):
+        snapshot(env)
+
+
+def test_converted_rewards_are_the_learners_without_touching_the_statistics() -> None:
+    transform = RewardTransform(3, 0.9, 0.5, team=True, normalize=True)
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        transform(rng.normal(size=(2, 3)), np.zeros(2, bool))
+    before = transform.return_rms.var.copy()
+    rewards = rng.normal(size=(4, 3))
+    expected = np.repeat(0.5 * rewards.mean(1, keepdims=True), 3, axis=1) / transform.spread()
+    np.testing.assert_allclose(transform.converted(rewards), expected)
+    np.testing.assert_array_equal(transform.return_rms.var, before)
+
+
+def replayed_model(**kwargs: Any) -> MAPPOC:
+    env = make_vec_env(ENV_ID, n_envs=2, env_kwargs={"max_cycles": 20})
+    settings = {"n_steps": 16, "batch_size": 16, "n_epochs": 2, "replay_horizon": 5, "torch_compile": False, **kwargs}
+    return MAPPOC("MlpHybridPolicy", env, broadcast_advantage="replayed", seed=0, **settings)
+
+
+def test_mu_learns_from_the_replayed_decisions_only() -> None:
+    model = replayed_model(replay_share=0.5, policy_kwargs={"net_arch": [8]})
+    before = [view.clone() for view in model.policy.net_parameters("mu")]
+    model.learn(32)
+    advantages = model.rollout_buffer.broadcast_advantages
+    assert 0 < (advantages != 0).sum() <= 16 * 2  # at most one decision per step and env
+    assert (advantages != 0).any(axis=-1).mean() == pytest.approx(0.5, abs=0.3)
+    assert any(not th.equal(old, new) for old, new in zip(before, model.policy.net_parameters("mu"), strict=True))
+
+
+def test_replayed_advantages_hand_computed() -> None:
+    model = replayed_model(replay_share=0.5, normalize_broadcast_advantage=False, reward_scale=0.1)
+    model.learn(16)  # fills the buffer: its log-probabilities are set below
+    steps, envs, agents = np.array([0, 3, 5]), np.array([1, 0, 1]), np.array([2, 0, 1])
+    rewards = np.array([[0.0, 1.0, 2.0], [-3.0, 0.0, 0.0], [0.0, 0.5, 0.0]])
+    broadcast = np.zeros((16, 2, 3), np.int64)
+    broadcast[0, 1, 2] = broadcast[5, 1, 1] = 1  # taken options: broadcast, silent, broadcast
+    model.rollout_buffer.log_prob_broadcast[:] = np.log(0.2)  # every taken option was drawn with 0.2
+    model.broadcast_price = 0.05
+    replays = Replays(steps, envs, agents, rewards, np.eye(3)[agents])
+    rollout = Rollout({}, broadcast, np.zeros(0), np.zeros(0), [], {}, replays)
+    # (o - p) (0.1 r_agent - price), times N / share = 6; p = 0.2 for a taken broadcast, 0.8 for a taken silence
+    expected = [(1 - 0.2) * (0.2 - 0.05) * 6, (0 - 0.8) * (-0.3 - 0.05) * 6, (1 - 0.2) * (0.05 - 0.05) * 6]
+    np.testing.assert_allclose(model.replayed_advantages(rollout), expected, atol=1e-7)
+
+
+def test_replays_need_envs_in_the_learners_process() -> None:
+    env = make_vec_env(ENV_ID, n_envs=2, vec_env_cls=SubprocVecEnv)
+    try:
+        model = MAPPOC("MlpHybridPolicy", env, broadcast_advantage="replayed", n_steps=8, batch_size=8)
+        with pytest.raises(ValueError, match="must run in the learner's process"):
+            model.learn(16)
+    finally:
+        env.close()
+    model = MAPPOC("MlpHybridPolicy", ENV_ID, broadcast_advantage="replayed", n_envs=2, n_steps=8)
+    assert isinstance(model.env, DummyVecEnv)  # built in this process from an env id
+
+
+@pytest.mark.parametrize(("name", "value"), [("replay_share", 0.0), ("replay_share", 1.5), ("replay_horizon", 0)])
+def test_bad_replay_settings_are_refused(name: str, value: float) -> None:
+    with pytest.raises(ValueError, match=name):
+        MAPPOC("MlpHybridPolicy", make_vec_env(ENV_ID, n_envs=1), broadcast_advantage="replayed", **{name: value})
+
+
+def test_a_fixed_triggers_rollout_is_not_replayed() -> None:
+    model = replayed_model()
+    model.set_fixed_trigger(PeriodicTrigger(2))
+    model.learn(16)
+    assert model.sampler.sample(model.env, model.last_obs, 4, 0.0, PeriodicTrigger(2)).replays is None
