@@ -147,18 +147,18 @@ def test_mu_learns_from_the_replayed_decisions_only() -> None:
 
 def test_replayed_advantages_hand_computed() -> None:
     model = replayed_model(replay_share=0.5, normalize_broadcast_advantage=False, reward_scale=0.1)
-    model.learn(16)  # fills the buffer: its log-probabilities are set below
+    model.learn(16)  # reads the rollout's settings
     steps, envs, agents = np.array([0, 3, 5]), np.array([1, 0, 1]), np.array([2, 0, 1])
     rewards = np.array([[0.0, 1.0, 2.0], [-3.0, 0.0, 0.0], [0.0, 0.5, 0.0]])
     broadcast = np.zeros((16, 2, 3), np.int64)
     broadcast[0, 1, 2] = broadcast[5, 1, 1] = 1  # taken options: broadcast, silent, broadcast
-    model.rollout_buffer.log_prob_broadcast[:] = np.log(0.2)  # every taken option was drawn with 0.2
+    log_prob = np.full((16, 2, 3), np.log(0.2))  # every taken option was drawn with 0.2
     model.broadcast_price = 0.05
     replays = Replays(steps, envs, agents, rewards, np.eye(3)[agents])
     rollout = Rollout({}, broadcast, np.zeros(0), np.zeros(0), [], {}, replays)
     # (o - p) (0.1 r_agent - price), times N / share = 6; p = 0.2 for a taken broadcast, 0.8 for a taken silence
     expected = [(1 - 0.2) * (0.2 - 0.05) * 6, (0 - 0.8) * (-0.3 - 0.05) * 6, (1 - 0.2) * (0.05 - 0.05) * 6]
-    np.testing.assert_allclose(model.replayed_advantages(rollout), expected, atol=1e-7)
+    np.testing.assert_allclose(model.replayed_advantages(rollout, log_prob), expected, atol=1e-7)
 
 
 def test_replays_need_envs_in_the_learners_process() -> None:

@@ -575,12 +575,12 @@ class MAPPOC(OnPolicyAlgorithm):
             price,
         )
         buffer.compute_returns_and_advantage(last_values=last_values, dones=rollout.dones[-1])
-        if rollout.replays is not None:
-            buffer.set_broadcast_advantages(
-                rollout.replays.steps, rollout.replays.envs, rollout.replays.agents, self.replayed_advantages(rollout)
-            )
+        replays = rollout.replays
+        if replays is not None:
+            advantages = self.replayed_advantages(rollout, buffer.log_prob_broadcast)
+            buffer.set_broadcast_advantages(replays.steps, replays.envs, replays.agents, advantages)
 
-    def replayed_advantages(self, rollout: Rollout) -> np.ndarray:
+    def replayed_advantages(self, rollout: Rollout, log_prob_broadcast: np.ndarray) -> np.ndarray:
         """``mu``'s advantages of the taken options at a rollout's replayed decisions, in the learner's units.
 
         The value of a broadcast ``Q(1) - Q(0)`` is the replayed difference of the learner's rewards (the
@@ -591,6 +591,7 @@ class MAPPOC(OnPolicyAlgorithm):
         the values are divided by every agent's root mean square value over the rollout's replays.
 
         :param rollout: a rollout with its replays (:class:`~sb3_detc.mappoc.replays.Replays`)
+        :param log_prob_broadcast: the log-probabilities of the rollout's taken options, (T, n_envs, N)
         :return: advantages (K,), in the order of the replays
         """
         replays: Replays = rollout.replays  # type: ignore[assignment]
@@ -603,7 +604,7 @@ class MAPPOC(OnPolicyAlgorithm):
             )
             value = value / (np.sqrt(square)[replays.agents] + 1e-8)
         taken = rollout.broadcast[replays.steps, replays.envs, replays.agents]
-        p_taken = np.exp(self.rollout_buffer.log_prob_broadcast[replays.steps, replays.envs, replays.agents])
+        p_taken = np.exp(log_prob_broadcast[replays.steps, replays.envs, replays.agents])
         p_broadcast = np.where(taken == 1, p_taken, 1.0 - p_taken)
         return (taken - p_broadcast) * value * (self.n_agents / self.replay_share)
 
