@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import copy
 import threading
+from types import SimpleNamespace
 from typing import Any
 
 import gymnasium as gym
@@ -15,6 +16,8 @@ from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
 
 import sb3_detc  # noqa: F401  (registers the env ids)
 from sb3_detc.mappoc import MAPPOC
+from sb3_detc.mappoc.losses import fitted_logit_loss
+from sb3_detc.mappoc.policies import HybridEvaluation
 from sb3_detc.mappoc.replays import Replays, chosen_decisions, copyable_env, replay, snapshot
 from sb3_detc.mappoc.rewards import RewardTransform
 from sb3_detc.mappoc.sampling import Rollout
@@ -131,8 +134,16 @@ def test_converted_rewards_are_the_learners_without_touching_the_statistics() ->
 
 def replayed_model(**kwargs: Any) -> MAPPOC:
     env = make_vec_env(ENV_ID, n_envs=2, env_kwargs={"max_cycles": 20})
-    settings = {"n_steps": 16, "batch_size": 16, "n_epochs": 2, "replay_horizon": 5, "torch_compile": False, **kwargs}
-    return MAPPOC("MlpHybridPolicy", env, broadcast_advantage="replayed", seed=0, **settings)
+    settings = {
+        "n_steps": 16,
+        "batch_size": 16,
+        "n_epochs": 2,
+        "replay_horizon": 5,
+        "torch_compile": False,
+        "broadcast_advantage": "replayed",
+        **kwargs,
+    }
+    return MAPPOC("MlpHybridPolicy", env, seed=0, **settings)
 
 
 def test_mu_learns_from_the_replayed_decisions_only() -> None:
@@ -173,7 +184,10 @@ def test_replays_need_envs_in_the_learners_process() -> None:
     assert isinstance(model.env, DummyVecEnv)  # built in this process from an env id
 
 
-@pytest.mark.parametrize(("name", "value"), [("replay_share", 0.0), ("replay_share", 1.5), ("replay_horizon", 0)])
+@pytest.mark.parametrize(
+    ("name", "value"),
+    [("replay_share", 0.0), ("replay_share", 1.5), ("replay_horizon", 0), ("replay_temperature", 0.0)],
+)
 def test_bad_replay_settings_are_refused(name: str, value: float) -> None:
     with pytest.raises(ValueError, match=name):
         MAPPOC("MlpHybridPolicy", make_vec_env(ENV_ID, n_envs=1), broadcast_advantage="replayed", **{name: value})
@@ -184,3 +198,44 @@ def test_a_fixed_triggers_rollout_is_not_replayed() -> None:
     model.set_fixed_trigger(PeriodicTrigger(2))
     model.learn(16)
     assert model.sampler.sample(model.env, model.last_obs, 4, 0.0, PeriodicTrigger(2)).replays is None
+
+
+def test_replayed_value_targets_are_the_values_over_the_temperature() -> None:
+    model = replayed_model(broadcast_advantage="replayed_value", replay_share=0.5, replay_temperature=0.25)
+    model.learn(16)
+    steps, envs, agents = np.array([0, 3]), np.array([1, 0]), np.array([2, 0])
+    replays = Replays(steps, envs, agents, np.array([[0.0, 1.0, 2.0], [-3.0, 0.0, 0.0]]), np.eye(3)[agents])
+    model.broadcast_price, model.normalize_broadcast_advantage = 0.05, False
+    np.testing.assert_allclose(model.replayed_values(replays), [0.2 - 0.05, -0.3 - 0.05], atol=1e-7)  # reward_scale 0.1
+    model.learn(16)  # the rollout's own replays: targets there, none anywhere else
+    targets = model.rollout_buffer.broadcast_advantages
+    assert 0 < np.isfinite(targets).sum() <= 16 * 2
+    assert np.isnan(targets).any(axis=-1).all()  # at most one agent per step and env
+
+
+def test_the_fitted_logit_loss_hand_computed() -> None:
+    logit = th.tensor([[1.0, -2.0], [0.5, 0.0], [3.0, 1.0]])
+    targets = th.tensor([[2.0, th.nan], [th.nan, th.nan], [1.0, 4.0]])
+    evaluation = HybridEvaluation(*[th.zeros(3, 2)] * 3, th.zeros(3, 2, 2), logit)
+    data = SimpleNamespace(broadcast_advantages=targets)
+    # agent 0: errors 1 and 2 over its two targets; agent 1: error 3 over its one
+    expected = (1.0 + 4.0) / 2 + 9.0
+    assert fitted_logit_loss(evaluation, data, th.ones(3, 2), 0.2).item() == pytest.approx(expected)
+
+
+def test_replayed_value_fits_mus_logit_to_its_targets() -> None:
+    model = replayed_model(broadcast_advantage="replayed_value", n_epochs=30, learning_rate=3e-3)
+    model.learn(16)
+    buffer = model.rollout_buffer
+    steps, envs = np.nonzero(np.ones((16, 2), bool))
+    buffer.set_broadcast_advantages(steps, envs, np.zeros_like(steps), np.full(len(steps), 2.0), elsewhere=np.nan)
+    obs = {key: th.as_tensor(value.reshape(32, *value.shape[2:])) for key, value in buffer.observations.items()}
+
+    def agent_0_logit() -> th.Tensor:
+        with th.no_grad():
+            p = model.policy.broadcast_probabilities(obs)[:, 0]
+        return th.log(p / (1 - p))
+
+    before = (agent_0_logit() - 2.0).abs().mean().item()
+    model.train()
+    assert (agent_0_logit() - 2.0).abs().mean().item() < 0.25 * before

@@ -222,6 +222,7 @@ def test_the_shipped_study_files_load():
         "predictive_first_90_lambda50_select": 0.9,
         "predictive_first_90_replayed": 0.9,
         "predictive_first_90_replayed_noent": 0.9,
+        "predictive_first_90_replayed_value": 0.9,
     }
     (selected,) = [a for a in rate.algorithms if a.selection is not None]
     assert selected.label == "predictive_first_90_lambda50_select" and selected.selection.every == 25600
@@ -255,6 +256,8 @@ def test_the_shipped_study_files_load():
     assert variants["predictive_first_90_replayed"] == {**lambda50, **replayed}
     no_replayed_bonus = {**lambda50, **replayed, "broadcast_ent_coef": 0.0}
     assert variants["predictive_first_90_replayed_noent"] == no_replayed_bonus
+    fitted = {"broadcast_advantage": "replayed_value", "replay_temperature": 0.1}
+    assert variants["predictive_first_90_replayed_value"] == {**no_replayed_bonus, **fitted}
     later = {"sb3_detc.callbacks.DeltaFirstCallback": {"switch": 200, "delta": 0.21}}
     assert variants["predictive_first_90_lambda50_switch200"] == {
         **lambda50,

@@ -211,18 +211,21 @@ class HybridRolloutBuffer:
         self.broadcast_advantages = self.returns - self.state_values
 
     def set_broadcast_advantages(
-        self, steps: np.ndarray, envs: np.ndarray, agents: np.ndarray, advantages: np.ndarray
+        self, steps: np.ndarray, envs: np.ndarray, agents: np.ndarray, advantages: np.ndarray, elsewhere: float = 0.0
     ) -> None:
-        """Put broadcast advantages of some decisions in place of the stored ones, and zeros everywhere else.
+        """Put broadcast advantages of some decisions in place of the stored ones, and ``elsewhere`` everywhere else.
 
-        For ``broadcast_advantage="replayed"``: ``mu`` learns from the replayed decisions only.
+        For the replayed kinds of ``broadcast_advantage``: ``mu`` learns from the replayed decisions only
+        (``"replayed_value"`` stores the targets of its broadcast logit, NaN elsewhere).
 
         :param steps: the decisions' steps (K,)
         :param envs: their envs (K,)
         :param agents: their agents (K,)
         :param advantages: their advantages (K,)
+        :param elsewhere: the value of every other decision
         """
-        self.broadcast_advantages = np.zeros((self.buffer_size, self.n_envs, self.n_agents), dtype=np.float32)
+        shape = (self.buffer_size, self.n_envs, self.n_agents)
+        self.broadcast_advantages = np.full(shape, elsewhere, dtype=np.float32)
         self.broadcast_advantages[steps, envs, agents] = advantages
 
     def tensors(self, partial: bool = False) -> HybridRolloutSamples:

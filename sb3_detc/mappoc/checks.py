@@ -55,6 +55,7 @@ _HYPERPARAMETER_RULES: dict[str, tuple[Callable[[Any], bool], str]] = {
     "broadcast_advantage": (lambda v: v in BROADCAST_ADVANTAGES, " or ".join(map(repr, BROADCAST_ADVANTAGES))),
     "replay_share": (lambda v: 0 < v <= 1, "in (0, 1]"),
     "replay_horizon": (lambda v: is_integer(v, 1), "a positive integer"),
+    "replay_temperature": (lambda v: v > 0, "> 0"),
 }
 
 

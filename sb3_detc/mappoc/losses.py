@@ -5,7 +5,8 @@
 * policy over options ``mu``: PPO's clipped surrogate on a broadcast advantage (greedy:
   ``Q(o) - max_o' Q(o')`` with the current critic; sampled: the lambda-return minus the
   state value at collection time; or replayed: measured in copies of the env,
-  :mod:`sb3_detc.mappoc.replays`), plus an entropy bonus.
+  :mod:`sb3_detc.mappoc.replays`), plus an entropy bonus; or, with ``"replayed_value"``,
+  least squares of the broadcast logit against the replayed value of a broadcast.
 """
 
 from __future__ import annotations
@@ -25,7 +26,13 @@ if TYPE_CHECKING:
 STEP_STATS = ("pi_loss", "mu_loss", "q_loss", "entropy_mu", "clip_pi", "clip_mu", "kl_pi", "kl_mu")
 
 #: Kinds of broadcast advantage in ``mu``'s loss.
-BROADCAST_ADVANTAGES = ("greedy", "return", "replayed")
+BROADCAST_ADVANTAGES = ("greedy", "return", "replayed", "replayed_value")
+
+#: ``mu``'s loss from the evaluation, the minibatch, ``mu``'s probability ratios and its clipping parameter.
+OptionLoss = Callable[["HybridEvaluation", "HybridRolloutSamples", th.Tensor, "float | th.Tensor"], th.Tensor]
+
+#: The kinds that measure the value of a broadcast in copies of the env (:mod:`sb3_detc.mappoc.replays`).
+REPLAYED_ADVANTAGES = ("replayed", "replayed_value")
 
 
 class UpdateInputs(NamedTuple):
@@ -110,6 +117,27 @@ def standardized(advantages: th.Tensor) -> th.Tensor:
     return advantages
 
 
+def fitted_logit_loss(
+    evaluation: HybridEvaluation, data: HybridRolloutSamples, ratio: th.Tensor, clip: float | th.Tensor
+) -> th.Tensor:
+    """Squared error of ``mu``'s broadcast logit against its target, at the decisions that have one.
+
+    For ``broadcast_advantage="replayed_value"``: the targets (``data.broadcast_advantages``) are the
+    replayed values of a broadcast divided by ``replay_temperature``, NaN where no decision was replayed.
+    Averaged over every agent's replayed decisions in the minibatch, summed over agents.
+
+    :param evaluation: the current networks' evaluation of the minibatch (its ``broadcast_logit``)
+    :param data: the minibatch (its ``broadcast_advantages``: the targets)
+    :param ratio: ``mu``'s probability ratios (unused: a regression is not clipped)
+    :param clip: ``mu``'s clipping parameter (unused)
+    :return: scalar loss
+    """
+    target = data.broadcast_advantages
+    replayed = ~th.isnan(target)
+    error = th.where(replayed, evaluation.broadcast_logit - th.nan_to_num(target), 0.0)
+    return (error.pow(2).sum(0) / replayed.sum(0).clamp(min=1)).sum()
+
+
 class MAPPOCLoss(nn.Module):
     """The loss of one gradient step on a minibatch, and its statistics (a module holding the policy).
 
@@ -118,7 +146,8 @@ class MAPPOCLoss(nn.Module):
 
     :param policy: the policy whose networks are trained
     :param vf_coef: coefficient of the critic's squared error
-    :param broadcast_advantage: ``"greedy"``, ``"return"`` or ``"replayed"`` (see :class:`~sb3_detc.MAPPOC`)
+    :param broadcast_advantage: ``"greedy"``, ``"return"``, ``"replayed"`` or ``"replayed_value"`` (see
+        :class:`~sb3_detc.MAPPOC`)
     :param broadcast_advantage_offset: constant added to the broadcast advantages
     :param normalize_broadcast_advantage: divide the greedy broadcast advantages by every agent's
         root mean square broadcast gap over the minibatch (:func:`broadcast_gap_scale`)
@@ -153,6 +182,7 @@ class MAPPOCLoss(nn.Module):
             if normalize_broadcast_advantage
             else self._greedy
         )
+        self.option_loss: OptionLoss = fitted_logit_loss if broadcast_advantage == "replayed_value" else self._surrogate
 
     def _greedy(self, evaluation: HybridEvaluation, data: HybridRolloutSamples) -> th.Tensor:
         """Greedy broadcast advantages with the current critic, plus the offset.
@@ -193,6 +223,19 @@ class MAPPOCLoss(nn.Module):
         """
         return data.broadcast_advantages
 
+    def _surrogate(
+        self, evaluation: HybridEvaluation, data: HybridRolloutSamples, ratio: th.Tensor, clip: float | th.Tensor
+    ) -> th.Tensor:
+        """``mu``'s clipped surrogate loss on the broadcast advantages of its kind.
+
+        :param evaluation: the current networks' evaluation of the minibatch
+        :param data: the minibatch
+        :param ratio: ``mu``'s probability ratios new / old (B, N)
+        :param clip: ``mu``'s clipping parameter
+        :return: scalar loss
+        """
+        return clipped_surrogate_loss(self.broadcast_advantages(evaluation, data), ratio, clip)
+
     def forward(self, update: UpdateInputs, idx: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
         """The loss of one gradient step on the minibatch ``idx`` and its statistics.
 
@@ -223,10 +266,10 @@ class MAPPOCLoss(nn.Module):
         if update.train_pi:
             loss = loss + pi_loss
 
-        # Options: PPO clipped surrogate on the broadcast advantage, no gradient into Q.
+        # Options: PPO clipped surrogate on the broadcast advantage (or the fitted logit), no gradient into Q.
         log_ratio_mu = evaluation.log_prob_broadcast - data.old_log_prob_broadcast
         ratio_mu = th.exp(log_ratio_mu)
-        mu_loss = clipped_surrogate_loss(self.broadcast_advantages(evaluation, data), ratio_mu, clip_mu)
+        mu_loss = self.option_loss(evaluation, data, ratio_mu, clip_mu)
         entropy_mu = evaluation.entropy_broadcast.mean(0).sum()
         if update.train_mu:
             loss = loss + mu_loss - update.zeta * entropy_mu

@@ -30,7 +30,7 @@ from sb3_detc.mappoc.checks import (
     check_same_agents,
     check_vec_normalize,
 )
-from sb3_detc.mappoc.losses import STEP_STATS, MAPPOCLoss, UpdateInputs
+from sb3_detc.mappoc.losses import REPLAYED_ADVANTAGES, STEP_STATS, MAPPOCLoss, UpdateInputs
 from sb3_detc.mappoc.policies import MlpHybridPolicy, check_joint_spaces, drawn_broadcast_probability
 from sb3_detc.mappoc.replays import Replays
 from sb3_detc.mappoc.rewards import PRICE_RULES, RewardTransform, agent_rewards, broadcast_costs
@@ -88,14 +88,20 @@ class MAPPOC(OnPolicyAlgorithm):
         (measured: at a share ``replay_share`` of the steps, one agent's decision is replayed in two
         copies of the env, broadcasting and silent, with the same noise, :mod:`sb3_detc.mappoc.replays`;
         ``mu`` learns from those decisions only, with the advantage ``(o - p) (Q(1) - Q(0))``, ``p``
-        its probability of broadcasting, weighted by ``N / replay_share``). ``"replayed"`` needs envs
-        that can be copied, in the learner's process (a ``DummyVecEnv``; MAPPOC builds one from an env id)
+        its probability of broadcasting, weighted by ``N / replay_share``) or ``"replayed_value"`` (the same
+        replays; ``mu``'s broadcast logit ``log mu(1) - log mu(0)`` is fitted by least squares to the value
+        of a broadcast divided by ``replay_temperature``: a regression instead of a policy gradient, which
+        keeps learning where ``mu`` is already sure). Both replayed kinds need envs that can be copied, in the
+        learner's process (a ``DummyVecEnv``; MAPPOC builds one from an env id)
     :param broadcast_advantage_offset: constant added to the greedy and the sampled broadcast advantage
         (the paper's code used a 0.1 "deliberation" offset; the paper and the default use 0)
-    :param replay_share: with ``broadcast_advantage="replayed"``, the probability that a step of an env has a
+    :param replay_share: with a replayed ``broadcast_advantage``, the probability that a step of an env has a
         replayed decision, in (0, 1]
-    :param replay_horizon: with ``broadcast_advantage="replayed"``, the steps a replay follows (at most to the
+    :param replay_horizon: with a replayed ``broadcast_advantage``, the steps a replay follows (at most to the
         episode's end); the value of a broadcast after them is left out
+    :param replay_temperature: with ``broadcast_advantage="replayed_value"``, the value of a broadcast (in the
+        learner's units, or in root mean squares with ``normalize_broadcast_advantage``) at which ``mu``
+        broadcasts with probability ``1 / (1 + e^-1)``; smaller is sharper
     :param normalize_broadcast_advantage: divide every agent's greedy broadcast advantages by the
         root mean square of its critic's broadcast gap ``Q(1) - Q(0)`` over the minibatch (the
         paper: raw advantages), or its replayed values of a broadcast by their root mean square over
@@ -172,6 +178,7 @@ class MAPPOC(OnPolicyAlgorithm):
         normalize_broadcast_advantage: bool = False,
         replay_share: float = 0.25,
         replay_horizon: int = 60,
+        replay_temperature: float = 0.1,
         reward_scale: float = 0.1,
         normalize_reward: bool = False,
         team_reward: bool = False,
@@ -224,13 +231,14 @@ class MAPPOC(OnPolicyAlgorithm):
             broadcast_advantage=broadcast_advantage,
             replay_share=replay_share,
             replay_horizon=replay_horizon,
+            replay_temperature=replay_temperature,
         )
         policy_kwargs = dict(policy_kwargs or {})
         if share_parameters and not policy_kwargs.get("share_parameters", True):
             raise ValueError("share_parameters=True contradicts policy_kwargs['share_parameters']=False: give one.")
         policy_kwargs.setdefault("share_parameters", share_parameters)
         owns_env = isinstance(env, str)
-        if owns_env and broadcast_advantage == "replayed":  # copied at replayed decisions: in this process
+        if owns_env and broadcast_advantage in REPLAYED_ADVANTAGES:  # copied at replayed decisions: in this process
             env = make_vec_env(env, n_envs=n_envs, seed=seed, vec_env_cls=DummyVecEnv)  # type: ignore[arg-type]
         elif owns_env:  # after the checks: no worker processes for a model that cannot be built
             env = make_rollout_workers(env, n_envs, seed)  # type: ignore[arg-type]
@@ -271,6 +279,7 @@ class MAPPOC(OnPolicyAlgorithm):
             self.normalize_broadcast_advantage = normalize_broadcast_advantage
             self.replay_share = float(replay_share)
             self.replay_horizon = int(replay_horizon)
+            self.replay_temperature = float(replay_temperature)
             self.reward_scale = reward_scale
             self.normalize_reward = normalize_reward
             self.team_reward = team_reward
@@ -342,7 +351,7 @@ class MAPPOC(OnPolicyAlgorithm):
         self._compiled = compiled
         self.sampler = (
             ReplayingSampler(self.policy, compiled, self.replay_share, self.replay_horizon, self.gamma)
-            if self.broadcast_advantage == "replayed"
+            if self.broadcast_advantage in REPLAYED_ADVANTAGES
             else RolloutSampler(self.policy, compiled)
         )
         self.gradient_step: GradientStep | FusedGradientStep = make_gradient_step(
@@ -576,25 +585,25 @@ class MAPPOC(OnPolicyAlgorithm):
         )
         buffer.compute_returns_and_advantage(last_values=last_values, dones=rollout.dones[-1])
         replays = rollout.replays
-        if replays is not None:
+        if replays is None:
+            return
+        if self.broadcast_advantage == "replayed_value":  # mu's targets; no target where nothing was replayed
+            targets = self.replayed_values(replays) / self.replay_temperature
+            buffer.set_broadcast_advantages(replays.steps, replays.envs, replays.agents, targets, elsewhere=np.nan)
+        else:
             advantages = self.replayed_advantages(rollout, buffer.log_prob_broadcast)
             buffer.set_broadcast_advantages(replays.steps, replays.envs, replays.agents, advantages)
 
-    def replayed_advantages(self, rollout: Rollout, log_prob_broadcast: np.ndarray) -> np.ndarray:
-        """``mu``'s advantages of the taken options at a rollout's replayed decisions, in the learner's units.
+    def replayed_values(self, replays: Replays) -> np.ndarray:
+        """The values of a broadcast ``Q(1) - Q(0)`` at a rollout's replayed decisions, in the learner's units.
 
-        The value of a broadcast ``Q(1) - Q(0)`` is the replayed difference of the learner's rewards (the
-        environment's through :meth:`RewardTransform.converted`, minus the rate target's price per own
-        broadcast); the taken option ``o`` gets ``(o - p) (Q(1) - Q(0))`` with ``p`` the probability of
-        broadcasting it was drawn with, weighted by ``N / replay_share``: over the rollout, the
-        gradient of every decision's advantage in expectation. With ``normalize_broadcast_advantage``
-        the values are divided by every agent's root mean square value over the rollout's replays.
+        The replayed difference of the learner's rewards (the environment's through
+        :meth:`RewardTransform.converted`), minus the rate target's price per own broadcast. With
+        ``normalize_broadcast_advantage`` divided by every agent's root mean square value over the replays.
 
-        :param rollout: a rollout with its replays (:class:`~sb3_detc.mappoc.replays.Replays`)
-        :param log_prob_broadcast: the log-probabilities of the rollout's taken options, (T, n_envs, N)
-        :return: advantages (K,), in the order of the replays
+        :param replays: a rollout's replays (:class:`~sb3_detc.mappoc.replays.Replays`)
+        :return: values (K,), in the order of the replays
         """
-        replays: Replays = rollout.replays  # type: ignore[assignment]
         rows = np.arange(len(replays.agents))
         value = self.reward_transform.converted(replays.rewards)[rows, replays.agents]
         value -= self.broadcast_price * replays.broadcasts[rows, replays.agents]
@@ -603,6 +612,21 @@ class MAPPOC(OnPolicyAlgorithm):
                 np.bincount(replays.agents, minlength=self.n_agents), 1
             )
             value = value / (np.sqrt(square)[replays.agents] + 1e-8)
+        return value
+
+    def replayed_advantages(self, rollout: Rollout, log_prob_broadcast: np.ndarray) -> np.ndarray:
+        """``mu``'s advantages of the taken options at a rollout's replayed decisions, in the learner's units.
+
+        The taken option ``o`` gets ``(o - p) (Q(1) - Q(0))`` (:meth:`replayed_values`) with ``p`` the
+        probability of broadcasting it was drawn with, weighted by ``N / replay_share``: over the rollout,
+        the gradient of every decision's advantage in expectation.
+
+        :param rollout: a rollout with its replays (:class:`~sb3_detc.mappoc.replays.Replays`)
+        :param log_prob_broadcast: the log-probabilities of the rollout's taken options, (T, n_envs, N)
+        :return: advantages (K,), in the order of the replays
+        """
+        replays: Replays = rollout.replays  # type: ignore[assignment]
+        value = self.replayed_values(replays)
         taken = rollout.broadcast[replays.steps, replays.envs, replays.agents]
         p_taken = np.exp(log_prob_broadcast[replays.steps, replays.envs, replays.agents])
         p_broadcast = np.where(taken == 1, p_taken, 1.0 - p_taken)

@@ -192,12 +192,14 @@ class HybridEvaluation(NamedTuple):
     :param entropy_broadcast: entropy of every agent's current ``mu`` (B, N)
     :param log_prob_control: ``log pi_i(u_i)`` of the stored controls under the current ``pi`` (B, N)
     :param option_values: ``Q_i(s, o)`` for both options under the current critic (B, N, 2)
+    :param broadcast_logit: ``log mu_i(1) - log mu_i(0)`` under the current ``mu`` (B, N)
     """
 
     log_prob_broadcast: th.Tensor
     entropy_broadcast: th.Tensor
     log_prob_control: th.Tensor
     option_values: th.Tensor
+    broadcast_logit: th.Tensor
 
 
 def gaussian_log_prob(x: th.Tensor, mean: th.Tensor, log_std: th.Tensor) -> th.Tensor:
@@ -871,7 +873,8 @@ class MlpHybridPolicy(BasePolicy):
         if p_broadcast is None:
             p_broadcast = log_p[..., 1].exp().detach()
         option_values = self.option_values(out["q"], broadcast_price, p_broadcast)
-        return HybridEvaluation(log_prob_broadcast, entropy, control_log_prob, option_values)
+        logit = log_p[..., 1] - log_p[..., 0]
+        return HybridEvaluation(log_prob_broadcast, entropy, control_log_prob, option_values, logit)
 
     def state_values(
         self, obs: PyTorchObs, broadcast_price: th.Tensor | None = None, p_broadcast: th.Tensor | None = None
