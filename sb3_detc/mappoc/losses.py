@@ -177,7 +177,7 @@ class MAPPOCLoss(nn.Module):
             self._sampled
             if broadcast_advantage == "return"
             else self._replayed
-            if broadcast_advantage == "replayed"
+            if broadcast_advantage in REPLAYED_ADVANTAGES  # "replayed_value": the targets of option_loss
             else self._greedy_normalized
             if normalize_broadcast_advantage
             else self._greedy
