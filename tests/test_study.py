@@ -223,9 +223,11 @@ def test_the_shipped_study_files_load():
         "predictive_first_90_replayed": 0.9,
         "predictive_first_90_replayed_noent": 0.9,
         "predictive_first_90_replayed_value": 0.9,
+        "predictive_first_90_replayed_noent_select": 0.9,
     }
-    (selected,) = [a for a in rate.algorithms if a.selection is not None]
-    assert selected.label == "predictive_first_90_lambda50_select" and selected.selection.every == 25600
+    selected = {a.label: a.selection for a in rate.algorithms if a.selection is not None}
+    assert set(selected) == {"predictive_first_90_lambda50_select", "predictive_first_90_replayed_noent_select"}
+    assert all(s.every == 25600 and s.episodes == 50 for s in selected.values())
     assert rate.validation_seeds(50) == list(range(10050, 10100))  # after the evaluation's 50 episodes
     # the receivers' predictions shown, at five times the others' budget, at the same and at twenty times
     held = {a.label: a for a in rate.algorithms if a.label.startswith("predicted_held")}
@@ -256,6 +258,7 @@ def test_the_shipped_study_files_load():
     assert variants["predictive_first_90_replayed"] == {**lambda50, **replayed}
     no_replayed_bonus = {**lambda50, **replayed, "broadcast_ent_coef": 0.0}
     assert variants["predictive_first_90_replayed_noent"] == no_replayed_bonus
+    assert variants["predictive_first_90_replayed_noent_select"] == no_replayed_bonus
     fitted = {"broadcast_advantage": "replayed_value", "replay_temperature": 0.1}
     assert variants["predictive_first_90_replayed_value"] == {**no_replayed_bonus, **fitted}
     later = {"sb3_detc.callbacks.DeltaFirstCallback": {"switch": 200, "delta": 0.21}}
