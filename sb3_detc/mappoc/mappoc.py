@@ -90,9 +90,10 @@ class MAPPOC(OnPolicyAlgorithm):
         ``mu`` learns from those decisions only, with the advantage ``(o - p) (Q(1) - Q(0))``, ``p``
         its probability of broadcasting, weighted by ``N / replay_share``) or ``"replayed_value"`` (the same
         replays; ``mu``'s broadcast logit ``log mu(1) - log mu(0)`` is fitted by least squares to the value
-        of a broadcast divided by ``replay_temperature``: a regression instead of a policy gradient, which
-        keeps learning where ``mu`` is already sure). Both replayed kinds need envs that can be copied, in the
-        learner's process (a ``DummyVecEnv``; MAPPOC builds one from an env id)
+        of a broadcast divided by ``replay_temperature``: a regression, which weighs every replayed decision
+        alike, where the policy gradient weighs them by ``p (1 - p)``, most near ``mu``'s threshold). Both
+        replayed kinds need envs that can be copied, in the learner's process (a ``DummyVecEnv``; MAPPOC
+        builds one from an env id)
     :param broadcast_advantage_offset: constant added to the greedy and the sampled broadcast advantage
         (the paper's code used a 0.1 "deliberation" offset; the paper and the default use 0)
     :param replay_share: with a replayed ``broadcast_advantage``, the probability that a step of an env has a
