@@ -172,6 +172,25 @@ def test_replayed_advantages_hand_computed() -> None:
     np.testing.assert_allclose(model.replayed_advantages(rollout, log_prob), expected, atol=1e-7)
 
 
+def test_replayed_expected_advantages_give_the_expected_gradient_for_either_option() -> None:
+    model = replayed_model(
+        broadcast_advantage="replayed_expected", replay_share=0.5, normalize_broadcast_advantage=False
+    )
+    model.learn(16)
+    model.broadcast_price = 0.0
+    agents = np.array([0, 1, 2])
+    rewards = np.diag([2.0, -3.0, 1.0])  # values 0.2, -0.3, 0.1 (reward_scale 0.1)
+    replays = Replays(np.zeros(3, np.int64), np.zeros(3, np.int64), agents, rewards, np.eye(3))
+    p = np.array([0.1, 0.5, 0.7])  # the probabilities of broadcasting
+    for option in (0, 1):
+        broadcast = np.full((16, 2, 3), option)
+        log_prob = np.log(np.broadcast_to(p if option else 1 - p, (16, 2, 3)))
+        rollout = Rollout({}, broadcast, np.zeros(0), np.zeros(0), [], {}, replays)
+        advantages = model.replayed_advantages(rollout, log_prob) / 6  # N / share = 3 / 0.5
+        # the surrogate's gradient in the broadcast logit: advantage times d log mu(o) / d logit = o - p
+        np.testing.assert_allclose(advantages * (option - p), p * (1 - p) * [0.2, -0.3, 0.1], atol=1e-7)
+
+
 def test_replays_need_envs_in_the_learners_process() -> None:
     env = make_vec_env(ENV_ID, n_envs=2, vec_env_cls=SubprocVecEnv)
     try:

@@ -224,6 +224,7 @@ def test_the_shipped_study_files_load():
         "predictive_first_90_replayed_noent": 0.9,
         "predictive_first_90_replayed_value": 0.9,
         "predictive_first_90_replayed_noent_select": 0.9,
+        "predictive_first_90_replayed_expected_noent": 0.9,
     }
     selected = {a.label: a.selection for a in rate.algorithms if a.selection is not None}
     assert set(selected) == {"predictive_first_90_lambda50_select", "predictive_first_90_replayed_noent_select"}
@@ -259,6 +260,8 @@ def test_the_shipped_study_files_load():
     no_replayed_bonus = {**lambda50, **replayed, "broadcast_ent_coef": 0.0}
     assert variants["predictive_first_90_replayed_noent"] == no_replayed_bonus
     assert variants["predictive_first_90_replayed_noent_select"] == no_replayed_bonus
+    expected = {**no_replayed_bonus, "broadcast_advantage": "replayed_expected"}
+    assert variants["predictive_first_90_replayed_expected_noent"] == expected
     fitted = {"broadcast_advantage": "replayed_value", "replay_temperature": 0.1}
     assert variants["predictive_first_90_replayed_value"] == {**no_replayed_bonus, **fitted}
     later = {"sb3_detc.callbacks.DeltaFirstCallback": {"switch": 200, "delta": 0.21}}

@@ -213,7 +213,7 @@ class HybridRolloutBuffer:
     def set_broadcast_advantages(
         self, steps: np.ndarray, envs: np.ndarray, agents: np.ndarray, advantages: np.ndarray, elsewhere: float = 0.0
     ) -> None:
-        """Put broadcast advantages of some decisions in place of the stored ones, and ``elsewhere`` everywhere else.
+        """Put broadcast advantages of some decisions in place of the stored ones, ``elsewhere`` everywhere else.
 
         For the replayed kinds of ``broadcast_advantage``: ``mu`` learns from the replayed decisions only
         (``"replayed_value"`` stores the targets of its broadcast logit, NaN elsewhere).

@@ -5,8 +5,9 @@
 * policy over options ``mu``: PPO's clipped surrogate on a broadcast advantage (greedy:
   ``Q(o) - max_o' Q(o')`` with the current critic; sampled: the lambda-return minus the
   state value at collection time; or replayed: measured in copies of the env,
-  :mod:`sb3_detc.mappoc.replays`), plus an entropy bonus; or, with ``"replayed_value"``,
-  least squares of the broadcast logit against the replayed value of a broadcast.
+  :mod:`sb3_detc.mappoc.replays`, as the draw's or its expected gradient), plus an entropy
+  bonus; or, with ``"replayed_value"``, least squares of the broadcast logit against the
+  replayed value of a broadcast.
 """
 
 from __future__ import annotations
@@ -26,13 +27,13 @@ if TYPE_CHECKING:
 STEP_STATS = ("pi_loss", "mu_loss", "q_loss", "entropy_mu", "clip_pi", "clip_mu", "kl_pi", "kl_mu")
 
 #: Kinds of broadcast advantage in ``mu``'s loss.
-BROADCAST_ADVANTAGES = ("greedy", "return", "replayed", "replayed_value")
+BROADCAST_ADVANTAGES = ("greedy", "return", "replayed", "replayed_expected", "replayed_value")
 
 #: ``mu``'s loss from the evaluation, the minibatch, ``mu``'s probability ratios and its clipping parameter.
 OptionLoss = Callable[["HybridEvaluation", "HybridRolloutSamples", th.Tensor, "float | th.Tensor"], th.Tensor]
 
 #: The kinds that measure the value of a broadcast in copies of the env (:mod:`sb3_detc.mappoc.replays`).
-REPLAYED_ADVANTAGES = ("replayed", "replayed_value")
+REPLAYED_ADVANTAGES = ("replayed", "replayed_expected", "replayed_value")
 
 
 class UpdateInputs(NamedTuple):
@@ -146,8 +147,8 @@ class MAPPOCLoss(nn.Module):
 
     :param policy: the policy whose networks are trained
     :param vf_coef: coefficient of the critic's squared error
-    :param broadcast_advantage: ``"greedy"``, ``"return"``, ``"replayed"`` or ``"replayed_value"`` (see
-        :class:`~sb3_detc.MAPPOC`)
+    :param broadcast_advantage: ``"greedy"``, ``"return"``, ``"replayed"``, ``"replayed_expected"`` or
+        ``"replayed_value"`` (see :class:`~sb3_detc.MAPPOC`)
     :param broadcast_advantage_offset: constant added to the broadcast advantages
     :param normalize_broadcast_advantage: divide the greedy broadcast advantages by every agent's
         root mean square broadcast gap over the minibatch (:func:`broadcast_gap_scale`)

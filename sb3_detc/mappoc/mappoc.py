@@ -88,7 +88,10 @@ class MAPPOC(OnPolicyAlgorithm):
         (measured: at a share ``replay_share`` of the steps, one agent's decision is replayed in two
         copies of the env, broadcasting and silent, with the same noise, :mod:`sb3_detc.mappoc.replays`;
         ``mu`` learns from those decisions only, with the advantage ``(o - p) (Q(1) - Q(0))``, ``p``
-        its probability of broadcasting, weighted by ``N / replay_share``) or ``"replayed_value"`` (the same
+        its probability of broadcasting, weighted by ``N / replay_share``), ``"replayed_expected"`` (the same
+        replays, with the advantage ``(o - (1 - p)) (Q(1) - Q(0))``: the gradient of the broadcast logit is
+        then ``p (1 - p) (Q(1) - Q(0))`` whichever option was drawn, see :meth:`replayed_advantages`) or
+        ``"replayed_value"`` (the same
         replays; ``mu``'s broadcast logit ``log mu(1) - log mu(0)`` is fitted by least squares to the value
         of a broadcast divided by ``replay_temperature``: a regression, which weighs every replayed decision
         alike, where the policy gradient weighs them by ``p (1 - p)``, most near ``mu``'s threshold). Both
@@ -618,9 +621,13 @@ class MAPPOC(OnPolicyAlgorithm):
     def replayed_advantages(self, rollout: Rollout, log_prob_broadcast: np.ndarray) -> np.ndarray:
         """``mu``'s advantages of the taken options at a rollout's replayed decisions, in the learner's units.
 
-        The taken option ``o`` gets ``(o - p) (Q(1) - Q(0))`` (:meth:`replayed_values`) with ``p`` the
-        probability of broadcasting it was drawn with, weighted by ``N / replay_share``: over the rollout,
-        the gradient of every decision's advantage in expectation.
+        With ``broadcast_advantage="replayed"`` the taken option ``o`` gets ``(o - p) (Q(1) - Q(0))``
+        (:meth:`replayed_values`) with ``p`` the probability of broadcasting it was drawn with; with
+        ``"replayed_expected"`` it gets ``(o - (1 - p)) (Q(1) - Q(0))``: ``p (Q(1) - Q(0))`` for a broadcast,
+        ``-(1 - p) (Q(1) - Q(0))`` for silence, so that the gradient of the broadcast logit is
+        ``p (1 - p) (Q(1) - Q(0))`` whichever option was drawn (its expectation over the option under
+        ``"replayed"``, without the variance of the draw). Weighted by ``N / replay_share``: over the
+        rollout, the gradient of every decision's advantage in expectation.
 
         :param rollout: a rollout with its replays (:class:`~sb3_detc.mappoc.replays.Replays`)
         :param log_prob_broadcast: the log-probabilities of the rollout's taken options, (T, n_envs, N)
@@ -631,7 +638,8 @@ class MAPPOC(OnPolicyAlgorithm):
         taken = rollout.broadcast[replays.steps, replays.envs, replays.agents]
         p_taken = np.exp(log_prob_broadcast[replays.steps, replays.envs, replays.agents])
         p_broadcast = np.where(taken == 1, p_taken, 1.0 - p_taken)
-        return (taken - p_broadcast) * value * (self.n_agents / self.replay_share)
+        centre = 1.0 - p_broadcast if self.broadcast_advantage == "replayed_expected" else p_broadcast
+        return (taken - centre) * value * (self.n_agents / self.replay_share)
 
     # ------------------------------------------------------------------ updates
     def train(self) -> None:
