@@ -219,17 +219,36 @@ def test_a_fixed_triggers_rollout_is_not_replayed() -> None:
     assert model.sampler.sample(model.env, model.last_obs, 4, 0.0, PeriodicTrigger(2)).replays is None
 
 
-def test_replayed_value_targets_are_the_values_over_the_temperature() -> None:
-    model = replayed_model(broadcast_advantage="replayed_value", replay_share=0.5, replay_temperature=0.25)
-    model.learn(16)
-    steps, envs, agents = np.array([0, 3]), np.array([1, 0]), np.array([2, 0])
-    replays = Replays(steps, envs, agents, np.array([[0.0, 1.0, 2.0], [-3.0, 0.0, 0.0]]), np.eye(3)[agents])
-    model.broadcast_price, model.normalize_broadcast_advantage = 0.05, False
-    np.testing.assert_allclose(model.replayed_values(replays), [0.2 - 0.05, -0.3 - 0.05], atol=1e-7)  # reward_scale 0.1
-    model.learn(16)  # the rollout's own replays: targets there, none anywhere else
+def test_replayed_value_targets_hand_computed() -> None:
+    model = replayed_model(
+        broadcast_advantage="replayed_value",
+        replay_share=0.5,
+        replay_temperature=0.25,
+        normalize_broadcast_advantage=False,
+        policy_kwargs={"broadcast_interval": (2, 4)},
+    )
+    model.learn(16)  # reads the rollout's settings
+    model.broadcast_price = 0.05
+    steps, envs, agents = np.array([0, 3, 5]), np.array([1, 0, 1]), np.array([2, 0, 1])
+    rewards = np.array([[0.0, 1.0, 2.0], [-3.0, 0.0, 0.0], [0.0, 0.5, 0.0]])
+    age = np.ones((16, 2, 3, 1), np.float32)  # intervals of 2 if they broadcast now: the trigger's choice
+    age[5, 1, 1] = 0.0  # an interval of 1, shorter than the window's 2: silence forced, no target
+    replays = Replays(steps, envs, agents, rewards, np.eye(3)[agents])
+    rollout = Rollout({"age": age}, np.zeros((16, 2, 3), np.int64), np.zeros(0), np.zeros(0), [], {}, replays)
+    expected = [(0.2 - 0.05) / 0.25, (-0.3 - 0.05) / 0.25, np.nan]  # (0.1 r_agent - price) / temperature
+    np.testing.assert_allclose(model.replayed_logit_targets(rollout), expected, atol=1e-6)
+
+
+def test_replayed_value_stores_targets_at_the_replayed_decisions_only() -> None:
+    model = replayed_model(broadcast_advantage="replayed_value", replay_share=0.5)
+    model.learn(32)
     targets = model.rollout_buffer.broadcast_advantages
     assert 0 < np.isfinite(targets).sum() <= 16 * 2
     assert np.isnan(targets).any(axis=-1).all()  # at most one agent per step and env
+    assert all(th.isfinite(view).all() for view in model.policy.net_parameters("mu"))
+    model.set_fixed_trigger(PeriodicTrigger(2))
+    model.learn(16)  # a fixed trigger's rollout has no replays, so no targets
+    assert np.isnan(model.rollout_buffer.broadcast_advantages).all()
 
 
 def test_the_fitted_logit_loss_hand_computed() -> None:
@@ -239,7 +258,11 @@ def test_the_fitted_logit_loss_hand_computed() -> None:
     data = SimpleNamespace(broadcast_advantages=targets)
     # agent 0: errors 1 and 2 over its two targets; agent 1: error 3 over its one
     expected = (1.0 + 4.0) / 2 + 9.0
-    assert fitted_logit_loss(evaluation, data, th.ones(3, 2), 0.2).item() == pytest.approx(expected)
+    logit.requires_grad_(True)
+    loss = fitted_logit_loss(evaluation, data, th.ones(3, 2), 0.2)
+    assert loss.item() == pytest.approx(expected)
+    loss.backward()  # 2 (logit - target) / (the agent's targets), nothing where there is no target
+    th.testing.assert_close(logit.grad, th.tensor([[-1.0, 0.0], [0.0, 0.0], [2.0, -6.0]]))
 
 
 def test_replayed_value_fits_mus_logit_to_its_targets() -> None:
@@ -258,3 +281,14 @@ def test_replayed_value_fits_mus_logit_to_its_targets() -> None:
     before = (agent_0_logit() - 2.0).abs().mean().item()
     model.train()
     assert (agent_0_logit() - 2.0).abs().mean().item() < 0.25 * before
+
+
+def test_a_replaying_model_loaded_with_an_env_id_runs_its_envs_here(tmp_path: Any) -> None:
+    model = MAPPOC("MlpHybridPolicy", ENV_ID, broadcast_advantage="replayed_expected", n_envs=2, n_steps=8)
+    model.save(tmp_path / "model")
+    loaded = MAPPOC.load(tmp_path / "model", ENV_ID)
+    try:
+        assert isinstance(loaded.env, DummyVecEnv) and loaded.n_envs == 2
+        loaded.learn(16)  # replays copy the envs: rollout workers would be refused here
+    finally:
+        loaded.env.close()

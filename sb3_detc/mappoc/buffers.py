@@ -21,7 +21,9 @@ class HybridRolloutSamples(NamedTuple):
     :param old_log_prob_control: ``log pi_i(u_i)`` (B, N) under the policy that sampled the controls
     :param advantages: GAE advantages (B, N)
     :param returns: lambda-returns (B, N), targets of ``Q_i(s, o_taken)``
-    :param broadcast_advantages: lambda-return minus ``V_i(s) = sum_o mu_i(o) Q_i(s, o)`` at collection (B, N)
+    :param broadcast_advantages: lambda-return minus ``V_i(s) = sum_o mu_i(o) Q_i(s, o)`` at collection (B, N),
+        or what :meth:`HybridRolloutBuffer.set_broadcast_advantages` put in its place (replayed advantages,
+        or targets of the broadcast logit, NaN where there is none)
     :param broadcast_price: the learner's reward lost by the own broadcast (B, N) (afterstate critic)
     """
 
@@ -56,7 +58,8 @@ class HybridRolloutBuffer:
     critic's regression targets. ``broadcast_advantages`` are the lambda-returns minus the
     state value ``V(s) = sum_o mu(o | s) Q(s, o)`` at collection time (a sampled advantage
     of the taken option, for :class:`~sb3_detc.mappoc.mappoc.MAPPOC` with
-    ``broadcast_advantage="return"``). The log-probabilities are those of the policy that sampled
+    ``broadcast_advantage="return"``; the replayed kinds put theirs in place with
+    :meth:`set_broadcast_advantages`). The log-probabilities are those of the policy that sampled
     the rollout.
 
     :param buffer_size: steps per environment and rollout

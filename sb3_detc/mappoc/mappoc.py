@@ -44,6 +44,7 @@ from sb3_detc.mappoc.sampling import (
 )
 from sb3_detc.mappoc.steps import FusedGradientStep, GradientStep, compiles, make_gradient_step
 from sb3_detc.mappoc.workers import default_n_envs, make_rollout_workers
+from sb3_detc.network import interval_window
 from sb3_detc.renamed import REMOVED, RENAMED, renamed_action_space, renamed_keys, renamed_saved_data
 
 SelfMAPPOC = TypeVar("SelfMAPPOC", bound="MAPPOC")
@@ -90,11 +91,12 @@ class MAPPOC(OnPolicyAlgorithm):
         ``mu`` learns from those decisions only, with the advantage ``(o - p) (Q(1) - Q(0))``, ``p``
         its probability of broadcasting, weighted by ``N / replay_share``), ``"replayed_expected"`` (the same
         replays, with the advantage ``(o - (1 - p)) (Q(1) - Q(0))``: the gradient of the broadcast logit is
-        then ``p (1 - p) (Q(1) - Q(0))`` whichever option was drawn, see :meth:`replayed_advantages`) or
+        then ``p (1 - p) (Q(1) - Q(0))`` whichever option was drawn, until clipped; see
+        :meth:`replayed_advantages`) or
         ``"replayed_value"`` (the same
         replays; ``mu``'s broadcast logit ``log mu(1) - log mu(0)`` is fitted by least squares to the value
         of a broadcast divided by ``replay_temperature``: a regression, which weighs every replayed decision
-        alike, where the policy gradient weighs them by ``p (1 - p)``, most near ``mu``'s threshold). Both
+        alike, where the policy gradient weighs them by ``p (1 - p)``, most near ``mu``'s threshold). The
         replayed kinds need envs that can be copied, in the learner's process (a ``DummyVecEnv``; MAPPOC
         builds one from an env id)
     :param broadcast_advantage_offset: constant added to the greedy and the sampled broadcast advantage
@@ -590,9 +592,12 @@ class MAPPOC(OnPolicyAlgorithm):
         buffer.compute_returns_and_advantage(last_values=last_values, dones=rollout.dones[-1])
         replays = rollout.replays
         if replays is None:
+            if self.broadcast_advantage == "replayed_value":  # a fixed trigger's rollout: no targets
+                nowhere = np.zeros(0, np.int64)
+                buffer.set_broadcast_advantages(nowhere, nowhere, nowhere, np.zeros(0), elsewhere=np.nan)
             return
         if self.broadcast_advantage == "replayed_value":  # mu's targets; no target where nothing was replayed
-            targets = self.replayed_values(replays) / self.replay_temperature
+            targets = self.replayed_logit_targets(rollout)
             buffer.set_broadcast_advantages(replays.steps, replays.envs, replays.agents, targets, elsewhere=np.nan)
         else:
             advantages = self.replayed_advantages(rollout, buffer.log_prob_broadcast)
@@ -618,6 +623,24 @@ class MAPPOC(OnPolicyAlgorithm):
             value = value / (np.sqrt(square)[replays.agents] + 1e-8)
         return value
 
+    def replayed_logit_targets(self, rollout: Rollout) -> np.ndarray:
+        """The targets of ``mu``'s broadcast logit at a rollout's replayed decisions (``"replayed_value"``).
+
+        :meth:`replayed_values` divided by ``replay_temperature``; NaN (no target) at decisions that the
+        policy's window of broadcast intervals forces (``broadcast_interval``), whose logit is pinned.
+
+        :param rollout: a rollout with its replays (:class:`~sb3_detc.mappoc.replays.Replays`)
+        :return: targets (K,), in the order of the replays
+        """
+        replays: Replays = rollout.replays  # type: ignore[assignment]
+        targets = self.replayed_values(replays) / self.replay_temperature
+        if self.policy.broadcast_interval is not None:
+            age = rollout.observations["age"][replays.steps, replays.envs]
+            silent, broadcast = interval_window(age, *self.policy.broadcast_interval)
+            rows = np.arange(len(replays.agents))
+            targets[(silent | broadcast)[rows, replays.agents]] = np.nan
+        return targets
+
     def replayed_advantages(self, rollout: Rollout, log_prob_broadcast: np.ndarray) -> np.ndarray:
         """``mu``'s advantages of the taken options at a rollout's replayed decisions, in the learner's units.
 
@@ -626,8 +649,8 @@ class MAPPOC(OnPolicyAlgorithm):
         ``"replayed_expected"`` it gets ``(o - (1 - p)) (Q(1) - Q(0))``: ``p (Q(1) - Q(0))`` for a broadcast,
         ``-(1 - p) (Q(1) - Q(0))`` for silence, so that the gradient of the broadcast logit is
         ``p (1 - p) (Q(1) - Q(0))`` whichever option was drawn (its expectation over the option under
-        ``"replayed"``, without the variance of the draw). Weighted by ``N / replay_share``: over the
-        rollout, the gradient of every decision's advantage in expectation.
+        ``"replayed"``, without the variance of the draw), until PPO clips the ratio. Weighted by
+        ``N / replay_share``: over the rollout, the gradient of every decision's advantage in expectation.
 
         :param rollout: a rollout with its replays (:class:`~sb3_detc.mappoc.replays.Replays`)
         :param log_prob_broadcast: the log-probabilities of the rollout's taken options, (T, n_envs, N)
@@ -778,7 +801,8 @@ class MAPPOC(OnPolicyAlgorithm):
 
         :param path: path to the saved file
         :param env: environment to attach (must have the spaces the model was trained with); from
-            an env id, MAPPOC builds as many rollout workers as the model was trained with
+            an env id, MAPPOC builds as many rollout workers as the model was trained with (envs in a
+            ``DummyVecEnv`` for a replayed ``broadcast_advantage``, which copies them)
         :param device: device on which the code runs
         :param custom_objects: objects to replace on load, see :meth:`BaseAlgorithm.load`
         :param print_system_info: print the system info of the saved model and the current one
@@ -792,7 +816,9 @@ class MAPPOC(OnPolicyAlgorithm):
         env = as_joint_env(env)
         data, _, _ = load_from_zip_file(path, device="cpu", custom_objects=custom_objects, load_data=True)
         data = data or {}
-        if isinstance(env, str):  # the fast setting, with the saved number of envs (n_steps is per env)
+        if isinstance(env, str) and data.get("broadcast_advantage") in REPLAYED_ADVANTAGES:  # copied: here
+            env = make_vec_env(env, n_envs=int(data.get("n_envs", 1)), vec_env_cls=DummyVecEnv)
+        elif isinstance(env, str):  # the fast setting, with the saved number of envs (n_steps is per env)
             env = make_rollout_workers(env, int(data.get("n_envs", 1)))
         custom_objects, kwargs = renamed_saved_data(data, custom_objects, kwargs)
         if env is not None and "action_space" in data:

@@ -838,7 +838,8 @@ class MlpHybridPolicy(BasePolicy):
         :param broadcast_price: cost of a broadcast in the learner's reward units (B, N), see :meth:`option_values`
         :param p_broadcast: probabilities of broadcasting with which ``broadcast`` was drawn (B, N),
             see :meth:`option_values` (None: those of the current ``mu``)
-        :return: log-probabilities, broadcast entropy and option values, as :class:`HybridEvaluation`
+        :return: log-probabilities, broadcast entropy, option values and broadcast logits, as
+            :class:`HybridEvaluation`
         """
         return self.evaluate_inputs(
             self.training_inputs(obs, broadcast), broadcast, control, broadcast_price, p_broadcast, obs["age"]
@@ -862,7 +863,8 @@ class MlpHybridPolicy(BasePolicy):
         :param p_broadcast: probabilities of broadcasting with which ``broadcast`` was drawn (B, N),
             see :meth:`option_values` (None: those of the current ``mu``)
         :param age: the agents' timers before the options (B, N, 1); needed with a :attr:`broadcast_interval` only
-        :return: log-probabilities, broadcast entropy and option values, as :class:`HybridEvaluation`
+        :return: log-probabilities, broadcast entropy, option values and broadcast logits, as
+            :class:`HybridEvaluation`
         """
         out = self.chains.evaluate(stacked)
         log_p = F.log_softmax(self.option_logits(out["mu"], age), dim=-1)
