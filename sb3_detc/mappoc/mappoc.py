@@ -53,6 +53,23 @@ SelfMAPPOC = TypeVar("SelfMAPPOC", bound="MAPPOC")
 PAPER_ITERATION = 2048
 
 
+def training_envs(env_id: str, n_envs: int, seed: int | None, broadcast_advantage: str) -> VecEnv:
+    """The training envs MAPPOC builds from an env id (in ``__init__`` and ``load``).
+
+    Rollout workers (the fast setting), or, for a replayed ``broadcast_advantage``, which copies the
+    envs at replayed decisions, a ``DummyVecEnv`` in this process.
+
+    :param env_id: a registered env id
+    :param n_envs: number of envs
+    :param seed: seed of the envs (None: unseeded)
+    :param broadcast_advantage: the model's kind of broadcast advantage
+    :return: the vectorised envs
+    """
+    if broadcast_advantage in REPLAYED_ADVANTAGES:
+        return make_vec_env(env_id, n_envs=n_envs, seed=seed, vec_env_cls=DummyVecEnv)
+    return make_rollout_workers(env_id, n_envs, seed)
+
+
 class MAPPOC(OnPolicyAlgorithm):
     """Multi-agent PPO option-critic (Kesper, Trimpe and Baumann, L4DC 2023), with the paper's defaults.
 
@@ -244,10 +261,8 @@ class MAPPOC(OnPolicyAlgorithm):
             raise ValueError("share_parameters=True contradicts policy_kwargs['share_parameters']=False: give one.")
         policy_kwargs.setdefault("share_parameters", share_parameters)
         owns_env = isinstance(env, str)
-        if owns_env and broadcast_advantage in REPLAYED_ADVANTAGES:  # copied at replayed decisions: in this process
-            env = make_vec_env(env, n_envs=n_envs, seed=seed, vec_env_cls=DummyVecEnv)  # type: ignore[arg-type]
-        elif owns_env:  # after the checks: no worker processes for a model that cannot be built
-            env = make_rollout_workers(env, n_envs, seed)  # type: ignore[arg-type]
+        if owns_env:  # after the checks: no worker processes for a model that cannot be built
+            env = training_envs(env, n_envs, seed, broadcast_advantage)  # type: ignore[arg-type]
         try:  # a model refused from here on (e.g. for its policy_kwargs) ends the workers it started
             n_steps, batch_size, n_epochs = int(n_steps), int(batch_size), int(n_epochs)  # e.g. from numpy
             super().__init__(
@@ -816,10 +831,8 @@ class MAPPOC(OnPolicyAlgorithm):
         env = as_joint_env(env)
         data, _, _ = load_from_zip_file(path, device="cpu", custom_objects=custom_objects, load_data=True)
         data = data or {}
-        if isinstance(env, str) and data.get("broadcast_advantage") in REPLAYED_ADVANTAGES:  # copied: here
-            env = make_vec_env(env, n_envs=int(data.get("n_envs", 1)), vec_env_cls=DummyVecEnv)
-        elif isinstance(env, str):  # the fast setting, with the saved number of envs (n_steps is per env)
-            env = make_rollout_workers(env, int(data.get("n_envs", 1)))
+        if isinstance(env, str):  # with the saved number of envs (n_steps is per env)
+            env = training_envs(env, int(data.get("n_envs", 1)), None, data.get("broadcast_advantage", "greedy"))
         custom_objects, kwargs = renamed_saved_data(data, custom_objects, kwargs)
         if env is not None and "action_space" in data:
             check_same_agents(env, len(renamed_action_space(data["action_space"])["broadcast"].nvec))  # type: ignore[arg-type]
