@@ -18,7 +18,7 @@ import sb3_detc  # noqa: F401  (registers the env ids)
 from sb3_detc.mappoc import MAPPOC
 from sb3_detc.mappoc.losses import fitted_logit_loss
 from sb3_detc.mappoc.policies import HybridEvaluation
-from sb3_detc.mappoc.replays import Replays, chosen_decisions, copyable_env, replay, snapshot
+from sb3_detc.mappoc.replays import Replays, copyable_env, gradient_choice, replay, snapshot, uniform_choice
 from sb3_detc.mappoc.rewards import RewardTransform
 from sb3_detc.mappoc.sampling import Rollout
 from sb3_detc.triggers import PeriodicTrigger
@@ -100,11 +100,38 @@ def test_a_replay_stops_at_the_episode_end() -> None:
     assert counted.steps == 3  # the silent branch steps the given copy
 
 
-def test_chosen_decisions_replay_one_agent_at_a_share_of_the_steps() -> None:
-    chosen = chosen_decisions(400, 5, 3, 0.25, np.random.default_rng(0))
+def test_uniform_choice_replays_one_random_agent_at_a_share_of_the_steps() -> None:
+    rng = np.random.default_rng(0)
+    draws = [uniform_choice(np.full((5, 3), 0.5), 0.25, rng) for _ in range(400)]
+    chosen = np.stack([agents for agents, _ in draws])
     assert chosen.shape == (400, 5) and set(np.unique(chosen)) == {-1, 0, 1, 2}
     assert abs((chosen >= 0).mean() - 0.25) < 0.03
-    assert (chosen_decisions(10, 2, 3, 1.0, np.random.default_rng(0)) >= 0).all()
+    assert all(np.allclose(chances, 0.25 / 3) for _, chances in draws)
+    assert (uniform_choice(np.zeros((2, 3)), 1.0, rng)[0] >= 0).all()
+
+
+def test_gradient_choice_weighted_by_its_inverse_chance_counts_every_undecided_decision_once() -> None:
+    # Importance sampling: E[1{d chosen} / chance_d] = 1 for every decision with p (1 - p) > 0, so a
+    # sum over the replayed decisions weighted by 1 / chance is the sum over all in expectation.
+    probabilities = np.array([[0.5, 0.1, 0.0], [0.9, 0.99, 0.3], [1.0, 0.0, 0.0], [0.02, 0.6, 0.5]])
+    rng = np.random.default_rng(1)
+    counts, chance, draws = np.zeros_like(probabilities), np.zeros_like(probabilities), 40_000
+    replays_per_step = []
+    for _ in range(draws):
+        agents, chances = gradient_choice(probabilities, 0.25, rng)
+        rows = np.flatnonzero(agents >= 0)
+        counts[rows, agents[rows]] += 1.0 / chances[rows]
+        chance[rows, agents[rows]] = chances[rows]
+        replays_per_step.append(len(rows))
+    undecided = probabilities * (1 - probabilities) > 0
+    assert (chance[undecided] > 0).all()  # each was chosen
+    standard_error = np.sqrt((1 / chance[undecided] - 1) / draws)  # of a mean of 1{chosen} / chance
+    assert (np.abs(counts[undecided] / draws - 1.0) < 4 * standard_error).all()
+    assert (counts[~undecided] == 0).all()  # pinned decisions carry no gradient: never replayed
+    assert np.mean(replays_per_step) == pytest.approx(0.25 * 4, rel=0.05)  # share replays per env and step
+    # where mu is sure everywhere, nothing is replayed
+    agents, _ = gradient_choice(np.array([[0.0, 1.0], [1.0, 1.0]]), 1.0, rng)
+    assert (agents == -1).all()
 
 
 def test_what_is_copied_leaves_out_the_bookkeeping_wrappers() -> None:
@@ -156,6 +183,22 @@ def test_mu_learns_from_the_replayed_decisions_only() -> None:
     assert any(not th.equal(old, new) for old, new in zip(before, model.policy.net_parameters("mu"), strict=True))
 
 
+def test_gradient_choice_reads_mus_probabilities_of_the_step() -> None:
+    model = replayed_model(replay_share=0.5, replay_choice="gradient", policy_kwargs={"net_arch": [8]})
+    model.learn(32)
+    assert np.isfinite(model.rollout_buffer.broadcast_advantages).all()
+    rollout = model.sampler.sample(model.env, model.last_obs, 16, 0.0, None)
+    replays = rollout.replays
+    assert len(replays.agents) > 0
+    for step, env, agent, chance in zip(replays.steps, replays.envs, replays.agents, replays.chances, strict=True):
+        with th.no_grad():
+            obs = {key: th.as_tensor(value[step]) for key, value in rollout.observations.items()}
+            p = model.policy.broadcast_probabilities(obs).numpy().astype(np.float64)  # (B, N) of that step
+        weights = p * (1 - p)
+        env_chance = min(1.0, 0.5 * 2 * weights[env].sum() / weights.sum())
+        assert chance == pytest.approx(env_chance * weights[env, agent] / weights[env].sum(), rel=1e-4)
+
+
 def test_replayed_advantages_hand_computed() -> None:
     model = replayed_model(replay_share=0.5, normalize_broadcast_advantage=False, reward_scale=0.1)
     model.learn(16)  # reads the rollout's settings
@@ -165,10 +208,11 @@ def test_replayed_advantages_hand_computed() -> None:
     broadcast[0, 1, 2] = broadcast[5, 1, 1] = 1  # taken options: broadcast, silent, broadcast
     log_prob = np.full((16, 2, 3), np.log(0.2))  # every taken option was drawn with 0.2
     model.broadcast_price = 0.05
-    replays = Replays(steps, envs, agents, rewards, np.eye(3)[agents])
+    chances = np.array([0.5 / 3, 0.5 / 3, 0.05])  # uniform choice at share 0.5, then one chosen with 0.05
+    replays = Replays(steps, envs, agents, rewards, np.eye(3)[agents], chances)
     rollout = Rollout({}, broadcast, np.zeros(0), np.zeros(0), [], {}, replays)
-    # (o - p) (0.1 r_agent - price), times N / share = 6; p = 0.2 for a taken broadcast, 0.8 for a taken silence
-    expected = [(1 - 0.2) * (0.2 - 0.05) * 6, (0 - 0.8) * (-0.3 - 0.05) * 6, (1 - 0.2) * (0.05 - 0.05) * 6]
+    # (o - p) (0.1 r_agent - price) / chance; p = 0.2 for a taken broadcast, 0.8 for a taken silence
+    expected = [(1 - 0.2) * (0.2 - 0.05) * 6, (0 - 0.8) * (-0.3 - 0.05) * 6, (1 - 0.2) * (0.05 - 0.05) * 20]
     np.testing.assert_allclose(model.replayed_advantages(rollout, log_prob), expected, atol=1e-7)
 
 
@@ -180,7 +224,7 @@ def test_replayed_expected_advantages_give_the_expected_gradient_for_either_opti
     model.broadcast_price = 0.0
     agents = np.array([0, 1, 2])
     rewards = np.diag([2.0, -3.0, 1.0])  # values 0.2, -0.3, 0.1 (reward_scale 0.1)
-    replays = Replays(np.zeros(3, np.int64), np.zeros(3, np.int64), agents, rewards, np.eye(3))
+    replays = Replays(np.zeros(3, np.int64), np.zeros(3, np.int64), agents, rewards, np.eye(3), np.full(3, 0.5 / 3))
     p = np.array([0.1, 0.5, 0.7])  # the probabilities of broadcasting
     for option in (0, 1):
         broadcast = np.full((16, 2, 3), option)
@@ -205,7 +249,13 @@ def test_replays_need_envs_in_the_learners_process() -> None:
 
 @pytest.mark.parametrize(
     ("name", "value"),
-    [("replay_share", 0.0), ("replay_share", 1.5), ("replay_horizon", 0), ("replay_temperature", 0.0)],
+    [
+        ("replay_share", 0.0),
+        ("replay_share", 1.5),
+        ("replay_horizon", 0),
+        ("replay_temperature", 0.0),
+        ("replay_choice", "greedy"),
+    ],
 )
 def test_bad_replay_settings_are_refused(name: str, value: float) -> None:
     with pytest.raises(ValueError, match=name):
@@ -233,7 +283,7 @@ def test_replayed_value_targets_hand_computed() -> None:
     rewards = np.array([[0.0, 1.0, 2.0], [-3.0, 0.0, 0.0], [0.0, 0.5, 0.0]])
     age = np.ones((16, 2, 3, 1), np.float32)  # intervals of 2 if they broadcast now: the trigger's choice
     age[5, 1, 1] = 0.0  # an interval of 1, shorter than the window's 2: silence forced, no target
-    replays = Replays(steps, envs, agents, rewards, np.eye(3)[agents])
+    replays = Replays(steps, envs, agents, rewards, np.eye(3)[agents], np.full(3, 0.5 / 3))
     rollout = Rollout({"age": age}, np.zeros((16, 2, 3), np.int64), np.zeros(0), np.zeros(0), [], {}, replays)
     expected = [(0.2 - 0.05) / 0.25, (-0.3 - 0.05) / 0.25, np.nan]  # (0.1 r_agent - price) / temperature
     np.testing.assert_allclose(model.replayed_logit_targets(rollout), expected, atol=1e-6)

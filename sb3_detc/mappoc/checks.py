@@ -12,6 +12,7 @@ from stable_baselines3.common.vec_env import VecEnv, unwrap_vec_normalize
 
 from sb3_detc.mappoc.critics import CRITICS, OptionCritic
 from sb3_detc.mappoc.losses import BROADCAST_ADVANTAGES
+from sb3_detc.mappoc.replays import REPLAY_CHOICES
 from sb3_detc.mappoc.rewards import PRICE_RULES
 from sb3_detc.validation import is_integer
 
@@ -54,6 +55,7 @@ _HYPERPARAMETER_RULES: dict[str, tuple[Callable[[Any], bool], str]] = {
     "broadcast_price_lr": (lambda v: v > 0, "> 0"),
     "broadcast_advantage": (lambda v: v in BROADCAST_ADVANTAGES, " or ".join(map(repr, BROADCAST_ADVANTAGES))),
     "replay_share": (lambda v: 0 < v <= 1, "in (0, 1]"),
+    "replay_choice": (lambda v: v in REPLAY_CHOICES, " or ".join(map(repr, REPLAY_CHOICES))),
     "replay_horizon": (lambda v: is_integer(v, 1), "a positive integer"),
     "replay_temperature": (lambda v: v > 0, "> 0"),
 }

@@ -103,10 +103,12 @@ class MAPPOC(OnPolicyAlgorithm):
     :param broadcast_advantage: advantage of the taken option in ``mu``'s loss: ``"greedy"``
         (the paper: ``Q(o) - max_o' Q(o')`` with the current critic), ``"return"`` (the
         lambda-return minus ``V(s) = sum_o mu(o) Q(s, o)`` at collection time) or ``"replayed"``
-        (measured: at a share ``replay_share`` of the steps, one agent's decision is replayed in two
+        (measured: at some of the decisions, ``replay_share`` per step of an env, chosen as ``replay_choice``
+        says, the decision is replayed in two
         copies of the env, broadcasting and silent, with the same noise, :mod:`sb3_detc.mappoc.replays`;
         ``mu`` learns from those decisions only, with the advantage ``(o - p) (Q(1) - Q(0))``, ``p``
-        its probability of broadcasting, weighted by ``N / replay_share``), ``"replayed_expected"`` (the same
+        its probability of broadcasting, weighted by the inverse of the probability with which the decision
+        was chosen, ``N / replay_share`` for ``replay_choice="uniform"``), ``"replayed_expected"`` (the same
         replays, with the advantage ``(o - (1 - p)) (Q(1) - Q(0))``: the gradient of the broadcast logit is
         then ``p (1 - p) (Q(1) - Q(0))`` whichever option was drawn, until clipped; see
         :meth:`replayed_advantages`) or
@@ -118,8 +120,15 @@ class MAPPOC(OnPolicyAlgorithm):
         builds one from an env id)
     :param broadcast_advantage_offset: constant added to the greedy and the sampled broadcast advantage
         (the paper's code used a 0.1 "deliberation" offset; the paper and the default use 0)
-    :param replay_share: with a replayed ``broadcast_advantage``, the probability that a step of an env has a
-        replayed decision, in (0, 1]
+    :param replay_share: with a replayed ``broadcast_advantage``, the mean number of replayed decisions per
+        step of an env (at most one), in (0, 1]
+    :param replay_choice: with a replayed ``broadcast_advantage``, how the replayed decisions are chosen:
+        ``"uniform"`` (at a share ``replay_share`` of the steps of every env, one agent at random) or
+        ``"gradient"`` (in proportion to ``p (1 - p)``, ``p`` the decision's probability of broadcasting,
+        which weighs its expected gradient: the replays go where ``mu`` is undecided instead of where it
+        is sure, :func:`~sb3_detc.mappoc.replays.gradient_choice`; the policy-gradient kinds weigh every
+        replayed decision by the inverse of its chance, so the gradient stays the same in expectation,
+        while ``"replayed_value"`` fits the logit where the decisions were chosen)
     :param replay_horizon: with a replayed ``broadcast_advantage``, the steps a replay follows (at most to the
         episode's end); the value of a broadcast after them is left out
     :param replay_temperature: with ``broadcast_advantage="replayed_value"``, the value of a broadcast (in the
@@ -200,6 +209,7 @@ class MAPPOC(OnPolicyAlgorithm):
         broadcast_advantage_offset: float = 0.0,
         normalize_broadcast_advantage: bool = False,
         replay_share: float = 0.25,
+        replay_choice: str = "uniform",
         replay_horizon: int = 60,
         replay_temperature: float = 0.1,
         reward_scale: float = 0.1,
@@ -253,6 +263,7 @@ class MAPPOC(OnPolicyAlgorithm):
             broadcast_price_lr=broadcast_price_lr,
             broadcast_advantage=broadcast_advantage,
             replay_share=replay_share,
+            replay_choice=replay_choice,
             replay_horizon=replay_horizon,
             replay_temperature=replay_temperature,
         )
@@ -299,6 +310,7 @@ class MAPPOC(OnPolicyAlgorithm):
             self.broadcast_advantage_offset = broadcast_advantage_offset
             self.normalize_broadcast_advantage = normalize_broadcast_advantage
             self.replay_share = float(replay_share)
+            self.replay_choice = replay_choice
             self.replay_horizon = int(replay_horizon)
             self.replay_temperature = float(replay_temperature)
             self.reward_scale = reward_scale
@@ -371,7 +383,9 @@ class MAPPOC(OnPolicyAlgorithm):
         """
         self._compiled = compiled
         self.sampler = (
-            ReplayingSampler(self.policy, compiled, self.replay_share, self.replay_horizon, self.gamma)
+            ReplayingSampler(
+                self.policy, compiled, self.replay_share, self.replay_horizon, self.gamma, self.replay_choice
+            )
             if self.broadcast_advantage in REPLAYED_ADVANTAGES
             else RolloutSampler(self.policy, compiled)
         )
@@ -664,8 +678,9 @@ class MAPPOC(OnPolicyAlgorithm):
         ``"replayed_expected"`` it gets ``(o - (1 - p)) (Q(1) - Q(0))``: ``p (Q(1) - Q(0))`` for a broadcast,
         ``-(1 - p) (Q(1) - Q(0))`` for silence, so that the gradient of the broadcast logit is
         ``p (1 - p) (Q(1) - Q(0))`` whichever option was drawn (its expectation over the option under
-        ``"replayed"``, without the variance of the draw), until PPO clips the ratio. Weighted by
-        ``N / replay_share``: over the rollout, the gradient of every decision's advantage in expectation.
+        ``"replayed"``, without the variance of the draw), until PPO clips the ratio. Weighted by the inverse
+        of the probability with which every decision was chosen (``N / replay_share`` for
+        ``replay_choice="uniform"``): over the rollout, the gradient of every decision's advantage in expectation.
 
         :param rollout: a rollout with its replays (:class:`~sb3_detc.mappoc.replays.Replays`)
         :param log_prob_broadcast: the log-probabilities of the rollout's taken options, (T, n_envs, N)
@@ -677,7 +692,7 @@ class MAPPOC(OnPolicyAlgorithm):
         p_taken = np.exp(log_prob_broadcast[replays.steps, replays.envs, replays.agents])
         p_broadcast = np.where(taken == 1, p_taken, 1.0 - p_taken)
         centre = 1.0 - p_broadcast if self.broadcast_advantage == "replayed_expected" else p_broadcast
-        return (taken - centre) * value * (self.n_agents / self.replay_share)
+        return (taken - centre) * value / replays.chances
 
     # ------------------------------------------------------------------ updates
     def train(self) -> None:

@@ -40,6 +40,8 @@ class Replays(NamedTuple):
     :param rewards: discounted sum of every agent's reward after a broadcast minus that after a silence (K, N),
         in the env's units (``info["agent_rewards"]``, the communication cost included)
     :param broadcasts: the same difference of every agent's discounted number of broadcasts (K, N)
+    :param chances: the probability with which every decision was chosen for a replay (K,): weighted by its
+        inverse, the replayed decisions stand for all of the rollout's in expectation
     """
 
     steps: np.ndarray
@@ -47,6 +49,7 @@ class Replays(NamedTuple):
     agents: np.ndarray
     rewards: np.ndarray
     broadcasts: np.ndarray
+    chances: np.ndarray
 
 
 def copyable_env(env: gym.Env) -> gym.Env:
@@ -146,18 +149,54 @@ def replay(
     return rewards_1 - rewards_0, broadcasts_1 - broadcasts_0
 
 
-def chosen_decisions(n_steps: int, n_envs: int, n_agents: int, share: float, rng: np.random.Generator) -> np.ndarray:
-    """Which decisions of a rollout to replay: at every step of every env with probability ``share``, one random agent.
+def uniform_choice(probabilities: np.ndarray, share: float, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Which decisions of a step to replay: in every env with probability ``share``, one agent drawn uniformly.
 
-    :param n_steps: steps of the rollout
-    :param n_envs: envs
-    :param n_agents: agents N
-    :param share: probability that a step of an env has a replayed decision, in (0, 1]
+    :param probabilities: every agent's probability of broadcasting, (B, N) (only the shape is read)
+    :param share: probability that an env's step has a replayed decision, in (0, 1]
     :param rng: the draws
-    :return: the deciding agent per step and env, -1 where none is replayed, (n_steps, n_envs)
+    :return: the chosen agent per env, -1 where none (B,), and the probability with which it was chosen (B,)
     """
-    agents = rng.integers(n_agents, size=(n_steps, n_envs))
-    return np.where(rng.random((n_steps, n_envs)) < share, agents, -1)
+    n_envs, n_agents = probabilities.shape
+    agents = rng.integers(n_agents, size=n_envs)
+    agents = np.where(rng.random(n_envs) < share, agents, -1)
+    return agents, np.full(n_envs, share / n_agents)
+
+
+def gradient_choice(probabilities: np.ndarray, share: float, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Which decisions of a step to replay: the more likely, the more a replay would move ``mu``.
+
+    A replayed decision moves the broadcast logit by ``p (1 - p) (Q(1) - Q(0))`` in expectation,
+    ``p`` its probability of broadcasting: decisions far from ``mu``'s threshold carry next to no
+    gradient. Decision ``(b, i)`` is chosen with probability ``pi_b w_bi / S_b``, with
+    ``w = p (1 - p)``, ``S_b`` the sum of env ``b``'s weights and ``pi_b = min(1, share B S_b / sum S)``
+    the probability that env ``b``'s step is replayed: ``share`` replays per env and step, as
+    :func:`uniform_choice`, where ``mu`` is undecided. Decisions with ``p`` 0 or 1 (pinned) are never chosen.
+
+    :param probabilities: every agent's probability of broadcasting, (B, N)
+    :param share: mean number of replayed decisions per env and step, in (0, 1]
+    :param rng: the draws
+    :return: the chosen agent per env, -1 where none (B,), and the probability with which it was chosen (B,)
+    """
+    weights = probabilities * (1.0 - probabilities)
+    totals = weights.sum(axis=1)
+    n_envs = len(totals)
+    whole = totals.sum()
+    env_chance = np.minimum(1.0, share * n_envs * totals / whole) if whole > 0 else np.zeros(n_envs)
+    picked = rng.random(n_envs) < env_chance
+    cumulative = np.cumsum(weights, axis=1)
+    draws = rng.random(n_envs) * totals
+    agents = np.minimum((cumulative <= draws[:, None]).sum(axis=1), weights.shape[1] - 1)
+    rows = np.arange(n_envs)
+    chances = env_chance * weights[rows, agents] / np.where(totals > 0, totals, 1.0)
+    return np.where(picked & (chances > 0), agents, -1), chances
+
+
+#: How a step's decisions are chosen for replays, by the name of ``MAPPOC(replay_choice=...)``.
+REPLAY_CHOICES: dict[str, Callable[[np.ndarray, float, np.random.Generator], tuple[np.ndarray, np.ndarray]]] = {
+    "uniform": uniform_choice,
+    "gradient": gradient_choice,
+}
 
 
 def replayed_observations(observations: dict[str, np.ndarray], steps: np.ndarray, envs: np.ndarray) -> dict[str, Any]:

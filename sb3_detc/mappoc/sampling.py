@@ -27,7 +27,14 @@ import torch as th
 from stable_baselines3.common.utils import obs_as_tensor
 from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecEnv
 
-from sb3_detc.mappoc.replays import Replays, chosen_decisions, copyable_env, replay, replayed_observations, snapshot
+from sb3_detc.mappoc.replays import (
+    REPLAY_CHOICES,
+    Replays,
+    copyable_env,
+    replay,
+    replayed_observations,
+    snapshot,
+)
 
 #: Signature of a fixed trigger: a batch of joint observations (B, N, ...) -> options (B, N). A trigger
 #: with ``broadcast_probability(obs)`` (B, N) (without side effects, as :mod:`sb3_detc.triggers` have)
@@ -321,21 +328,26 @@ class ReplayingSampler(RolloutSampler):
     """The learner's sampling with replayed decisions, for ``broadcast_advantage="replayed"``.
 
     Rollouts of ``mu``'s options run in this process (the envs must be copied, so a ``DummyVecEnv``);
-    at every step of every env, with probability ``share``, the env is copied before the step and one
-    random agent's decision is replayed after the rollout (:func:`~sb3_detc.mappoc.replays.replay`)
-    with the policy's parameters of the rollout. Rollouts of a fixed trigger, from which ``mu`` does
-    not learn, are sampled as :class:`RolloutSampler` samples them.
+    at every step, ``choice`` picks at most one agent's decision per env (``share`` per env and step in
+    the mean), the env is copied before the step, and the decision is replayed after the rollout
+    (:func:`~sb3_detc.mappoc.replays.replay`) with the policy's parameters of the rollout. Rollouts of
+    a fixed trigger, from which ``mu`` does not learn, are sampled as :class:`RolloutSampler` samples them.
 
     :param policy: the policy that samples
     :param compiled: compile the rollout's sampling (the replays' batches change size: they run eagerly)
-    :param share: probability that a step of an env has a replayed decision, in (0, 1]
+    :param share: mean number of replayed decisions per env and step, in (0, 1]
     :param horizon: steps of a replay (>= 1)
     :param gamma: discount factor of the replayed rewards
+    :param choice: how a step's decisions are chosen, a key of :data:`~sb3_detc.mappoc.replays.REPLAY_CHOICES`
+        (``"uniform"``: one agent at random; ``"gradient"``: by ``mu``'s ``p (1 - p)``)
     """
 
-    def __init__(self, policy: Any, compiled: bool, share: float, horizon: int, gamma: float) -> None:
+    def __init__(
+        self, policy: Any, compiled: bool, share: float, horizon: int, gamma: float, choice: str = "uniform"
+    ) -> None:
         super().__init__(policy, compiled)
         self.share, self.horizon, self.gamma = share, horizon, gamma
+        self.choose = REPLAY_CHOICES[choice]
 
     def in_workers(self, env: VecEnv, trigger: FixedTrigger | None) -> bool:
         """Whether a rollout can be sampled in rollout workers: only a fixed trigger's.
@@ -376,9 +388,16 @@ class ReplayingSampler(RolloutSampler):
         self.last_in_workers = False
         envs, bounds = [copyable_env(e) for e in env.envs], self._bounds()
         seed = int(th.randint(2**31 - 1, ()).item())
-        chosen = chosen_decisions(n_steps, env.num_envs, len(obs["age"][0]), self.share, np.random.default_rng(seed))
+        rng = np.random.default_rng(seed)
+        chosen, chances = np.full((n_steps, env.num_envs), -1), np.zeros((n_steps, env.num_envs))
         copies: list[Any] = []
-        vec_env_step, step = self._vec_env_step(env), 0
+        here, vec_env_step, step = self._here(action_noise_std), self._vec_env_step(env), 0
+
+        def act(obs: dict[str, np.ndarray], forced: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+            with th.no_grad():
+                probabilities = self.policy.broadcast_probabilities(obs_as_tensor(obs, self.policy.device))
+            chosen[step], chances[step] = self.choose(probabilities.cpu().numpy(), self.share, rng)
+            return here(obs, forced)
 
         def env_step(broadcast: np.ndarray, control: np.ndarray) -> tuple[dict, np.ndarray, list[dict[str, Any]]]:
             nonlocal step
@@ -386,16 +405,17 @@ class ReplayingSampler(RolloutSampler):
             step += 1
             return vec_env_step(broadcast, control)
 
-        rollout = run_steps(self._here(action_noise_std), env_step, obs, n_steps, None, *bounds)
+        rollout = run_steps(act, env_step, obs, n_steps, None, *bounds)
         steps, env_index = np.nonzero(chosen >= 0)  # step by step, the envs in order: as the copies were taken
         agents = chosen[steps, env_index]
         n_agents = rollout.broadcast.shape[-1]
         rewards, broadcasts = np.zeros((len(agents), n_agents)), np.zeros((len(agents), n_agents))
         if len(agents):
-            act = self._here(action_noise_std, self.policy.sample_actions)
+            act_replays = self._here(action_noise_std, self.policy.sample_actions)
             observed = replayed_observations(rollout.observations, steps, env_index)
-            rewards, broadcasts = replay(act, copies, observed, agents, self.horizon, self.gamma, *bounds, seed)
-        return rollout._replace(replays=Replays(steps, env_index, agents, rewards, broadcasts))
+            rewards, broadcasts = replay(act_replays, copies, observed, agents, self.horizon, self.gamma, *bounds, seed)
+        replays = Replays(steps, env_index, agents, rewards, broadcasts, chances[steps, env_index])
+        return rollout._replace(replays=replays)
 
 
 def joined(rollouts: list[Rollout]) -> Rollout:
