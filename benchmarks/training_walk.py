@@ -7,6 +7,10 @@ finished seed:
   last fifth of training: its standard deviation, minimum and maximum (under a fixed trigger the
   episodes alone make it vary, as over the first ``--head`` rollouts of arms that start with a fixed
   trigger (``DeltaFirstCallback``); a policy that keeps moving adds to that);
+* how sure the final policy over options is: on ``--episodes`` of the evaluation's seeded episodes
+  (options sampled, as deployed), the share of the decisions whose probability of broadcasting ``p``
+  lies in (0.02, 0.98), and the share of the sum of ``p (1 - p)`` (the weight of a decision's
+  expected policy gradient) that the 10 % of decisions with the largest weight carry;
 * for arms with a ``selection`` (policies evaluated on validation episodes every so many steps,
   ``selection.json``): at every evaluation, the savings and the control return minus that of
   predictive triggering at the same savings on the same validation episodes (its front over a grid
@@ -28,8 +32,10 @@ from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
+import torch as th
 
 import sb3_detc  # noqa: F401  (registers the env ids)
+from sb3_detc.mappoc.policies import MlpHybridPolicy
 from sb3_detc.study.spec import StudyError, load_folder_study
 from sb3_detc.triggers import PredictiveTrigger, evaluate_trigger, lqr_on_predicted_states
 
@@ -48,6 +54,31 @@ def rollout_rates(trial: Path) -> tuple[np.ndarray, np.ndarray]:
     ]
     steps, rates = np.array(pairs).T
     return steps, rates
+
+
+def sureness(policy: MlpHybridPolicy, env: gym.Env, seeds: list[int]) -> tuple[float, float]:
+    """How sure a policy over options is of its decisions on seeded episodes (options sampled).
+
+    :param policy: the final policy
+    :param env: the study's env
+    :param seeds: the episodes' seeds
+    :return: the share of decisions with ``p`` in (0.02, 0.98), and the share of the sum of ``p (1 - p)``
+        carried by the 10 % of decisions with the largest ``p (1 - p)``
+    """
+    probabilities = []
+    for seed in seeds:
+        obs, _ = env.reset(seed=seed)
+        done = False
+        while not done:
+            with th.no_grad():
+                batch = {key: th.as_tensor(np.asarray(value)[None]) for key, value in obs.items()}
+                probabilities.append(policy.broadcast_probabilities(batch).numpy()[0])
+            action, _ = policy.predict(obs, deterministic=True)  # options as deployed: sample_options decides
+            obs, _, terminated, truncated, _ = env.step(action)
+            done = terminated or truncated
+    p = np.concatenate(probabilities)
+    weights = np.sort(p * (1 - p))[::-1]
+    return float(np.mean((p > 0.02) & (p < 0.98))), float(weights[: len(weights) // 10].sum() / weights.sum())
 
 
 def predictive_front(episodes: int, seed: int, deltas: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -74,11 +105,14 @@ def main() -> None:
     parser.add_argument("--arms", nargs="+", required=True, help="labels of the arms")
     parser.add_argument("--tail", type=float, default=0.2, help="share of training at its end (default 0.2)")
     parser.add_argument("--head", type=int, default=40, help="rollouts at the start (default 40)")
+    parser.add_argument("--episodes", type=int, default=10, help="episodes of the sureness (default 10)")
     args = parser.parse_args()
     if not 0.0 < args.tail <= 1.0:
         parser.error(f"--tail must lie in (0, 1], got {args.tail}")
     if args.head < 2:
         parser.error(f"--head must be at least 2, got {args.head}")
+    if args.episodes < 1:
+        parser.error(f"--episodes must be at least 1, got {args.episodes}")
     try:
         study = load_folder_study(args.study)
     except StudyError as error:
@@ -99,6 +133,16 @@ def main() -> None:
                 f"{trial.name}: broadcast rate over the last {args.tail:.0%} of training: mean {tail.mean():.3f}, "
                 f"sd {tail.std():.3f}, range [{tail.min():.3f}, {tail.max():.3f}] ({len(tail)} rollouts); "
                 f"over the first {args.head} rollouts: sd {rates[: args.head].std():.3f}"
+            )
+            with gym.make(study.env, **known[arm].hyperparams.get("env_kwargs", {})) as env:
+                undecided, top = sureness(
+                    MlpHybridPolicy.load(trial / "policy.pt"),
+                    env,
+                    list(range(study.eval_seed, study.eval_seed + args.episodes)),
+                )
+            print(
+                f"  final policy: p in (0.02, 0.98) at {undecided:.1%} of decisions; "
+                f"top 10 % carry {top:.1%} of p (1 - p)"
             )
             selection = known[arm].selection
             if selection is None:
