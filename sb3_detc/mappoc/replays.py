@@ -164,7 +164,7 @@ def uniform_choice(probabilities: np.ndarray, share: float, rng: np.random.Gener
 
 
 def gradient_choice(probabilities: np.ndarray, share: float, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-    """Which decisions of a step to replay: the more likely, the more a replay would move ``mu``.
+    """Which decisions of a step to replay: each with a chance in proportion to how far its replay would move ``mu``.
 
     A replayed decision moves the broadcast logit by ``p (1 - p) (Q(1) - Q(0))`` in expectation,
     ``p`` its probability of broadcasting: decisions far from ``mu``'s threshold carry next to no
