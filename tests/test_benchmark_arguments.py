@@ -51,6 +51,7 @@ def test_bad_input_is_a_usage_error(tmp_path: Path, arguments: list[str], messag
         ("training_walk.py", ["benchmarks/studies/linear_lqr_rate", "--arms", "best"], "no such arms in"),
         ("training_walk.py", [".", "--arms", "a", "--tail", "0"], "--tail must lie in (0, 1]"),
         ("training_walk.py", [".", "--arms", "a", "--episodes", "0"], "--episodes must be at least 1"),
+        ("training_walk.py", [".", "--arms", "a", "--grid", "1"], "--grid must be at least 2"),
         ("predictive_headroom.py", ["--episodes", "1"], "--episodes must be at least 2"),
         ("predictive_headroom.py", ["--targets", "0.9", "1"], "--targets must lie in (0, 1)"),
         ("predictive_headroom.py", ["--horizons", "0"], "--horizons must be at least 1"),
@@ -76,12 +77,12 @@ def test_sweeps_refuse_a_results_file_of_something_else(tmp_path: Path, script: 
 
 def test_the_training_walk_reads_a_finished_arm(run_benchmark) -> None:
     arm = "predictive_first_90_replayed_expected_noent_anneal"
-    done = run_benchmark(
-        "training_walk.py", "benchmarks/studies/linear_lqr_rate", "--arms", arm, "--episodes", "1", check=True
-    )
+    arguments = ["--arms", arm, "--episodes", "1", "--grid", "3"]
+    done = run_benchmark("training_walk.py", "benchmarks/studies/linear_lqr_rate", *arguments, check=True)
     lines = done.stdout.splitlines()
     assert lines[0] == f"## {arm}" and sum(line.startswith("seed") for line in lines) == 5
     assert sum("final policy: p in (0.02, 0.98) at" in line for line in lines) == 5
+    assert lines[-1].startswith(f"{arm}: control return minus predictive triggering's at the same savings over 5 seeds")
 
 
 def test_the_age_profile_bands_a_policys_probabilities_by_its_own_age(tmp_path: Path, run_benchmark) -> None:
