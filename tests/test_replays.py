@@ -102,12 +102,12 @@ def test_a_replay_stops_at_the_episode_end() -> None:
 
 def test_uniform_choice_replays_one_random_agent_at_a_share_of_the_steps() -> None:
     rng = np.random.default_rng(0)
-    draws = [uniform_choice(np.full((5, 3), 0.5), 0.25, rng) for _ in range(400)]
+    draws = [uniform_choice(5, 3, 0.25, rng) for _ in range(400)]
     chosen = np.stack([agents for agents, _ in draws])
     assert chosen.shape == (400, 5) and set(np.unique(chosen)) == {-1, 0, 1, 2}
     assert abs((chosen >= 0).mean() - 0.25) < 0.03
     assert all(np.allclose(chances, 0.25 / 3) for _, chances in draws)
-    assert (uniform_choice(np.zeros((2, 3)), 1.0, rng)[0] >= 0).all()
+    assert (uniform_choice(2, 3, 1.0, rng)[0] >= 0).all()
 
 
 def test_gradient_choice_weighted_by_its_inverse_chance_counts_every_undecided_decision_once() -> None:

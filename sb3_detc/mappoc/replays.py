@@ -149,15 +149,15 @@ def replay(
     return rewards_1 - rewards_0, broadcasts_1 - broadcasts_0
 
 
-def uniform_choice(probabilities: np.ndarray, share: float, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+def uniform_choice(n_envs: int, n_agents: int, share: float, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
     """Which decisions of a step to replay: in every env with probability ``share``, one agent drawn uniformly.
 
-    :param probabilities: every agent's probability of broadcasting, (B, N) (only the shape is read)
+    :param n_envs: envs B
+    :param n_agents: agents N
     :param share: probability that an env's step has a replayed decision, in (0, 1]
     :param rng: the draws
     :return: the chosen agent per env, -1 where none (B,), and the probability with which it was chosen (B,)
     """
-    n_envs, n_agents = probabilities.shape
     agents = rng.integers(n_agents, size=n_envs)
     agents = np.where(rng.random(n_envs) < share, agents, -1)
     return agents, np.full(n_envs, share / n_agents)
@@ -192,11 +192,9 @@ def gradient_choice(probabilities: np.ndarray, share: float, rng: np.random.Gene
     return np.where(picked & (chances > 0), agents, -1), chances
 
 
-#: How a step's decisions are chosen for replays, by the name of ``MAPPOC(replay_choice=...)``.
-REPLAY_CHOICES: dict[str, Callable[[np.ndarray, float, np.random.Generator], tuple[np.ndarray, np.ndarray]]] = {
-    "uniform": uniform_choice,
-    "gradient": gradient_choice,
-}
+#: How a step's decisions can be chosen for replays: the values of ``MAPPOC(replay_choice=...)``
+#: (:func:`uniform_choice`, :func:`gradient_choice`).
+REPLAY_CHOICES = ("uniform", "gradient")
 
 
 def replayed_observations(observations: dict[str, np.ndarray], steps: np.ndarray, envs: np.ndarray) -> dict[str, Any]:
