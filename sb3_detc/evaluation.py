@@ -27,9 +27,9 @@ trigger whose options follow the state alone (e.g. send-on-delta), since then ev
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
 from typing import Any
 
 import gymnasium as gym
@@ -44,11 +44,12 @@ from sb3_detc.mappoc.policies import MlpHybridPolicy, options_sampled
 from sb3_detc.mappoc.sampling import FixedTrigger
 from sb3_detc.network import interval_window
 from sb3_detc.triggers import (
+    PERIODIC_FAMILIES,
     TRIGGER_FAMILIES,
     FixedControl,
     RandomTrigger,
     StatelessTrigger,
-    tune_trigger,
+    bracket_trigger,
 )
 
 __all__ = [
@@ -108,7 +109,7 @@ def carries_package(metrics: dict[str, float]) -> bool:
 
 
 # ----------------------------------------------------------------------------- episode metrics
-@dataclass
+@dataclasses.dataclass
 class EpisodeRecord:
     """One finished episode, as :class:`EpisodeCounter` counted it.
 
@@ -268,7 +269,7 @@ class EpisodeCounter:
         return record
 
 
-@dataclass
+@dataclasses.dataclass
 class Episodes:
     """Results of a policy's episodes, one entry per episode (arrays of length ``episodes``).
 
@@ -313,6 +314,41 @@ class Episodes:
             option_entropy=np.array([r.option_entropy for r in records]),
         )
 
+    @classmethod
+    def mixture(cls, lower: Episodes, upper: Episodes, savings: float) -> tuple[Episodes, float]:
+        """The expected results of two triggers mixed at a savings: one of them in every episode, drawn at random.
+
+        Running ``lower``'s trigger in episode ``k`` with probability ``w`` and ``upper``'s
+        otherwise has the expected results ``w lower + (1 - w) upper`` per episode and, with
+        ``w`` set here, the expected savings ``savings`` over the episodes (broadcasts over
+        agent-steps, both in expectation). So a family matches a rate exactly on the episodes
+        that measured it (:class:`~sb3_detc.triggers.Bracket`). Booleans (``terminated``,
+        ``failed``) become their probabilities.
+
+        :param lower: the episodes of one trigger, savings at or below ``savings``
+        :param upper: the same episodes with the other trigger, savings at or above ``savings``
+        :param savings: the savings to meet, between the two's
+        :return: the mixture's episodes, and ``w`` (1 where ``lower`` meets ``savings`` alone)
+        :raises ValueError: if ``savings`` is not between the two's
+        """
+        if not lower.savings <= savings <= upper.savings:
+            raise ValueError(
+                f"savings {savings:g} are not between the two triggers' ({lower.savings:g}, {upper.savings:g})."
+            )
+        rate = 1.0 - savings  # broadcasts per agent-step: w B_l + (1 - w) B_u = rate (w S_l + (1 - w) S_u)
+        broadcasts = [episodes.broadcasts.sum() for episodes in (lower, upper)]
+        agent_steps = [episodes.lengths.sum() * episodes.broadcasts.shape[1] for episodes in (lower, upper)]
+        denominator = (broadcasts[0] - broadcasts[1]) - rate * (agent_steps[0] - agent_steps[1])
+        weight = (
+            1.0 if denominator == 0 else float(np.clip((rate * agent_steps[1] - broadcasts[1]) / denominator, 0, 1))
+        )
+        mixed = {
+            field.name: weight * np.asarray(getattr(lower, field.name), dtype=np.float64)
+            + (1.0 - weight) * np.asarray(getattr(upper, field.name), dtype=np.float64)
+            for field in dataclasses.fields(cls)
+        }
+        return cls(**mixed), weight
+
     @property
     def returns(self) -> np.ndarray:
         """Team-mean return of every episode, communication cost included (episodes,)."""
@@ -346,7 +382,7 @@ class Episodes:
         return float(np.mean(np.maximum(binary_entropy(mean_probability) - mean_entropy, 0.0)))
 
 
-@dataclass
+@dataclasses.dataclass
 class CommunicationReport:
     """Averages over evaluation episodes.
 
@@ -369,7 +405,7 @@ class CommunicationReport:
 
 
 # ----------------------------------------------------------------------------- the episode runner
-@dataclass
+@dataclasses.dataclass
 class _Running:
     """An episode in progress in one of the envs."""
 
@@ -630,29 +666,34 @@ def evaluate_fixed_family(
     seeds: Sequence[int],
     tune_seeds: Sequence[int],
     tolerance: float = 0.01,
-) -> tuple[FixedTrigger, Episodes]:
-    """A fixed trigger family at a given savings: tuned on some episodes, then run on the evaluation's.
+) -> tuple[str, Episodes]:
+    """A fixed trigger family at exactly a given savings on the evaluation's episodes: a mixture of two of its triggers.
 
-    The family's parameter (period, threshold) is found by :func:`~sb3_detc.triggers.tune_trigger`
-    on the episodes ``tune_seeds``, with the policy's controls (or, for ``"predictive"``, LQR on the
-    predicted states: :func:`fixed_family_env`).
+    The family's two triggers whose savings on the episodes ``seeds`` enclose ``savings`` are found by
+    :func:`~sb3_detc.triggers.bracket_trigger` (a threshold family's search starts from the
+    bracket found on the cheaper episodes ``tune_seeds``), with the policy's controls (or, for
+    ``"predictive"``, LQR on the predicted states: :func:`fixed_family_env`); their mixture
+    (:meth:`Episodes.mixture`) meets ``savings`` on the episodes exactly, so the family is
+    compared at the same rate, not at a rate within a tolerance of it.
 
     :param policy: the policy whose controls act (the options come from the trigger)
     :param env: the evaluation env (a joint env)
     :param family: a name from :data:`~sb3_detc.triggers.TRIGGER_FAMILIES`
-    :param savings: the savings to reach, in (0, 1)
+    :param savings: the savings to meet, in (0, 1)
     :param seeds: the evaluation episodes' seeds
-    :param tune_seeds: the seeds of the episodes the parameter is tuned on
-    :param tolerance: the largest accepted distance of the tuned savings from ``savings``
-    :return: the tuned trigger and its episodes
-    :raises SavingsNotReached: if the family reaches no savings within the tolerance
+    :param tune_seeds: the seeds of the episodes a threshold search starts on
+    :param tolerance: the width in savings at which a threshold search stops
+        (:func:`~sb3_detc.triggers.bracket_trigger`)
+    :return: the mixture (e.g. ``0.25 x PeriodicTrigger(period=8, ...) + 0.75 x PeriodicTrigger(period=9, ...)``,
+        or one trigger where it meets ``savings`` alone) and its expected episodes
+    :raises SavingsNotReached: if no two triggers of the family enclose ``savings``
     :raises ValueError: for ``"predictive"`` on an env without a linear system, or savings outside (0, 1)
     """
     runs_in = fixed_family_env(env, family)
-    return _tuned_and_run(policy, runs_in, family, savings, seeds, tune_seeds, tolerance, system_or_env=env.unwrapped)
+    return _matched(policy, runs_in, family, savings, seeds, tune_seeds, tolerance, system_or_env=env.unwrapped)
 
 
-def _tuned_and_run(
+def _matched(
     policy: MlpHybridPolicy,
     env: gym.Env,
     family: str | Callable[[float], FixedTrigger],
@@ -660,26 +701,42 @@ def _tuned_and_run(
     seeds: Sequence[int],
     tune_seeds: Sequence[int],
     tolerance: float,
-    **tune_kwargs: Any,
-) -> tuple[FixedTrigger, Episodes]:
-    """A trigger of a family tuned to a savings on some episodes (:func:`~sb3_detc.triggers.tune_trigger`), then run.
+    **bracket_kwargs: Any,
+) -> tuple[str, Episodes]:
+    """A family's mixture at exactly a savings on the episodes ``seeds``, see :func:`evaluate_fixed_family`.
 
     :param policy: the policy whose controls act
-    :param env: the env the trigger runs in
+    :param env: the env the triggers run in
     :param family: a name from :data:`~sb3_detc.triggers.TRIGGER_FAMILIES` or a callable from a threshold to a trigger
-    :param savings: the savings to reach, in (0, 1)
+    :param savings: the savings to meet, in (0, 1)
     :param seeds: the evaluation episodes' seeds
-    :param tune_seeds: the seeds of the episodes the parameter is tuned on
-    :param tolerance: the largest accepted distance of the tuned savings from ``savings``
-    :param tune_kwargs: further arguments of :func:`~sb3_detc.triggers.tune_trigger`
-    :return: the tuned trigger and its episodes
+    :param tune_seeds: the seeds of the episodes a threshold search starts on
+    :param tolerance: the width in savings at which a threshold search stops
+    :param bracket_kwargs: further arguments of :func:`~sb3_detc.triggers.bracket_trigger`
+    :return: the mixture's description and its expected episodes
     """
+    runs: list[tuple[FixedTrigger, Episodes]] = []
 
     def savings_of(trigger: FixedTrigger) -> float:
-        return evaluate_episodes(policy, env, tune_seeds, fixed_trigger=trigger).savings
+        runs.append((trigger, evaluate_episodes(policy, env, seeds, fixed_trigger=trigger)))
+        return runs[-1][1].savings
 
-    trigger, _ = tune_trigger(family, savings_of, savings, tolerance, **tune_kwargs)
-    return trigger, evaluate_episodes(policy, env, seeds, fixed_trigger=trigger)
+    if family not in PERIODIC_FAMILIES and len(tune_seeds) < len(seeds):  # start near: a bracket on fewer episodes
+
+        def tune_savings_of(trigger: FixedTrigger) -> float:
+            return evaluate_episodes(policy, env, tune_seeds, fixed_trigger=trigger).savings
+
+        start = bracket_trigger(family, tune_savings_of, savings, tolerance, **bracket_kwargs)
+        bracket_kwargs.update(
+            initial=math.sqrt(start.lower_parameter * start.upper_parameter),
+            factor=max(start.upper_parameter / start.lower_parameter, 1.1),
+        )
+    bracket = bracket_trigger(family, savings_of, savings, tolerance, **bracket_kwargs)
+    lower, upper = (next(run for trigger, run in runs if trigger is t) for t in (bracket.lower, bracket.upper))
+    result, weight = Episodes.mixture(lower, upper, savings)
+    if bracket.lower is bracket.upper:
+        return repr(bracket.lower), result
+    return f"{weight:.3f} x {bracket.lower!r} + {1 - weight:.3f} x {bracket.upper!r}", result
 
 
 class ThresholdedOptions(StatelessTrigger):
@@ -707,7 +764,7 @@ class ThresholdedOptions(StatelessTrigger):
         self.threshold = float(threshold)
 
     def __repr__(self) -> str:
-        return f"ThresholdedOptions(threshold={self.threshold:.6g})"
+        return f"ThresholdedOptions(threshold={self.threshold!r})"
 
     def __call__(self, obs: dict[str, np.ndarray]) -> np.ndarray:
         """Options for a batch of joint observations, (B, N): 1 where ``mu``'s probability exceeds the threshold.
@@ -729,28 +786,28 @@ def evaluate_thresholded(
     seeds: Sequence[int],
     tune_seeds: Sequence[int],
     tolerance: float = 0.01,
-) -> tuple[ThresholdedOptions, Episodes]:
-    """The policy's ``mu`` thresholded at a given savings: tuned on some episodes, then run on the evaluation's.
+) -> tuple[str, Episodes]:
+    """The policy's ``mu`` thresholded at exactly a given savings on the evaluation's episodes.
 
-    The threshold (:class:`ThresholdedOptions`) is found as a fixed family's parameter is
-    (:func:`~sb3_detc.triggers.tune_trigger`, bisection from 0.5, ``mu``'s mode) on the
-    episodes ``tune_seeds``, with the policy's controls.
+    Two thresholds (:class:`ThresholdedOptions`) whose savings enclose ``savings`` are found
+    and mixed as a fixed family's triggers are (:func:`evaluate_fixed_family`; the search
+    starts from 0.5, ``mu``'s mode), with the policy's controls.
 
     :param policy: the policy whose ``mu`` is thresholded and whose controls act
     :param env: the evaluation env (a joint env)
-    :param savings: the savings to reach, in (0, 1)
+    :param savings: the savings to meet, in (0, 1)
     :param seeds: the evaluation episodes' seeds
-    :param tune_seeds: the seeds of the episodes the threshold is tuned on
-    :param tolerance: the largest accepted distance of the tuned savings from ``savings``
-    :return: the tuned trigger and its episodes
-    :raises SavingsNotReached: if no threshold reaches savings within the tolerance
+    :param tune_seeds: the seeds of the episodes the search starts on
+    :param tolerance: the width in savings at which the search stops (:func:`~sb3_detc.triggers.bracket_trigger`)
+    :return: the mixture's description and its expected episodes
+    :raises SavingsNotReached: if no two thresholds enclose ``savings``
     :raises ValueError: for savings outside (0, 1)
     """
 
     def make_trigger(threshold: float) -> ThresholdedOptions:
         return ThresholdedOptions(policy, threshold)
 
-    return _tuned_and_run(policy, env, make_trigger, savings, seeds, tune_seeds, tolerance, initial=0.5)
+    return _matched(policy, env, make_trigger, savings, seeds, tune_seeds, tolerance, initial=0.5)
 
 
 def evaluate_policy_modes(
@@ -778,16 +835,16 @@ def evaluate_policy_modes(
     * ``random_same_rate``: every agent skips at random with the ``learned`` mode's savings;
     * ``periodic``: every agent broadcasts at every step;
     * ``never``: no broadcasts after the reset;
-    * ``fixed_<family>`` for every family of ``fixed_families``: the family's trigger tuned to the
-      ``learned`` mode's savings on the first ``tune_episodes`` episodes
-      (:func:`evaluate_fixed_family`); a family that reaches no savings within 0.01 of them, or
-      that the env cannot run (``predictive`` needs the linear system), is left out and the
-      reason recorded;
+    * ``fixed_<family>`` for every family of ``fixed_families``: the family at exactly the
+      ``learned`` mode's savings on these episodes, the mixture of its two triggers whose savings
+      enclose them (:func:`evaluate_fixed_family`; a threshold search starts on the first
+      ``tune_episodes`` episodes); a family whose triggers do not enclose them, or that the env
+      cannot run (``predictive`` needs the linear system), is left out and the reason recorded;
     * ``thresholded`` with ``fixed_families``, for a policy that learned its options: ``mu``
-      made deterministic at the ``learned`` mode's savings (:class:`ThresholdedOptions`, its
-      threshold tuned as the families' parameters are: :func:`evaluate_thresholded`; it runs only
-      when families are compared), left out with its reason where no threshold reaches them within
-      0.01 (or the learned savings are 0 or 1).
+      made deterministic at exactly the ``learned`` mode's savings (:class:`ThresholdedOptions`,
+      two thresholds mixed as the families' triggers are: :func:`evaluate_thresholded`; it runs
+      only when families are compared), left out with its reason where no two thresholds enclose
+      them (or the learned savings are 0 or 1).
 
     :param policy: the trained policy
     :param env: a joint env with the trial's settings (communication cost included)
@@ -799,8 +856,8 @@ def evaluate_policy_modes(
     :param on_mode: called with every mode's name and episodes when they are done (e.g. to show progress)
     :param fixed_families: the fixed trigger families to compare at the learned rate, names from
         :data:`~sb3_detc.triggers.TRIGGER_FAMILIES` (default: none)
-    :param tune_episodes: episodes the families' parameters and the ``thresholded`` mode's threshold are tuned
-        on (the first of the evaluation's)
+    :param tune_episodes: episodes the threshold searches of the families and of the ``thresholded`` mode start
+        on (the first of the evaluation's; the match itself is on all of them)
     :return: ``episodes``, ``seed``, ``options`` (how the ``learned`` mode took its options:
         ``"sampled"``, ``"mode"`` or ``"fixed trigger"``), ``modes`` (mode -> per-episode lists
         and savings) and ``metrics``: ``return``, ``control_return`` and ``savings`` of the
@@ -812,12 +869,12 @@ def evaluate_policy_modes(
         probabilities of broadcasting are known); and where the env reports the package
         (Multiwalker) ``package_travel``, ``fall_rate`` and ``success`` of the ``learned`` mode,
         ``<mode>_package_travel`` of ``mode``, ``thresholded``, ``random_same_rate`` and ``periodic``, and
-        ``mode_fall_rate``; with ``fixed_families`` also ``fixed`` (family -> its tuned trigger, or
+        ``mode_fall_rate``; with ``fixed_families`` also ``fixed`` (family -> its matched mixture, or
         why it was left out), ``best_fixed`` (the family with the highest mean control return) and the
         metrics ``fixed_<family>_control_return``, ``fixed_<family>_savings``,
         ``best_fixed_control_return`` and ``learned_minus_best_fixed_control_return`` (the mean
         paired difference of the learned and the best family's control returns); and where the
-        ``thresholded`` mode ran, ``thresholded`` (its tuned trigger, or why it was left out), the
+        ``thresholded`` mode ran, ``thresholded`` (its matched mixture, or why it was left out), the
         metric ``thresholded_savings`` and, with a best family,
         ``thresholded_minus_best_fixed_control_return`` (the mean paired difference)
     """
@@ -856,7 +913,7 @@ def evaluate_policy_modes(
         except ValueError as reason:  # SavingsNotReached among them
             fixed[family] = f"left out: {reason}"
             continue
-        fixed[family] = repr(tuned)
+        fixed[family] = tuned
         run(f"fixed_{family}", result)
     thresholded = None
     if fixed_families and own_trigger is None:
@@ -865,7 +922,7 @@ def evaluate_policy_modes(
         except ValueError as reason:  # SavingsNotReached, or learned savings of 0 or 1: no rate to tune to
             thresholded = f"left out: {reason}"
         else:
-            thresholded = repr(tuned)
+            thresholded = tuned
             run("thresholded", result)
     metrics: dict[str, float] = {
         "return": float(np.mean(learned.returns)),

@@ -14,7 +14,8 @@ them, for exploration.
 :func:`lqr_on_held_states` on the linear system) and reports a :class:`TriggerPoint`
 (savings and control cost); :func:`sweep_send_on_delta` gives the cost-versus-savings curve;
 :func:`tune_trigger` finds the parameter at which a family reaches a given savings
-(:func:`tune_trigger_on_env` with a control law on a joint env).
+(:func:`tune_trigger_on_env` with a control law on a joint env), :func:`bracket_trigger` two
+that enclose it, whose mixture meets it exactly.
 :class:`FixedControl` does the converse: it fixes the control law, so that MAPPOC learns
 only when to communicate.
 """
@@ -23,7 +24,7 @@ from __future__ import annotations
 
 import abc
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -288,7 +289,7 @@ class SendOnDelta(StatelessTrigger):
         self.max_age = None if max_age is None else check_integer("max_age", max_age)
 
     def __repr__(self) -> str:
-        return f"SendOnDelta(delta={self.delta:g}, norm={self.norm:g}, max_age={self.max_age})"
+        return f"SendOnDelta(delta={self.delta!r}, norm={self.norm:g}, max_age={self.max_age})"
 
     def distance(self, obs: dict[str, np.ndarray]) -> np.ndarray:
         """How far every agent's trigger features moved since its last broadcast, (B, N).
@@ -374,7 +375,7 @@ class PredictiveTrigger(StatelessTrigger):
         self.predictor = HeldStatePredictor(_linear_system(system_or_env, "PredictiveTrigger"), gain)
 
     def __repr__(self) -> str:
-        return f"PredictiveTrigger(delta={self.delta:g}, norm={self.norm:g})"
+        return f"PredictiveTrigger(delta={self.delta!r}, norm={self.norm:g})"
 
     def deviation(self, obs: dict[str, np.ndarray]) -> np.ndarray:
         """What the receivers' prediction of every agent would miss if it stayed silent now, (B, N, 2).
@@ -668,6 +669,8 @@ def sweep_send_on_delta(
 # --------------------------------------------------------------------- matching a savings target
 #: The families of fixed triggers that :func:`tune_trigger` matches to a savings target, by name.
 TRIGGER_FAMILIES = ("periodic", "periodic_staggered", "send_on_delta", "send_on_delta_max_age", "predictive")
+#: The families of :data:`TRIGGER_FAMILIES` whose parameter is a period (the others' is a threshold).
+PERIODIC_FAMILIES = ("periodic", "periodic_staggered")
 
 
 class SavingsNotReached(ValueError):
@@ -712,6 +715,44 @@ def _tune_period(
     return trigger, savings
 
 
+def _threshold_search(
+    make_trigger: Callable[[float], Trigger],
+    savings_of: Callable[[Trigger], float],
+    target_savings: float,
+    max_iterations: int,
+    initial: float,
+    factor: float,
+) -> Iterator[tuple[_Point, _Point | None, _Point | None]]:
+    """The triggers of a bisection on a threshold, one after another, see :func:`tune_trigger`.
+
+    The threshold starts at ``initial`` and is multiplied or divided by ``factor`` until the
+    target lies between the savings of two thresholds, then the geometric mean of the two is
+    tried (thresholds span decades), for at most ``max_iterations`` triggers.
+
+    :param make_trigger: the trigger at a threshold > 0
+    :param savings_of: savings of a trigger on the given episodes
+    :param target_savings: the target, in (0, 1)
+    :param max_iterations: the most triggers to evaluate
+    :param initial: the first threshold
+    :param factor: the step of the search before the target is enclosed, > 1
+    :return: per trigger tried: its point, and the closest points found so far below the target and at or above it
+    """
+    below = above = None
+    threshold = initial
+    for _ in range(max_iterations):
+        trigger = make_trigger(threshold)
+        point = _Point(threshold, trigger, float(savings_of(trigger)))
+        below, above = _closest(point, below, above, target_savings)
+        yield point, below, above
+        threshold = (
+            threshold * factor
+            if above is None
+            else threshold / factor
+            if below is None
+            else math.sqrt(below.parameter * above.parameter)
+        )
+
+
 def _tune_threshold(
     make_trigger: Callable[[float], Trigger],
     savings_of: Callable[[Trigger], float],
@@ -731,24 +772,15 @@ def _tune_threshold(
     :return: the first trigger found within the tolerance and its savings
     :raises SavingsNotReached: if none is within the tolerance after ``max_iterations`` evaluations
     """
-    below = above = None  # the largest threshold found below the target, the smallest above it
-    threshold, tried = initial, []
-    for _ in range(max_iterations):
-        trigger = make_trigger(threshold)
-        savings = float(savings_of(trigger))
-        tried.append((threshold, savings))
-        if abs(savings - target_savings) <= tolerance:
-            return trigger, savings
-        if savings < target_savings:
-            below = threshold
-        else:
-            above = threshold
-        # Double or halve until the target is bracketed, then bisect geometrically (thresholds span decades).
-        threshold = 2 * threshold if above is None else threshold / 2 if below is None else math.sqrt(below * above)
-    closest, savings = min(tried, key=lambda pair: abs(pair[1] - target_savings))
+    tried = []
+    for point, _, _ in _threshold_search(make_trigger, savings_of, target_savings, max_iterations, initial, 2.0):
+        if abs(point.savings - target_savings) <= tolerance:
+            return point.trigger, point.savings
+        tried.append(point)
+    closest = min(tried, key=lambda point: abs(point.savings - target_savings))
     raise SavingsNotReached(
         f"no threshold reached savings {target_savings:g} within {tolerance:g} in {max_iterations} evaluations; "
-        f"closest: {closest:g} with savings {savings:.4f}."
+        f"closest: {closest.parameter:g} with savings {closest.savings:.4f}."
     )
 
 
@@ -799,34 +831,203 @@ def tune_trigger(
     :raises ValueError: on an unknown family or an argument out of range
     :raises SavingsNotReached: if no trigger of the family is found within the tolerance
     """
+    max_iterations = _check_search(family, target_savings, tolerance, max_iterations, initial)
+    if family in PERIODIC_FAMILIES:
+        return _tune_period(family == "periodic_staggered", savings_of, target_savings, tolerance)
+    make_trigger = _threshold_family(family, target_savings, system_or_env)
+    return _tune_threshold(make_trigger, savings_of, target_savings, tolerance, max_iterations, initial)
+
+
+def _threshold_family(
+    family: str | Callable[[float], Trigger], target_savings: float, system_or_env: LinearSystem | gym.Env | None
+) -> Callable[[float], Trigger]:
+    """The trigger of a threshold family at a threshold, see :func:`tune_trigger`.
+
+    :param family: a name from :data:`TRIGGER_FAMILIES` other than the periodic ones, or a callable
+        from a threshold to a trigger (returned as it is)
+    :param target_savings: the savings target (sets the maximum age of ``"send_on_delta_max_age"``)
+    :param system_or_env: the linear system, or a joint env around it, for ``"predictive"``
+    :return: a callable from a threshold > 0 to a trigger
+    :raises ValueError: for ``"predictive"`` without a linear system
+    """
+    if family == "send_on_delta":
+        return SendOnDelta
+    if family == "send_on_delta_max_age":
+        max_age = family_max_age(target_savings)
+        return lambda delta: SendOnDelta(delta, max_age=max_age)
+    if family == "predictive":
+        system = _linear_system(system_or_env, "the family 'predictive'")
+        return lambda delta: PredictiveTrigger(system, delta)
+    return family
+
+
+def _check_search(
+    family: str | Callable[[float], Trigger],
+    target_savings: float,
+    tolerance: float,
+    max_iterations: int,
+    initial: float,
+) -> int:
+    """Refuse a search's bad arguments with one clear line, see :func:`tune_trigger`.
+
+    :param family: a name from :data:`TRIGGER_FAMILIES`, or a callable from a threshold to a trigger
+    :param target_savings: the savings to reach, in (0, 1)
+    :param tolerance: in (0, 1)
+    :param max_iterations: an integer >= 1
+    :param initial: the first threshold, > 0
+    :return: ``max_iterations``
+    :raises ValueError: on an unknown family or an argument out of range
+    """
     if family not in TRIGGER_FAMILIES if isinstance(family, str) else not callable(family):
         raise ValueError(f"family must be one of {TRIGGER_FAMILIES} or a callable, got {family!r}.")
     if isinstance(target_savings, bool) or not 0.0 < target_savings < 1.0:
         raise ValueError(f"target_savings must be in (0, 1), got {target_savings!r}.")
     if isinstance(tolerance, bool) or not 0.0 < tolerance < 1.0:
         raise ValueError(f"tolerance must be in (0, 1), got {tolerance!r}.")
-    max_iterations = check_integer("max_iterations", max_iterations)
     if isinstance(initial, bool) or not (np.isfinite(initial) and initial > 0):
         raise ValueError(f"initial must be a finite number > 0, got {initial!r}.")
-    if family in ("periodic", "periodic_staggered"):
-        return _tune_period(family == "periodic_staggered", savings_of, target_savings, tolerance)
-    if family == "send_on_delta":
-        make_trigger = SendOnDelta
-    elif family == "send_on_delta_max_age":
-        max_age = family_max_age(target_savings)
+    return check_integer("max_iterations", max_iterations)
 
-        def make_trigger(delta: float) -> Trigger:
-            return SendOnDelta(delta, max_age=max_age)
 
-    elif family == "predictive":
-        system = _linear_system(system_or_env, "the family 'predictive'")
+@dataclass(frozen=True)
+class _Point:
+    """A trigger of a family tried on the episodes of a search: its parameter (period, threshold) and savings."""
 
-        def make_trigger(delta: float) -> Trigger:
-            return PredictiveTrigger(system, delta)
+    parameter: float
+    trigger: Trigger
+    savings: float
 
+
+def _closest(
+    point: _Point, below: _Point | None, above: _Point | None, target_savings: float
+) -> tuple[_Point | None, _Point | None]:
+    """A search's closest points on either side of the target after trying ``point`` (the searches narrow in on it).
+
+    :param point: the latest point
+    :param below: the closest point below the target so far, or None
+    :param above: the closest point at or above it so far, or None
+    :param target_savings: the target
+    :return: ``below`` and ``above`` with ``point`` in place of the one on its side
+    """
+    return (point, above) if point.savings < target_savings else (below, point)
+
+
+@dataclass(frozen=True)
+class Bracket:
+    """Two triggers of a family whose savings on the same episodes enclose a target (:func:`bracket_trigger`).
+
+    Their mixture reaches the target exactly: run ``lower`` in a share of the episodes and
+    ``upper`` in the others (:meth:`sb3_detc.evaluation.Episodes.mixture` computes its expected
+    results from both triggers' episodes). Where one trigger meets the target, it is both.
+
+    :param lower: the trigger with savings at or below the target (the smaller period or threshold)
+    :param lower_parameter: its period or threshold
+    :param lower_savings: its savings on the episodes
+    :param upper: the trigger with savings at or above the target
+    :param upper_parameter: its period or threshold
+    :param upper_savings: its savings on the episodes
+    """
+
+    lower: Trigger
+    lower_parameter: float
+    lower_savings: float
+    upper: Trigger
+    upper_parameter: float
+    upper_savings: float
+
+    @classmethod
+    def of(cls, lower: _Point, upper: _Point) -> Bracket:
+        """The bracket of two points of a search.
+
+        :param lower: the point at or below the target
+        :param upper: the point at or above it
+        :return: their bracket
+        """
+        return cls(lower.trigger, lower.parameter, lower.savings, upper.trigger, upper.parameter, upper.savings)
+
+
+def bracket_trigger(
+    family: str | Callable[[float], Trigger],
+    savings_of: Callable[[Trigger], float],
+    target_savings: float,
+    tolerance: float = 0.01,
+    max_iterations: int = 30,
+    system_or_env: LinearSystem | gym.Env | None = None,
+    initial: float = 1.0,
+    factor: float = 2.0,
+) -> Bracket:
+    """Two triggers of a family whose savings on given episodes enclose a target: a match at exactly that rate.
+
+    :func:`tune_trigger` takes the first trigger within a tolerance of the target, so a
+    comparison at "the same savings" may differ by up to the tolerance, and the family's return
+    changes with its savings. The bracket's mixture (:class:`Bracket`) meets the target
+    exactly instead. ``savings_of`` is as for :func:`tune_trigger`.
+
+    * Periodic families: from the period ``floor(1 / (1 - target_savings))`` the period steps
+      down or up by one until two neighbouring periods enclose the target (their savings on the
+      episodes, which differ a little from ``1 - 1 / period``); ``tolerance`` is not used.
+    * Threshold families: the bisection of :func:`tune_trigger` (from ``initial``, multiplied or
+      divided by ``factor`` until the target is enclosed), until the two thresholds closest to
+      the target on either side differ by at most ``tolerance`` in savings, or one meets it.
+
+    :param family: a name from :data:`TRIGGER_FAMILIES`, or a callable from a threshold to a trigger
+    :param savings_of: savings of a trigger on the given episodes (the same episodes for every trigger)
+    :param target_savings: the savings to enclose, in (0, 1)
+    :param tolerance: the width in savings at which a threshold search stops, in (0, 1); on a fixed
+        set of episodes the savings change in steps of one broadcast, so the search may end wider
+        (after ``max_iterations``): its bracket still encloses the target
+    :param max_iterations: the most triggers the search evaluates (an integer >= 1)
+    :param system_or_env: the linear system, or a joint env around it, for ``"predictive"``
+    :param initial: the first threshold of a threshold search (> 0)
+    :param factor: the step of a threshold search before the target is enclosed (> 1)
+    :return: the bracket
+    :raises ValueError: on an unknown family or an argument out of range
+    :raises SavingsNotReached: if no two triggers tried enclose the target
+    """
+    max_iterations = _check_search(family, target_savings, tolerance, max_iterations, initial)
+    if isinstance(factor, bool) or not (np.isfinite(factor) and factor > 1):
+        raise ValueError(f"factor must be a finite number > 1, got {factor!r}.")
+    if family in PERIODIC_FAMILIES:
+        search = _period_search(family == "periodic_staggered", savings_of, target_savings, max_iterations)
     else:
-        make_trigger = family
-    return _tune_threshold(make_trigger, savings_of, target_savings, tolerance, max_iterations, initial)
+        make_trigger = _threshold_family(family, target_savings, system_or_env)
+        search = _threshold_search(make_trigger, savings_of, target_savings, max_iterations, initial, factor)
+    below = above = None
+    for point, below, above in search:
+        if point.savings == target_savings:
+            return Bracket.of(point, point)
+        if below is not None and above is not None and above.savings - below.savings <= tolerance:
+            break
+    if below is None or above is None:
+        found = below or above
+        raise SavingsNotReached(
+            f"no two triggers enclose savings {target_savings:g} in {max_iterations} evaluations; "
+            f"closest: {found.parameter:g} with savings {found.savings:.4f}."
+        )
+    return Bracket.of(below, above)
+
+
+def _period_search(
+    staggered: bool, savings_of: Callable[[Trigger], float], target_savings: float, max_iterations: int
+) -> Iterator[tuple[_Point, _Point | None, _Point | None]]:
+    """The periodic triggers of :func:`bracket_trigger`, one after another, until two neighbours enclose the target.
+
+    :param staggered: in phase (False) or staggered periodic
+    :param savings_of: savings of a trigger on the given episodes
+    :param target_savings: the target, in (0, 1)
+    :param max_iterations: the most triggers to evaluate
+    :return: per trigger tried: its point, and the closest points found so far below the target and at or above it
+    """
+    below = above = None
+    period = max(1, math.floor(1.0 / (1.0 - target_savings) + 1e-9))
+    for _ in range(max_iterations):
+        trigger = PeriodicTrigger(period, staggered)
+        point = _Point(period, trigger, float(savings_of(trigger)))
+        below, above = _closest(point, below, above, target_savings)
+        yield point, below, above
+        if below is not None and above is not None or (above is not None and period == 1):
+            return
+        period = period + 1 if above is None else period - 1
 
 
 def tune_trigger_on_env(

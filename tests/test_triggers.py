@@ -24,6 +24,7 @@ from sb3_detc.triggers import (
     ReceiverPredictions,
     SavingsNotReached,
     SendOnDelta,
+    bracket_trigger,
     evaluate_trigger,
     family_max_age,
     lqr_on_held_states,
@@ -298,6 +299,50 @@ def test_tuner_refuses_a_periodic_target_between_two_periods():
     assert trigger.period == 3 and trigger.staggered and savings == pytest.approx(2 / 3)
 
 
+def test_a_bracket_encloses_the_target_with_two_thresholds_at_most_the_tolerance_apart():
+    def savings_of(trigger):
+        return 1 - math.exp(-trigger.delta)
+
+    bracket = bracket_trigger(SendOnDelta, savings_of, 0.75, tolerance=1e-3)
+    assert bracket.lower_savings < 0.75 <= bracket.upper_savings <= bracket.lower_savings + 1e-3
+    assert bracket.lower.delta == bracket.lower_parameter < math.log(4)
+    assert math.log(4) <= bracket.upper.delta == bracket.upper_parameter
+    assert (savings_of(bracket.lower), savings_of(bracket.upper)) == (bracket.lower_savings, bracket.upper_savings)
+    # a start near the target and a small step find it in few evaluations
+    tried = []
+    bracket_trigger(SendOnDelta, lambda t: tried.append(t) or savings_of(t), 0.75, 1e-3, initial=1.38, factor=1.01)
+    assert len(tried) <= 5
+    # one that meets the target is both ends
+    exact = bracket_trigger(SendOnDelta, lambda trigger: 0.5 if trigger.delta >= 1 else 0.25, 0.5)
+    assert exact.lower is exact.upper and exact.lower.delta == 1.0
+    with pytest.raises(SavingsNotReached, match="no two triggers enclose savings 0.9 in 4 evaluations"):
+        bracket_trigger(SendOnDelta, lambda trigger: 0.5, 0.9, max_iterations=4)
+
+
+def test_a_periodic_bracket_steps_to_the_two_neighbouring_periods_that_enclose_the_target():
+    def savings_of(trigger):
+        return 1 - 1 / trigger.period
+
+    bracket = bracket_trigger("periodic_staggered", savings_of, 0.6)
+    assert (bracket.lower.period, bracket.upper.period) == (2, 3) and bracket.upper.staggered
+    assert (bracket.lower_savings, bracket.upper_savings) == (0.5, pytest.approx(2 / 3))
+    exact = bracket_trigger("periodic", savings_of, 0.75)
+    assert exact.lower is exact.upper and exact.lower.period == 4
+    # savings on real episodes differ from 1 - 1 / period: the search steps on from floor(1 / (1 - target)) = 3
+    tried = []
+
+    def shifted(trigger):
+        tried.append(trigger.period)
+        return 1 - 1 / trigger.period - 0.02
+
+    bracket = bracket_trigger("periodic", shifted, 0.74)
+    assert tried == [3, 4, 5] and (bracket.lower.period, bracket.upper.period) == (4, 5)
+    tried.clear()
+    assert bracket_trigger("periodic", shifted, 0.45).upper.period == 2 and tried == [1, 2]
+    with pytest.raises(SavingsNotReached, match="no two triggers enclose savings 0.5 in 3 evaluations"):
+        bracket_trigger("periodic", lambda trigger: 0.0, 0.5, max_iterations=3)
+
+
 # ------------------------------------------------------------------ bad inputs
 @pytest.mark.parametrize(
     ("build", "match"),
@@ -323,6 +368,8 @@ def test_tuner_refuses_a_periodic_target_between_two_periods():
         (lambda: tune_trigger("send_on_delta", len, 0.9, max_iterations=0), "max_iterations must be an integer"),
         (lambda: tune_trigger("send_on_delta", len, 0.9, initial=0), "initial must be a finite number > 0"),
         (lambda: tune_trigger("predictive", len, 0.9), "the family 'predictive' needs a LinearSystem"),
+        (lambda: bracket_trigger("send_on_delta", len, 0.9, factor=1.0), "factor must be a finite number > 1"),
+        (lambda: bracket_trigger("periodic", len, 0.0), r"target_savings must be in \(0, 1\)"),
     ],
 )
 def test_bad_inputs_are_refused_with_one_clear_line(build, match):
