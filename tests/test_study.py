@@ -470,17 +470,26 @@ def test_evaluating_a_study_again_rewrites_the_evaluations_of_the_chosen_finishe
     # the protocol is seeded: the evaluation is the one the run wrote, step count included
     assert learned.read_text() == (out / "trials" / "learned" / "seed0" / "evaluation.json").read_text()
     assert random.stat().st_mtime_ns == random_stamp  # not chosen
-    # a trial whose evaluation fails is reported with its traceback; the others go on, the exit code says so
+    # a trial whose evaluation fails is reported with its traceback; the others go on, the exit code says so;
+    # two at once, each in a process of its own, with the same evaluations
     (copy / "trials" / "learned" / "seed1" / "policy.pt").unlink()
-    failed = run_command("evaluate", str(copy))
+    random.write_text('{"stale": true}\n')
+    failed = run_command("evaluate", str(copy), "--cpus", "2")
     assert failed.returncode == 1
     assert "[study] learned/seed1: evaluation failed" in failed.stdout and "FileNotFoundError" in failed.stderr
-    assert "[study] random/seed1: control return" in failed.stdout
+    assert "[study] random/seed1: control return" in failed.stdout and " of 4)" in failed.stdout
     assert "[study] 1 evaluation(s) failed: learned/seed1" in failed.stdout
+    assert random.read_text() == (out / "trials" / "random" / "seed0" / "evaluation.json").read_text()
+    assert learned.read_text() == (out / "trials" / "learned" / "seed0" / "evaluation.json").read_text()
     refused = run_command("evaluate", str(copy), "--algorithms", "nope")
     assert refused.returncode == 2
     assert refused.stderr.strip().splitlines() == [
         f"python -m sb3_detc.study: error: {copy} has no algorithm 'nope'; its algorithms: ['learned', 'random']"
+    ]
+    refused = run_command("evaluate", str(copy), "--cpus", "0")
+    assert refused.returncode == 2
+    assert refused.stderr.strip().splitlines() == [
+        "python -m sb3_detc.study: error: cpus must be a positive integer, got 0"
     ]
 
 

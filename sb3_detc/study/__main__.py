@@ -64,6 +64,9 @@ def _main() -> None:
     )
     evaluate.add_argument("dir", type=Path, help="study folder")
     evaluate.add_argument("--algorithms", nargs="+", default=None, help="labels of the algorithms (default: all)")
+    evaluate.add_argument(
+        "--cpus", type=int, default=1, help="trials evaluated at once, one core each (default: 1, one after another)"
+    )
     report = commands.add_parser("report", help="tables, curves.png, estimates.png and summary.json of a study folder")
     report.add_argument("dir", type=Path, help="study folder")
     report.add_argument("--no-plot", action="store_true", help="do not draw curves.png and estimates.png")
@@ -80,7 +83,7 @@ def _main() -> None:
     elif args.command == "evaluate":
         from sb3_detc.study.runner import evaluate_study
 
-        evaluations = evaluate_study(args.dir, args.algorithms)
+        evaluations = evaluate_study(args.dir, args.algorithms, cpus=args.cpus)
         failed = [name for name, evaluation in evaluations.items() if evaluation is None]
         if failed:
             print(f"[study] {len(failed)} evaluation(s) failed: {', '.join(failed)}")

@@ -8,9 +8,12 @@ its entry needs. Ray's own bookkeeping goes to ``<study dir>/.ray`` and is never
 
 from __future__ import annotations
 
+import concurrent.futures
 import contextlib
+import functools
 import logging
 import math
+import multiprocessing
 import os
 import signal
 import socket
@@ -19,6 +22,7 @@ import threading
 import time
 import traceback
 from collections import deque
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -494,13 +498,13 @@ def _checked_labels(spec: StudySpec, subject: str, labels: list[str] | None) -> 
 
 
 def evaluate_study(
-    directory: str | os.PathLike, labels: list[str] | None = None, stream: Any = None
-) -> dict[str, dict[str, Any]]:
-    """Evaluate every finished trial of a study folder again with the current protocol, one after another.
+    directory: str | os.PathLike, labels: list[str] | None = None, stream: Any = None, cpus: int = 1
+) -> dict[str, dict[str, Any] | None]:
+    """Evaluate every finished trial of a study folder again with the current protocol.
 
     For a protocol that gained a mode or a metric since the trials finished: each finished
     trial's ``evaluation.json`` is rewritten (:func:`~sb3_detc.study.trial.evaluate_trial`,
-    the study's episodes, seed and fixed families, on the trial's cores), as soon as its
+    the study's episodes, seed and fixed families, one core per trial), as soon as its
     evaluation is complete; unfinished trials are left to ``run``. A trial whose evaluation
     raises is reported with its traceback (on stderr) and keeps its file; the others go on.
     The folder is locked as ``run`` locks it.
@@ -508,9 +512,13 @@ def evaluate_study(
     :param directory: the study folder
     :param labels: the algorithms whose trials to evaluate (None: all)
     :param stream: where a line per trial goes (default: stdout)
+    :param cpus: trials evaluated at once, each in a process of its own (1: one after another, in this process)
     :return: trial name -> its new evaluation, or None where it failed
-    :raises StudyError: if the folder is not a study folder, another run uses it, or a label is not the study's
+    :raises StudyError: if the folder is not a study folder, another run uses it, a label is not the study's,
+        or ``cpus`` is not a positive integer
     """
+    if not is_integer(cpus, 1):
+        raise StudyError(f"cpus must be a positive integer, got {cpus!r}")
     stream = sys.stdout if stream is None else stream
     folder = Path(directory)
     spec = load_folder_study(folder)
@@ -519,29 +527,53 @@ def evaluate_study(
     finished = [t for t in trials if read_status(trial_folder(folder, t)).get("status") == "done"]
     print(f"[study] evaluating {len(finished)} finished of {len(trials)} trials in {folder}", file=stream, flush=True)
     evaluations: dict[str, dict[str, Any] | None] = {}
-    threads = th.get_num_threads()
+
+    def done(trial: Trial, outcome: Callable[[], tuple[dict[str, Any], float]]) -> None:
+        try:
+            result, seconds = outcome()
+        except Exception:  # noqa: BLE001  (reported with its traceback; the other trials go on)
+            print(f"[study] {trial.name}: evaluation failed", file=stream, flush=True)
+            traceback.print_exc()
+            evaluations[trial.name] = None
+            return
+        metrics = result["metrics"]
+        print(
+            f"[study] {trial.name}: control return {metrics['control_return']:.2f}, "
+            f"savings {metrics['savings']:.3f} ({_format_duration(seconds)}; "
+            f"{len(evaluations) + 1} of {len(finished)})",
+            file=stream,
+            flush=True,
+        )
+        evaluations[trial.name] = result
+
     with _only_run_in(folder.resolve()):
-        for trial in finished:
-            began = time.monotonic()
-            th.set_num_threads(LEARNER_THREADS)
-            try:
-                evaluation = evaluate_trial(spec, trial, folder)
-            except Exception:  # noqa: BLE001  (reported with its traceback; the other trials go on)
-                print(f"[study] {trial.name}: evaluation failed", file=stream, flush=True)
-                traceback.print_exc()
-                evaluations[trial.name] = None
-                continue
-            finally:
-                th.set_num_threads(threads)
-            metrics = evaluation["metrics"]
-            print(
-                f"[study] {trial.name}: control return {metrics['control_return']:.2f}, "
-                f"savings {metrics['savings']:.3f} ({_format_duration(time.monotonic() - began)})",
-                file=stream,
-                flush=True,
-            )
-            evaluations[trial.name] = evaluation
-    return evaluations
+        if cpus == 1:
+            for trial in finished:
+                done(trial, functools.partial(_evaluate_on_one_core, spec, trial, folder))
+        else:
+            context = multiprocessing.get_context("spawn")  # a fresh interpreter: no threads or state inherited
+            with concurrent.futures.ProcessPoolExecutor(cpus, mp_context=context) as pool:
+                futures = {pool.submit(_evaluate_on_one_core, spec, trial, folder): trial for trial in finished}
+                for future in concurrent.futures.as_completed(futures):
+                    done(futures[future], future.result)
+    return {trial.name: evaluations[trial.name] for trial in finished}
+
+
+def _evaluate_on_one_core(spec: StudySpec, trial: Trial, folder: Path) -> tuple[dict[str, Any], float]:
+    """:func:`~sb3_detc.study.trial.evaluate_trial` with PyTorch on one thread, as a trial trains.
+
+    :param spec: the study
+    :param trial: the trial
+    :param folder: the study folder
+    :return: the evaluation and the seconds it took
+    """
+    threads = th.get_num_threads()
+    th.set_num_threads(LEARNER_THREADS)
+    began = time.monotonic()
+    try:
+        return evaluate_trial(spec, trial, folder), time.monotonic() - began
+    finally:
+        th.set_num_threads(threads)
 
 
 def trials_to_run(spec: StudySpec, folder: Path, trials: list[Trial]) -> list[Trial]:
