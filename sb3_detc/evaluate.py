@@ -4,8 +4,8 @@
 policy (``policy.pt``, as every study trial keeps it). The command runs the same seeded
 episodes in every mode of the protocol (:func:`~sb3_detc.evaluation.evaluate_policy_modes`:
 learned, the most likely options, random skips at the learned rate, periodic, never; with
-``--fixed-families``, or the families of the study a policy comes from, each family tuned to
-the learned rate and, for a policy that learned its options (not one with a fixed trigger or
+``--fixed-families``, or the families of the study a policy comes from, each family at exactly
+the learned rate (two of its triggers mixed) and, for a policy that learned its options (not one with a fixed trigger or
 ``--skip-prob``), ``mu`` thresholded at it), prints a line as each mode finishes and then
 the modes' table: return, control return (without the communication cost), savings, and
 package travel and fall rate where the env reports them.
@@ -325,7 +325,7 @@ def _arguments(argv: Sequence[str]) -> argparse.Namespace:
         choices=TRIGGER_FAMILIES,
         default=None,
         metavar="FAMILY",
-        help="fixed trigger families to compare at the learned rate, tuned to it, and mu thresholded at it "
+        help="fixed trigger families to compare at exactly the learned rate, and mu thresholded at it "
         f"({', '.join(TRIGGER_FAMILIES)}; default: the study's; the option alone: none)",
     )
     parser.add_argument("--video", type=Path, default=None, help="record one episode of the learned mode (MP4)")

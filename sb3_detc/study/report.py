@@ -475,7 +475,7 @@ def report_study(directory: str | Path, plot: bool = True) -> str:
     if rows:
         text += (
             "\n## Front: control return against savings\n\nMean control return over seeds [95 % interval] at the "
-            "mean savings, the learned trigger and every fixed family tuned to its rate on the same episodes.\n\n"
+            "mean savings, the learned trigger and every fixed family matched to its rate on the same episodes.\n\n"
             + front_markdown(rows)
             + "\n"
         )
