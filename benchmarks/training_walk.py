@@ -11,19 +11,17 @@ finished seed:
   (options sampled, as deployed), the share of the decisions whose probability of broadcasting ``p``
   lies in (0.02, 0.98), and the share of the sum of ``p (1 - p)`` (the weight of a decision's
   expected policy gradient) that the 10 % of decisions with the largest weight carry;
-* the final policy's evaluation (``evaluation.json``) against predictive triggering at exactly its savings:
-  its control return minus that of predictive triggering's front on the same evaluation episodes (a grid of
-  thresholds, ``--grid``, interpolated in the savings), beside the protocol's learned minus the best family (each family
-  tuned to the learned savings on 20 of the episodes, so at savings a little off the learned); per arm the
-  mean with its 95 % interval over the seeds;
+* the final policy's evaluation (``evaluation.json``): its control return minus that of predictive
+  triggering at exactly its savings on the same episodes (the protocol's ``fixed_predictive`` mode), beside
+  the protocol's learned minus the best family; per arm the mean with its 95 % interval over the seeds;
 * for arms with a ``selection`` (policies evaluated on validation episodes every so many steps,
   ``selection.json``): at every evaluation, the savings and the control return minus that of
   predictive triggering at the same savings on the same validation episodes (its front over a grid
-  of thresholds, interpolated in the savings).
+  of thresholds, ``--grid``, interpolated in the savings).
 
     python benchmarks/training_walk.py benchmarks/studies/linear_lqr_rate \\
         --arms predictive_first_90_replayed_noent_select predictive_first_90_replayed_expected_noent \\
-        predictive_first_90_replayed_expected_noent_anneal
+        predictive_first_90_replayed_expected_noent_anneal predictive_first_90_replayed_expected_noent_anneal_gradient
 """
 
 from __future__ import annotations
@@ -138,12 +136,8 @@ def main() -> None:
         for trial in sorted((args.study / "trials" / arm).glob("seed*")):
             if not (trial / "evaluation.json").exists():
                 continue
-            evaluation = json.loads((trial / "evaluation.json").read_text())
-            key = (evaluation["episodes"], evaluation["seed"])
-            if key not in fronts:
-                fronts[key] = predictive_front(*key, grid)
-            metrics = evaluation["metrics"]
-            gap = metrics["control_return"] - np.interp(metrics["savings"], *fronts[key])
+            metrics = json.loads((trial / "evaluation.json").read_text())["metrics"]
+            gap = metrics["control_return"] - metrics["fixed_predictive_control_return"]
             matched.append(gap)
             steps, rates = rollout_rates(trial)
             tail = rates[steps >= steps.max() * (1.0 - args.tail)]

@@ -77,7 +77,7 @@ def test_sweeps_refuse_a_results_file_of_something_else(tmp_path: Path, script: 
 
 def test_the_training_walk_reads_a_finished_arm(run_benchmark) -> None:
     arm = "predictive_first_90_replayed_expected_noent_anneal"
-    arguments = ["--arms", arm, "--episodes", "1", "--grid", "3"]
+    arguments = ["--arms", arm, "--episodes", "1"]
     done = run_benchmark("training_walk.py", "benchmarks/studies/linear_lqr_rate", *arguments, check=True)
     lines = done.stdout.splitlines()
     assert lines[0] == f"## {arm}" and sum(line.startswith("seed") for line in lines) == 5

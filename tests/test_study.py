@@ -228,6 +228,7 @@ def test_the_shipped_study_files_load():
         "predictive_first_90_replayed_expected_noent_anneal": 0.9,
         "predictive_first_90_replayed_expected_noent_anneal_1m": 0.9,
         "predictive_first_90_replayed_expected_noent_anneal_gradient": 0.9,
+        "predictive_first_90_replayed_expected_noent_anneal_gradient_1m": 0.9,
     }
     selected = {a.label: a.selection for a in rate.algorithms if a.selection is not None}
     assert set(selected) == {"predictive_first_90_lambda50_select", "predictive_first_90_replayed_noent_select"}
@@ -271,6 +272,10 @@ def test_the_shipped_study_files_load():
     assert variants["predictive_first_90_replayed_expected_noent_anneal_1m"] == twice
     chosen = {**annealed, "replay_choice": "gradient"}
     assert variants["predictive_first_90_replayed_expected_noent_anneal_gradient"] == chosen
+    assert variants["predictive_first_90_replayed_expected_noent_anneal_gradient_1m"] == {
+        **chosen,
+        "n_timesteps": 1_000_000,
+    }
     fitted = {"broadcast_advantage": "replayed_value", "replay_temperature": 0.1}
     assert variants["predictive_first_90_replayed_value"] == {**no_replayed_bonus, **fitted}
     later = {"sb3_detc.callbacks.DeltaFirstCallback": {"switch": 200, "delta": 0.21}}
