@@ -613,7 +613,9 @@ def test_a_committed_study_keeps_what_its_report_reads_and_nothing_else():
         if p.is_file() and not any(x.startswith(".") for x in p.relative_to(studies).parts)
     ]
     size = sum(p.stat().st_size for p in kept if not any(trial in p.parents for trial in unfinished))
-    assert size < 64 * 2**20, f"benchmarks/studies holds {size / 2**20:.0f} MiB"
+    # Most of it is the trials' final policies (about 66 KiB on the linear system, 0.8 MiB on Multiwalker), kept
+    # so that every trial can be evaluated again when the protocol changes; the bound catches what should not be kept.
+    assert size < 80 * 2**20, f"benchmarks/studies holds {size / 2**20:.0f} MiB"
 
 
 def test_the_report_of_a_committed_study_regenerates_from_its_kept_files(tmp_path):

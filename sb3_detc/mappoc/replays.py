@@ -25,6 +25,7 @@ import numpy as np
 import torch as th
 from gymnasium.wrappers import OrderEnforcing, PassiveEnvChecker
 from stable_baselines3.common.monitor import Monitor
+from stable_baselines3.common.utils import obs_as_tensor
 
 #: How a batch of joint observations (B, N, ...) and the options to force (B, N) (None: ``mu`` decides)
 #: become options (B, N) and sampled controls (B, N, m), drawing from PyTorch's global generator.
@@ -192,9 +193,44 @@ def gradient_choice(probabilities: np.ndarray, share: float, rng: np.random.Gene
     return np.where(picked & (chances > 0), agents, -1), chances
 
 
-#: How a step's decisions can be chosen for replays: the values of ``MAPPOC(replay_choice=...)``
-#: (:func:`uniform_choice`, :func:`gradient_choice`).
-REPLAY_CHOICES = ("uniform", "gradient")
+def choose_uniformly(
+    policy: Any, obs: dict[str, np.ndarray], share: float, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray]:
+    """The decisions of a rollout's step to replay, one agent at random (:func:`uniform_choice`).
+
+    :param policy: the policy that samples the rollout (not consulted)
+    :param obs: the envs' observations of the step, (B, N, ...) per key
+    :param share: probability that an env's step has a replayed decision, in (0, 1]
+    :param rng: the draws
+    :return: the chosen agent per env (-1: none) and its chance, (B,) each
+    """
+    n_envs, n_agents = obs["age"].shape[:2]
+    return uniform_choice(n_envs, n_agents, share, rng)
+
+
+def choose_by_gradient(
+    policy: Any, obs: dict[str, np.ndarray], share: float, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray]:
+    """The decisions of a rollout's step to replay, by ``mu``'s ``p (1 - p)`` (:func:`gradient_choice`).
+
+    :param policy: the policy that samples the rollout: its ``broadcast_probabilities`` of the step
+        (an extra pass of ``mu``)
+    :param obs: the envs' observations of the step, (B, N, ...) per key
+    :param share: mean number of replayed decisions per env and step, in (0, 1]
+    :param rng: the draws
+    :return: the chosen agent per env (-1: none) and its chance, (B,) each
+    """
+    with th.no_grad():
+        probabilities = policy.broadcast_probabilities(obs_as_tensor(obs, policy.device))
+    return gradient_choice(probabilities.cpu().numpy(), share, rng)
+
+
+#: How a step's decisions can be chosen for replays, by the values of ``MAPPOC(replay_choice=...)``:
+#: ``(policy, obs, share, rng) -> (agents, chances)`` (:func:`choose_uniformly`, :func:`choose_by_gradient`).
+REPLAY_CHOICES: dict[str, Callable[..., tuple[np.ndarray, np.ndarray]]] = {
+    "uniform": choose_uniformly,
+    "gradient": choose_by_gradient,
+}
 
 
 def replayed_observations(observations: dict[str, np.ndarray], steps: np.ndarray, envs: np.ndarray) -> dict[str, Any]:

@@ -28,13 +28,12 @@ from stable_baselines3.common.utils import obs_as_tensor
 from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecEnv
 
 from sb3_detc.mappoc.replays import (
+    REPLAY_CHOICES,
     Replays,
     copyable_env,
-    gradient_choice,
     replay,
     replayed_observations,
     snapshot,
-    uniform_choice,
 )
 
 #: Signature of a fixed trigger: a batch of joint observations (B, N, ...) -> options (B, N). A trigger
@@ -339,7 +338,7 @@ class ReplayingSampler(RolloutSampler):
     :param share: mean number of replayed decisions per env and step, in (0, 1]
     :param horizon: steps of a replay (>= 1)
     :param gamma: discount factor of the replayed rewards
-    :param choice: how a step's decisions are chosen, one of :data:`~sb3_detc.mappoc.replays.REPLAY_CHOICES`
+    :param choice: how a step's decisions are chosen, a key of :data:`~sb3_detc.mappoc.replays.REPLAY_CHOICES`
         (``"uniform"``: one agent at random; ``"gradient"``: by ``mu``'s ``p (1 - p)``, an extra pass of ``mu``
         per step)
     """
@@ -349,28 +348,7 @@ class ReplayingSampler(RolloutSampler):
     ) -> None:
         super().__init__(policy, compiled)
         self.share, self.horizon, self.gamma = share, horizon, gamma
-        self.choose = {"uniform": self._uniform_choice, "gradient": self._gradient_choice}[choice]
-
-    def _uniform_choice(self, obs: dict[str, np.ndarray], rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-        """The decisions of a step to replay, one agent at random (:func:`~sb3_detc.mappoc.replays.uniform_choice`).
-
-        :param obs: the envs' observations of the step, (B, N, ...) per key
-        :param rng: the draws
-        :return: the chosen agent per env (-1: none) and its chance, (B,) each
-        """
-        n_envs, n_agents = obs["age"].shape[:2]
-        return uniform_choice(n_envs, n_agents, self.share, rng)
-
-    def _gradient_choice(self, obs: dict[str, np.ndarray], rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-        """The decisions of a step to replay, by ``p (1 - p)`` (:func:`~sb3_detc.mappoc.replays.gradient_choice`).
-
-        :param obs: the envs' observations of the step, (B, N, ...) per key
-        :param rng: the draws
-        :return: the chosen agent per env (-1: none) and its chance, (B,) each
-        """
-        with th.no_grad():
-            probabilities = self.policy.broadcast_probabilities(obs_as_tensor(obs, self.policy.device))
-        return gradient_choice(probabilities.cpu().numpy(), self.share, rng)
+        self.choose = REPLAY_CHOICES[choice]
 
     def in_workers(self, env: VecEnv, trigger: FixedTrigger | None) -> bool:
         """Whether a rollout can be sampled in rollout workers: only a fixed trigger's.
@@ -417,7 +395,7 @@ class ReplayingSampler(RolloutSampler):
         here, vec_env_step, step = self._here(action_noise_std), self._vec_env_step(env), 0
 
         def act(obs: dict[str, np.ndarray], forced: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
-            chosen[step], chances[step] = self.choose(obs, rng)
+            chosen[step], chances[step] = self.choose(self.policy, obs, self.share, rng)
             return here(obs, forced)
 
         def env_step(broadcast: np.ndarray, control: np.ndarray) -> tuple[dict, np.ndarray, list[dict[str, Any]]]:
