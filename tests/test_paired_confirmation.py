@@ -1,0 +1,71 @@
+"""``benchmarks/paired_confirmation.py``: learned triggers against a family on more episodes, their noise counted."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+SCRIPT = "paired_confirmation.py"
+STUDY = "benchmarks/studies/linear_lqr_rate"
+ARM = "predictive_imitated_90"
+
+
+def test_the_interval_over_seeds_and_episodes_counts_what_the_seeds_share(benchmark_module) -> None:
+    """Gaps that every seed shares episode by episode: the seeds alone look sure, the episodes are not."""
+    module = benchmark_module(SCRIPT)
+    rng = np.random.default_rng(1)
+    shared = rng.normal(0.0, 1.0, 400)
+    values = shared + rng.normal(0.0, 0.01, (8, 400))  # 8 seeds, 400 episodes
+    low, high = module.seeds_and_episodes_interval(values)
+    assert low < values.mean() < high
+    assert high - low == pytest.approx(2 * 1.96 * shared.std() / np.sqrt(400), rel=0.1)
+    per_seed = values.mean(axis=1)
+    assert per_seed.max() - per_seed.min() < (high - low) / 10  # what rliable's interval over seeds resamples
+    independent = rng.normal(0.0, 1.0, (40, 100))  # nothing shared: about the interval of all 4000 values
+    low, high = module.seeds_and_episodes_interval(independent)
+    assert 0.95 < (high - low) / (2 * 1.96 / np.sqrt(4000)) < 1.3
+    covered = 0  # seeds, episodes and the rest all vary: the interval holds the true mean 0 in about 95 % of draws
+    for _ in range(400):
+        draw = rng.normal(0, 0.5, (1, 50)) + rng.normal(0, 0.3, (10, 1)) + rng.normal(0, 1.0, (10, 50))
+        low, high = module.seeds_and_episodes_interval(draw)
+        covered += low < 0 < high
+    assert 0.92 < covered / 400 < 0.98
+
+
+def test_an_arm_is_compared_on_new_episodes_and_its_results_are_read_again(run_benchmark, tmp_path: Path) -> None:
+    out = tmp_path / "confirmation.json"
+    arguments = ("--arms", ARM, "--episodes", "2", "--seed", "30000", "--cpus", "2", "--out", str(out))
+    done = run_benchmark(SCRIPT, STUDY, *arguments, check=True)
+    assert "5 trials, 5 to evaluate on 2 episodes" in done.stdout
+    report = json.loads(out.read_text())["arms"][ARM]
+    assert report["seeds"] == [f"seed{k}" for k in range(5)] and report["new"]["episodes"] == 2
+    trials = Path(STUDY) / "trials" / ARM
+    study = [json.loads((trials / f"seed{k}" / "evaluation.json").read_text())["metrics"] for k in range(5)]
+    expected = [m["control_return"] - m["fixed_predictive_control_return"] for m in study]
+    assert report["study"]["learned"]["per_seed"] == pytest.approx(expected, abs=1e-6)  # episodes rounded
+    for k in range(5):
+        new = json.loads((tmp_path / "confirmation" / ARM / f"seed{k}.json").read_text())
+        assert len(new["modes"]["learned"]["control_return"]) == 2 and new["seed"] == 30000
+        metrics = new["metrics"]
+        gap = metrics["control_return"] - metrics["fixed_predictive_control_return"]
+        assert report["new"]["learned"]["per_seed"][k] == pytest.approx(gap, abs=1e-6)
+    again = run_benchmark(SCRIPT, STUDY, *arguments, check=True)
+    assert "5 trials, 0 to evaluate" in again.stdout
+    assert json.loads(out.read_text())["arms"][ARM] == report
+
+
+@pytest.mark.parametrize(
+    ("arguments", "message"),
+    [
+        (["--arms", "nothing"], "not algorithms of benchmarks/studies/linear_lqr_rate: nothing"),
+        (["--arms", ARM, "--family", "send_on_delta"], "does not compare 'send_on_delta'"),
+        (["--arms", ARM, "--episodes", "1"], "--episodes must be at least 2"),
+        (["--arms", ARM, "--cpus", "0"], "--cpus must be at least 1"),
+    ],
+)
+def test_bad_input_is_a_usage_error(run_benchmark_here, tmp_path: Path, arguments: list[str], message: str) -> None:
+    done = run_benchmark_here(SCRIPT, STUDY, *arguments, "--out", str(tmp_path / "x.json"))
+    assert done.returncode == 2 and message in done.stderr and "Traceback" not in done.stderr
