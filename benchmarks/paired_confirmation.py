@@ -8,7 +8,7 @@ interval. This benchmark measures how much: for the given arms of a study, per f
 * from the study's ``evaluation.json``: the per-episode gaps (the learned control return minus that of
   ``--family`` at exactly the learned savings, as the protocol mixes it; and ``thresholded`` minus
   it), their mean correlation between seeds, and two intervals of the mean gap: rliable's over the
-  seeds (the study's) and one over seeds and episodes both (:func:`seeds_and_episodes_interval`);
+  seeds (the study's) and one over seeds and episodes both (``crossed_interval`` of the study report);
 * the same from a new evaluation of every final policy on ``--episodes`` episodes from ``--seed``
   (after the study's and its validation's seeds), with the same protocol and only ``--family``
   compared; every trial's result is kept as JSON beside ``--out`` and read again when present, so
@@ -31,11 +31,10 @@ from typing import Any
 
 import gymnasium as gym
 import numpy as np
-from scipy import stats
 
 from sb3_detc.evaluate import load_saved
 from sb3_detc.evaluation import evaluate_policy_modes
-from sb3_detc.study.report import interval_estimates
+from sb3_detc.study.report import crossed_interval, interval_estimates
 from sb3_detc.study.spec import StudyError, load_folder_study
 from sb3_detc.study.trial import read_status
 
@@ -73,40 +72,6 @@ def gaps(results: list[dict[str, Any]], family: str, mode: str) -> np.ndarray:
     )
 
 
-def seeds_and_episodes_interval(values: np.ndarray) -> tuple[float, float]:
-    """95 % interval of the mean of (seeds, episodes) values, seeds and episodes both drawn at random.
-
-    Every seed runs the same episodes: a crossed design whose mean has the variance
-    ``s2_seed / S + s2_episode / E + s2_rest / (S E)``, the components from the mean squares of the
-    two-way analysis of variance (each at least 0), and a t interval with Satterthwaite's degrees of
-    freedom. (Resampling seeds and episodes together would count the rest three times.)
-
-    :param values: (seeds, episodes), every seed on the same episodes; at least 2 of each
-    :return: low, high
-    """
-    n_seeds, n_episodes = values.shape
-    mean = values.mean()
-    by_seed, by_episode = values.mean(axis=1), values.mean(axis=0)
-    rest = values - by_seed[:, None] - by_episode[None, :] + mean
-    squares = np.array(
-        [
-            n_episodes * np.sum((by_seed - mean) ** 2) / (n_seeds - 1),
-            n_seeds * np.sum((by_episode - mean) ** 2) / (n_episodes - 1),
-            np.sum(rest**2) / ((n_seeds - 1) * (n_episodes - 1)),
-        ]
-    )
-    freedom = np.array([n_seeds - 1, n_episodes - 1, (n_seeds - 1) * (n_episodes - 1)])
-    seed_part = max(0.0, squares[0] - squares[2]) / n_episodes / n_seeds
-    episode_part = max(0.0, squares[1] - squares[2]) / n_seeds / n_episodes
-    variance = seed_part + episode_part + squares[2] / (n_seeds * n_episodes)
-    # Satterthwaite: the variance as a combination of the mean squares, terms left out where clamped at 0
-    weights = np.array([seed_part > 0, episode_part > 0, 1.0 - (seed_part > 0) - (episode_part > 0)])
-    terms = (weights * squares / (n_seeds * n_episodes)) ** 2 / freedom
-    dof = variance**2 / max(terms.sum(), 1e-300)
-    half = float(stats.t.ppf(0.975, dof) * np.sqrt(variance))
-    return float(mean - half), float(mean + half)
-
-
 def summary(results: list[dict[str, Any]], family: str) -> dict[str, Any]:
     """The gaps of one arm's seeds on one set of episodes, with both intervals.
 
@@ -131,7 +96,7 @@ def summary(results: list[dict[str, Any]], family: str) -> dict[str, Any]:
             "per_seed": per_seed.tolist(),
             "mean": float(means["x"][0]),
             "interval_seeds": intervals["x"][:, 0].tolist(),
-            "interval_seeds_and_episodes": list(seeds_and_episodes_interval(values)),
+            "interval_seeds_and_episodes": list(crossed_interval(values)),
             "correlation_between_seeds": float(correlations.mean()) if correlations.size else None,
         }
     return out

@@ -5,34 +5,11 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-import numpy as np
 import pytest
 
 SCRIPT = "paired_confirmation.py"
 STUDY = "benchmarks/studies/linear_lqr_rate"
 ARM = "predictive_imitated_90"
-
-
-def test_the_interval_over_seeds_and_episodes_counts_what_the_seeds_share(benchmark_module) -> None:
-    """Gaps that every seed shares episode by episode: the seeds alone look sure, the episodes are not."""
-    module = benchmark_module(SCRIPT)
-    rng = np.random.default_rng(1)
-    shared = rng.normal(0.0, 1.0, 400)
-    values = shared + rng.normal(0.0, 0.01, (8, 400))  # 8 seeds, 400 episodes
-    low, high = module.seeds_and_episodes_interval(values)
-    assert low < values.mean() < high
-    assert high - low == pytest.approx(2 * 1.96 * shared.std() / np.sqrt(400), rel=0.1)
-    per_seed = values.mean(axis=1)
-    assert per_seed.max() - per_seed.min() < (high - low) / 10  # what rliable's interval over seeds resamples
-    independent = rng.normal(0.0, 1.0, (40, 100))  # nothing shared: about the interval of all 4000 values
-    low, high = module.seeds_and_episodes_interval(independent)
-    assert 0.95 < (high - low) / (2 * 1.96 / np.sqrt(4000)) < 1.3
-    covered = 0  # seeds, episodes and the rest all vary: the interval holds the true mean 0 in about 95 % of draws
-    for _ in range(400):
-        draw = rng.normal(0, 0.5, (1, 50)) + rng.normal(0, 0.3, (10, 1)) + rng.normal(0, 1.0, (10, 50))
-        low, high = module.seeds_and_episodes_interval(draw)
-        covered += low < 0 < high
-    assert 0.92 < covered / 400 < 0.98
 
 
 def test_an_arm_is_compared_on_new_episodes_and_its_results_are_read_again(run_benchmark, tmp_path: Path) -> None:

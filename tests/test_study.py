@@ -1243,6 +1243,55 @@ def test_the_front_puts_each_learned_trigger_beside_the_fixed_families_at_its_ra
     assert line.startswith("| learned | -8.00 [-8.50, -7.50] at 0.900 | -7.00 [-7.50, -6.50] at 0.905 |")
     assert line.endswith("| 0.50 [0.00, 1.00] | 1.50 [1.00, 2.00] |")
     assert plot.plot_front([row], tmp_path / "front.png").stat().st_size > 0
+    # with the learned difference's interval over seeds and episodes: a column beside it
+    summary["learned"]["episodes_ci95"] = {"learned_minus_best_fixed_control_return": [-1.0, 2.0]}
+    [row] = report.front(spec, summary)
+    assert row["difference_episodes"] == (-1.0, 2.0) and "thresholded_difference_episodes" not in row
+    header, _, line = report.front_markdown([row]).splitlines()
+    assert header.endswith(
+        "| learned minus best fixed | learned minus best fixed, over seeds and episodes "
+        "| thresholded minus best fixed |"
+    )
+    assert line.endswith("| 0.50 [0.00, 1.00] | [-1.00, 2.00] | 1.50 [1.00, 2.00] |")
+
+
+def test_the_interval_over_seeds_and_episodes_counts_what_the_seeds_share():
+    """Gaps that every seed shares episode by episode: the seeds alone look sure, the episodes are not."""
+    rng = np.random.default_rng(1)
+    shared = rng.normal(0.0, 1.0, 400)
+    values = shared + rng.normal(0.0, 0.01, (8, 400))  # 8 seeds, 400 episodes
+    low, high = report.crossed_interval(values)
+    assert low < values.mean() < high
+    assert high - low == pytest.approx(2 * 1.96 * shared.std() / np.sqrt(400), rel=0.1)
+    per_seed = values.mean(axis=1)
+    assert per_seed.max() - per_seed.min() < (high - low) / 10  # what an interval over the seeds alone resamples
+    independent = rng.normal(0.0, 1.0, (40, 100))  # nothing shared: about the interval of all 4000 values
+    low, high = report.crossed_interval(independent)
+    assert 0.95 < (high - low) / (2 * 1.96 / np.sqrt(4000)) < 1.3
+    covered = 0  # seeds, episodes and the rest all vary: the interval holds the true mean 0 in about 95 % of draws
+    for _ in range(400):
+        draw = rng.normal(0, 0.5, (1, 50)) + rng.normal(0, 0.3, (10, 1)) + rng.normal(0, 1.0, (10, 50))
+        low, high = report.crossed_interval(draw)
+        covered += low < 0 < high
+    assert 0.92 < covered / 400 < 0.98
+    one = np.array([[1.0, 2.0, 3.0, 4.0]])  # one seed: Student's t over its episodes, 3 degrees of freedom
+    assert report.crossed_interval(one) == pytest.approx(
+        (2.5 - 3.182446 * 0.645497, 2.5 + 3.182446 * 0.645497), rel=1e-5
+    )
+    with pytest.raises(ValueError, match="at least 2 of them, got 1"):
+        report.crossed_interval(np.ones((3, 1)))
+
+
+def test_the_paired_differences_are_the_seeds_episodes_against_their_best_family():
+    spec, evaluations, _ = report.read_trials(ROOT / "benchmarks" / "studies" / "linear_lqr_rate")
+    seeds = evaluations["predictive_imitated_90"]
+    paired = report.paired_differences([seeds[s] for s in sorted(seeds)])
+    assert set(paired) == {"learned_minus_best_fixed_control_return", "thresholded_minus_best_fixed_control_return"}
+    for metric, values in paired.items():
+        assert values.shape == (len(seeds), spec.episodes)
+        expected = [seeds[s]["metrics"][metric] for s in sorted(seeds)]
+        assert values.mean(axis=1) == pytest.approx(expected, abs=1e-6)  # the episodes' returns are rounded
+    assert report.paired_differences([]) == {}
 
 
 def test_the_front_of_one_panel_keeps_its_long_title_and_its_legend_off_the_points(tmp_path, monkeypatch):

@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 from rliable import library as rly
 from rliable import metrics as rly_metrics
+from scipy import stats
 
 from sb3_detc.files import replace_atomically
 from sb3_detc.plot import LEARNED_POINTS, open_progress, plot_estimates, plot_front, plot_runs, progress_file
@@ -34,11 +35,14 @@ __all__ = [
     "CURVE_PANELS",
     "ESTIMATE_PANELS",
     "METRICS",
+    "PAIRED",
+    "crossed_interval",
     "front",
     "front_markdown",
     "interval_estimates",
     "interval_text",
     "mark_lines",
+    "paired_differences",
     "read_trials",
     "report_study",
     "splice",
@@ -90,6 +94,14 @@ DIFFERENCES = (
     ("thresholded_difference", "thresholded_minus_best_fixed_control_return", "thresholded minus best fixed"),
 )
 
+#: Paired differences whose interval over seeds *and* episodes the report gives too: (metric, mode). Every
+#: seed runs the same episodes, so what they favour moves every seed alike and stays outside an interval
+#: over the seeds alone (:func:`crossed_interval`).
+PAIRED = (
+    ("learned_minus_best_fixed_control_return", "learned"),
+    ("thresholded_minus_best_fixed_control_return", "thresholded"),
+)
+
 #: Panels of ``curves.png``: training control return (without the communication cost, so that
 #: algorithms trained with and without it compare like with like) and savings.
 CURVE_PANELS = (
@@ -132,6 +144,69 @@ def metric_estimates(seeds: list[dict[str, Any]]) -> tuple[dict[str, float], dic
     mean = {name: float(means["x"][k]) for k, name in enumerate(names)}
     ci = {name: [float(intervals["x"][0, k]), float(intervals["x"][1, k])] for k, name in enumerate(names)}
     return mean, ci
+
+
+def crossed_interval(values: np.ndarray) -> tuple[float, float]:
+    """95 % interval of the mean of paired differences of seeds on the same episodes, seeds and episodes both random.
+
+    The seeds run the same episodes: a crossed design whose mean has the variance
+    ``s2_seed / S + s2_episode / E + s2_rest / (S E)``, each component from the mean squares of the
+    two-way analysis of variance (at least 0), and the interval is Student's t with Satterthwaite's
+    degrees of freedom. One seed: the interval over its episodes alone. (Resampling seeds and
+    episodes at once would count the rest three times.)
+
+    :param values: (seeds, episodes), at least 2 episodes
+    :return: low, high
+    :raises ValueError: for fewer than 2 episodes
+    """
+    values = np.asarray(values, dtype=np.float64)
+    n_seeds, n_episodes = values.shape
+    if n_episodes < 2:
+        raise ValueError(f"an interval over episodes needs at least 2 of them, got {n_episodes}.")
+    mean = float(values.mean())
+    if n_seeds == 1:
+        half = stats.t.ppf(0.975, n_episodes - 1) * values.std(ddof=1) / math.sqrt(n_episodes)
+        return mean - float(half), mean + float(half)
+    by_seed, by_episode = values.mean(axis=1), values.mean(axis=0)
+    rest = values - by_seed[:, None] - by_episode[None, :] + mean
+    freedom = np.array([n_seeds - 1, n_episodes - 1, (n_seeds - 1) * (n_episodes - 1)], dtype=np.float64)
+    squares = (
+        np.array(
+            [n_episodes * np.sum((by_seed - mean) ** 2), n_seeds * np.sum((by_episode - mean) ** 2), np.sum(rest**2)]
+        )
+        / freedom
+    )
+    cells = n_seeds * n_episodes
+    # the components' shares of the variance of the mean, as multiples of the mean squares (a clamped one: none)
+    weights = np.array([squares[0] > squares[2], squares[1] > squares[2], 0.0])
+    weights[2] = 1.0 - weights[0] - weights[1]
+    variance = float(weights @ squares) / cells
+    if variance <= 0:
+        return mean, mean
+    dof = variance**2 / float(np.sum((weights * squares / cells) ** 2 / freedom))
+    half = stats.t.ppf(0.975, dof) * math.sqrt(variance)
+    return mean - float(half), mean + float(half)
+
+
+def paired_differences(evaluations: list[dict[str, Any]]) -> dict[str, np.ndarray]:
+    """Per seed and episode, the learned (and thresholded) control return minus that of the seed's best family.
+
+    :param evaluations: every seed's ``evaluation.json``, the same episodes
+    :return: metric of :data:`PAIRED` -> (seeds, episodes), for the metrics that every seed has
+    """
+    out = {}
+    for metric, mode in PAIRED:
+        if not evaluations or not all(metric in e["metrics"] and mode in e["modes"] for e in evaluations):
+            continue
+        out[metric] = np.array(
+            [
+                np.subtract(
+                    e["modes"][mode]["control_return"], e["modes"][f"fixed_{e['best_fixed']}"]["control_return"]
+                )
+                for e in evaluations
+            ]
+        )
+    return out
 
 
 def _bootstrap(
@@ -183,44 +258,32 @@ def read_trials(directory: str | Path) -> tuple[Any, dict[str, dict[int, dict[st
     return spec, evaluations, states
 
 
-def _trials(directory: Path) -> tuple[Any, dict[str, dict[int, dict[str, Any]]], dict[str, dict[int, str]]]:
-    """:func:`read_trials` with every evaluation reduced to its metrics and its ``timesteps``.
-
-    :param directory: the study folder
-    :return: the study, label -> seed -> metric -> value of every finished trial, and label -> seed ->
-        state of the others
-    """
-    spec, evaluations, states = read_trials(directory)
-    results = {
-        label: {seed: {"timesteps": e["timesteps"], **e["metrics"]} for seed, e in seeds.items()}
-        for label, seeds in evaluations.items()
-    }
-    return spec, results, states
-
-
 def summarise(directory: str | Path) -> dict[str, Any]:
     """The statistics of a study folder (what ``summary.json`` holds).
 
     :param directory: the study folder
-    :return: label -> ``seeds`` (seed -> metrics), ``mean`` and ``ci95`` (metric -> value,
-        metric -> [low, high]), ``iqm_control_return``, ``success_count`` (seeds succeeding;
+    :return: label -> ``seeds`` (seed -> metrics and ``timesteps``), ``mean`` and ``ci95`` (metric -> value,
+        metric -> [low, high]), ``episodes_ci95`` (metric of :data:`PAIRED` -> [low, high] over seeds and
+        episodes, :func:`crossed_interval`), ``iqm_control_return``, ``success_count`` (seeds succeeding;
         None where the env reports no success), ``unfinished`` (seed -> state);
         and under ``"comparisons"`` the probability of improvement of control return for
         every ordered pair of labels with finished seeds
     """
     directory = Path(directory)
-    spec, results, states = _trials(directory)
+    spec, evaluations, states = read_trials(directory)
     summary: dict[str, Any] = {}
     scores: dict[str, np.ndarray] = {}
     for algorithm in spec.algorithms:
         label = algorithm.label
-        seeds = results[label]
+        seeds = {seed: {"timesteps": e["timesteps"], **e["metrics"]} for seed, e in evaluations[label].items()}
         entry: dict[str, Any] = {"seeds": seeds, "mean": {}, "ci95": {}, "unfinished": states[label]}
         summary[label] = entry
         if not seeds:
             continue
         ordered = [seeds[s] for s in sorted(seeds)]
         entry["mean"], entry["ci95"] = metric_estimates(ordered)
+        paired = paired_differences([evaluations[label][s] for s in sorted(seeds)])
+        entry["episodes_ci95"] = {metric: list(crossed_interval(values)) for metric, values in paired.items()}
         control = np.array([float(metrics["control_return"]) for metrics in ordered])
         entry["iqm_control_return"] = float(rly_metrics.aggregate_iqm(control[:, None]))
         success = "success" in entry["mean"]
@@ -295,6 +358,11 @@ def _markdown(directory: Path, spec: Any, summary: dict[str, Any]) -> str:
             lines.append(
                 f"Learned minus random options at the learned rate (control return, paired episodes): "
                 f"{_number(difference)} [{_number(low)}, {_number(high)}]."
+            )
+        for metric, (low, high) in entry.get("episodes_ci95", {}).items():
+            lines.append(
+                f"{metric}: 95 % interval over seeds and episodes (the seeds share the episodes): "
+                f"[{_number(low)}, {_number(high)}]."
             )
         if algorithm.selection is not None:
             lines += selection_lines(directory, spec, algorithm, sorted(seeds))
@@ -399,12 +467,18 @@ def front(spec: Any, summary: dict[str, Any]) -> list[dict[str, Any]]:
         if "best_fixed_control_return" not in entry["mean"]:
             continue
         settings = json.dumps(algorithm.entry.get("env_kwargs") or {}, sort_keys=True)
-        rows.append(front_row(algorithm.label, settings, entry["mean"], entry["ci95"], spec.fixed_families))
+        mean, ci, episodes_ci = entry["mean"], entry["ci95"], entry.get("episodes_ci95")
+        rows.append(front_row(algorithm.label, settings, mean, ci, spec.fixed_families, episodes_ci))
     return rows
 
 
 def front_row(
-    label: str, settings: str, mean: dict[str, float], ci: dict[str, Any], families: list[str]
+    label: str,
+    settings: str,
+    mean: dict[str, float],
+    ci: dict[str, Any],
+    families: list[str],
+    episodes_ci: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """One learned trigger's row of a front, from the protocol's metrics averaged over seeds.
 
@@ -414,10 +488,12 @@ def front_row(
         ``fixed_<family>_savings`` ...)
     :param ci: the same metrics' 95 % intervals, (low, high) each
     :param families: the fixed families the evaluation compared
+    :param episodes_ci: intervals over seeds and episodes of the differences (:data:`PAIRED`'s metrics), if known
     :return: ``label``, ``settings``, ``points`` (``"learned"``, ``"thresholded"`` where every seed ran
         that mode, and every family -> ``(savings, control return, (low, high))``), and ``difference``
         (learned minus the best family: mean and interval) and, with the thresholded point,
-        ``thresholded_difference`` (the same for it)
+        ``thresholded_difference`` (the same for it); with ``episodes_ci``, ``difference_episodes`` and
+        ``thresholded_difference_episodes`` (the intervals over seeds and episodes)
     """
     points = {"learned": (mean["savings"], mean["control_return"], tuple(ci["control_return"]))}
     if "thresholded_control_return" in mean:
@@ -431,6 +507,8 @@ def front_row(
     for key, difference, _ in DIFFERENCES:
         if difference in mean:
             row[key] = (mean[difference], tuple(ci[difference]))
+            if episodes_ci and difference in episodes_ci:
+                row[f"{key}_episodes"] = tuple(episodes_ci[difference])
     return row
 
 
@@ -439,10 +517,16 @@ def front_markdown(rows: list[dict[str, Any]]) -> str:
 
     :param rows: :func:`front`'s rows
     :return: the table, with the learned (and thresholded) minus the best family's control return per algorithm
+        (and its interval over seeds and episodes where the rows have it)
     """
     names = list(dict.fromkeys(name for row in rows for name in [*LEARNED_POINTS, *row["points"]]))
     names = [name for name in names if any(name in row["points"] for row in rows)]
-    differences = [(key, header) for key, _, header in DIFFERENCES if any(key in row for row in rows)]
+    differences = [
+        column
+        for key, _, header in DIFFERENCES
+        for column in [(key, header), (f"{key}_episodes", f"{header}, over seeds and episodes")]
+        if any(column[0] in row for row in rows)
+    ]
     header = ["algorithm", *names, *(header for _, header in differences)]
     lines = ["| " + " | ".join(header) + " |", "|---" * len(header) + "|"]
     for row in rows:
@@ -451,7 +535,12 @@ def front_markdown(rows: list[dict[str, Any]]) -> str:
             point = row["points"].get(name)
             cells.append("-" if point is None else f"{interval_text(point[1], *point[2])} at {point[0]:.3f}")
         for key, _ in differences:
-            cells.append("-" if key not in row else interval_text(row[key][0], *row[key][1]))
+            if key not in row:
+                cells.append("-")
+            elif key.endswith("_episodes"):
+                cells.append(f"[{row[key][0]:.2f}, {row[key][1]:.2f}]")
+            else:
+                cells.append(interval_text(row[key][0], *row[key][1]))
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
