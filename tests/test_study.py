@@ -1292,6 +1292,9 @@ def test_the_paired_differences_are_the_seeds_episodes_against_their_best_family
         expected = [seeds[s]["metrics"][metric] for s in sorted(seeds)]
         assert values.mean(axis=1) == pytest.approx(expected, abs=1e-6)  # the episodes' returns are rounded
     assert report.paired_differences([]) == {}
+    shorter = {**seeds[0], "modes": {**seeds[0]["modes"], "learned": {"control_return": [0.0]}}}
+    others = [seeds[s] for s in sorted(seeds) if s != 0]
+    assert set(report.paired_differences([shorter, *others])) == {"thresholded_minus_best_fixed_control_return"}
 
 
 def test_the_front_of_one_panel_keeps_its_long_title_and_its_legend_off_the_points(tmp_path, monkeypatch):

@@ -9,6 +9,8 @@ and the probability that one algorithm's control return beats another's (rliable
 ``probability_of_improvement``, with a 2,000-resample interval) compare the algorithms.
 The probability of improvement compares control returns as they are: algorithms that
 communicate at different rates differ in what they pay for it too (see the returns).
+The learned (and thresholded) minus the best fixed family's control return also gets an interval
+over seeds and episodes (:func:`crossed_interval`): the seeds run the same episodes.
 """
 
 from __future__ import annotations
@@ -192,11 +194,13 @@ def paired_differences(evaluations: list[dict[str, Any]]) -> dict[str, np.ndarra
     """Per seed and episode, the learned (and thresholded) control return minus that of the seed's best family.
 
     :param evaluations: every seed's ``evaluation.json``, the same episodes
-    :return: metric of :data:`PAIRED` -> (seeds, episodes), for the metrics that every seed has
+    :return: metric of :data:`PAIRED` -> (seeds, episodes), for the metrics that every seed has on as many episodes
     """
     out = {}
     for metric, mode in PAIRED:
         if not evaluations or not all(metric in e["metrics"] and mode in e["modes"] for e in evaluations):
+            continue
+        if len({len(e["modes"][mode]["control_return"]) for e in evaluations}) > 1:  # not the same episodes
             continue
         out[metric] = np.array(
             [
