@@ -165,6 +165,9 @@ def main() -> None:
     print("| arm | episodes | seeds | savings | mean | over seeds (rliable) | over seeds and episodes | correlation |")
     print("|---|---|---|---|---|---|---|---|")
     for arm, arm_trials in trials.items():
+        if not arm_trials:
+            print(f"| {arm} | no finished seeds | | | | | | |")
+            continue
         study = [json.loads((trial / "evaluation.json").read_text()) for trial in arm_trials]
         new = [json.loads((kept / arm / f"{trial.name}.json").read_text()) for trial in arm_trials]
         report["arms"][arm] = {
@@ -179,10 +182,11 @@ def main() -> None:
                     continue
                 row = entry[mode]
                 seeds, both = row["interval_seeds"], row["interval_seeds_and_episodes"]
+                correlation = row["correlation_between_seeds"]
                 print(
                     f"| {arm}{' (thresholded)' * (mode == 'thresholded')} | {entry['episodes']} | {len(arm_trials)} "
                     f"| {np.mean(entry['savings']):.3f} | {row['mean']:+.4f} | [{seeds[0]:+.4f}, {seeds[1]:+.4f}] "
-                    f"| [{both[0]:+.4f}, {both[1]:+.4f}] | {row['correlation_between_seeds']:.2f} |"
+                    f"| [{both[0]:+.4f}, {both[1]:+.4f}] | {'-' if correlation is None else f'{correlation:.2f}'} |"
                 )
     args.out.write_text(json.dumps(report, indent=1) + "\n")
     print(f"\n{args.out}")

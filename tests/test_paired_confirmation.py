@@ -5,7 +5,10 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
+
+from sb3_detc.study.report import crossed_interval
 
 SCRIPT = "paired_confirmation.py"
 STUDY = "benchmarks/studies/linear_lqr_rate"
@@ -29,6 +32,11 @@ def test_an_arm_is_compared_on_new_episodes_and_its_results_are_read_again(run_b
         metrics = new["metrics"]
         gap = metrics["control_return"] - metrics["fixed_predictive_control_return"]
         assert report["new"]["learned"]["per_seed"][k] == pytest.approx(gap, abs=1e-6)
+    gaps = [
+        np.subtract(e["modes"]["learned"]["control_return"], e["modes"]["fixed_predictive"]["control_return"])
+        for e in (json.loads((tmp_path / "confirmation" / ARM / f"seed{k}.json").read_text()) for k in range(5))
+    ]
+    assert report["new"]["learned"]["interval_seeds_and_episodes"] == list(crossed_interval(np.array(gaps)))
     again = run_benchmark(SCRIPT, STUDY, *arguments, check=True)
     assert "5 trials, 0 to evaluate" in again.stdout
     assert json.loads(out.read_text())["arms"][ARM] == report

@@ -1274,6 +1274,15 @@ def test_the_interval_over_seeds_and_episodes_counts_what_the_seeds_share():
         low, high = report.crossed_interval(draw)
         covered += low < 0 < high
     assert 0.92 < covered / 400 < 0.98
+    # hand-checked: both components kept (Satterthwaite 3.92 degrees of freedom), the seeds' clamped (2), the
+    # episodes' clamped (2), both clamped (4)
+    for values, expected in [
+        ([[0, 2, 7], [3, 5, 9], [8, 9, 15]], (-1.965536, 14.854425)),
+        ([[0, 4, 1], [1, 5, 0], [0, 3, 1]], (-3.370140, 6.703473)),
+        ([[0, 1, 0], [4, 5, 4], [1, 0, 2]], (-3.434701, 7.212479)),
+        ([[0, 3, 1], [2, 0, 3], [3, 1, 0]], (-0.273177, 3.162066)),
+    ]:
+        assert report.crossed_interval(np.array(values, dtype=float)) == pytest.approx(expected, abs=1e-5)
     one = np.array([[1.0, 2.0, 3.0, 4.0]])  # one seed: Student's t over its episodes, 3 degrees of freedom
     assert report.crossed_interval(one) == pytest.approx(
         (2.5 - 3.182446 * 0.645497, 2.5 + 3.182446 * 0.645497), rel=1e-5
@@ -1295,6 +1304,27 @@ def test_the_paired_differences_are_the_seeds_episodes_against_their_best_family
     shorter = {**seeds[0], "modes": {**seeds[0]["modes"], "learned": {"control_return": [0.0]}}}
     others = [seeds[s] for s in sorted(seeds) if s != 0]
     assert set(report.paired_differences([shorter, *others])) == {"thresholded_minus_best_fixed_control_return"}
+    assert report.paired_differences([{**seeds[0], "seed": 1}, *others]) == {}  # other episodes
+
+
+def test_each_seed_is_paired_with_its_own_best_family_and_the_report_gives_both_intervals(tmp_path):
+    """multiwalker_rate's joint trials: the best family differs by seed (periodic, send-on-delta, periodic)."""
+    source = ROOT / "benchmarks" / "studies" / "multiwalker_rate"
+    spec, evaluations, _ = report.read_trials(source)
+    seeds = [evaluations["joint_9375"][s] for s in sorted(evaluations["joint_9375"])]
+    assert len({e["best_fixed"] for e in seeds}) > 1
+    paired = report.paired_differences(seeds)["learned_minus_best_fixed_control_return"]
+    for row, e in zip(paired, seeds, strict=True):
+        best = e["modes"][f"fixed_{e['best_fixed']}"]["control_return"]
+        np.testing.assert_allclose(row, np.subtract(e["modes"]["learned"]["control_return"], best))
+    summary = summarise(source)
+    expected = list(report.crossed_interval(paired))
+    assert summary["joint_9375"]["episodes_ci95"]["learned_minus_best_fixed_control_return"] == expected
+    low, high = expected
+    assert (
+        f"95 % interval over seeds and episodes (the seeds share the episodes): [{low:.2f}, {high:.2f}]."
+        in (source / "report.md").read_text()
+    )
 
 
 def test_the_front_of_one_panel_keeps_its_long_title_and_its_legend_off_the_points(tmp_path, monkeypatch):

@@ -194,22 +194,21 @@ def paired_differences(evaluations: list[dict[str, Any]]) -> dict[str, np.ndarra
     """Per seed and episode, the learned (and thresholded) control return minus that of the seed's best family.
 
     :param evaluations: every seed's ``evaluation.json``, the same episodes
-    :return: metric of :data:`PAIRED` -> (seeds, episodes), for the metrics that every seed has on as many episodes
+    :return: metric of :data:`PAIRED` -> (seeds, episodes), for the metrics that every seed has on the same
+        episodes (at least 2)
     """
     out = {}
     for metric, mode in PAIRED:
         if not evaluations or not all(metric in e["metrics"] and mode in e["modes"] for e in evaluations):
             continue
-        if len({len(e["modes"][mode]["control_return"]) for e in evaluations}) > 1:  # not the same episodes
-            continue
-        out[metric] = np.array(
-            [
-                np.subtract(
-                    e["modes"][mode]["control_return"], e["modes"][f"fixed_{e['best_fixed']}"]["control_return"]
-                )
-                for e in evaluations
-            ]
-        )
+        if len({(e["seed"], e["episodes"]) for e in evaluations}) > 1 or evaluations[0]["episodes"] < 2:
+            continue  # not the same episodes, or too few for an interval over them
+        pairs = [
+            (e["modes"][mode]["control_return"], e["modes"][f"fixed_{e['best_fixed']}"]["control_return"])
+            for e in evaluations
+        ]
+        if all(len(a) == len(b) == e["episodes"] for (a, b), e in zip(pairs, evaluations, strict=True)):
+            out[metric] = np.array([np.subtract(a, b) for a, b in pairs])
     return out
 
 
@@ -287,7 +286,8 @@ def summarise(directory: str | Path) -> dict[str, Any]:
         ordered = [seeds[s] for s in sorted(seeds)]
         entry["mean"], entry["ci95"] = metric_estimates(ordered)
         paired = paired_differences([evaluations[label][s] for s in sorted(seeds)])
-        entry["episodes_ci95"] = {metric: list(crossed_interval(values)) for metric, values in paired.items()}
+        if paired:
+            entry["episodes_ci95"] = {metric: list(crossed_interval(values)) for metric, values in paired.items()}
         control = np.array([float(metrics["control_return"]) for metrics in ordered])
         entry["iqm_control_return"] = float(rly_metrics.aggregate_iqm(control[:, None]))
         success = "success" in entry["mean"]
@@ -363,11 +363,11 @@ def _markdown(directory: Path, spec: Any, summary: dict[str, Any]) -> str:
                 f"Learned minus random options at the learned rate (control return, paired episodes): "
                 f"{_number(difference)} [{_number(low)}, {_number(high)}]."
             )
+        over = (
+            "over seeds and episodes (the seeds share the episodes)" if len(seeds) > 1 else "over episodes (one seed)"
+        )
         for metric, (low, high) in entry.get("episodes_ci95", {}).items():
-            lines.append(
-                f"{metric}: 95 % interval over seeds and episodes (the seeds share the episodes): "
-                f"[{_number(low)}, {_number(high)}]."
-            )
+            lines.append(f"{metric}: 95 % interval {over}: [{_number(low)}, {_number(high)}].")
         if algorithm.selection is not None:
             lines += selection_lines(directory, spec, algorithm, sorted(seeds))
         if entry.get("success_count") is not None:
