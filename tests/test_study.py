@@ -1308,15 +1308,18 @@ def test_the_paired_differences_are_the_seeds_episodes_against_their_best_family
 
 
 def test_each_seed_is_paired_with_its_own_best_family_and_the_report_gives_both_intervals(tmp_path):
-    """multiwalker_rate's joint trials: the best family differs by seed (periodic, send-on-delta, periodic)."""
+    """multiwalker_rate's joint trials, one of them with another best family: each seed against its own."""
     source = ROOT / "benchmarks" / "studies" / "multiwalker_rate"
     spec, evaluations, _ = report.read_trials(source)
     seeds = [evaluations["joint_9375"][s] for s in sorted(evaluations["joint_9375"])]
-    assert len({e["best_fixed"] for e in seeds}) > 1
-    paired = report.paired_differences(seeds)["learned_minus_best_fixed_control_return"]
-    for row, e in zip(paired, seeds, strict=True):
+    other = next(f for f in spec.fixed_families if f != seeds[1]["best_fixed"])
+    mixed = [seeds[0], {**seeds[1], "best_fixed": other}, *seeds[2:]]
+    paired = report.paired_differences(mixed)["learned_minus_best_fixed_control_return"]
+    for row, e in zip(paired, mixed, strict=True):
         best = e["modes"][f"fixed_{e['best_fixed']}"]["control_return"]
         np.testing.assert_allclose(row, np.subtract(e["modes"]["learned"]["control_return"], best))
+    assert not np.allclose(paired[1], report.paired_differences(seeds)["learned_minus_best_fixed_control_return"][1])
+    paired = report.paired_differences(seeds)["learned_minus_best_fixed_control_return"]
     summary = summarise(source)
     expected = list(report.crossed_interval(paired))
     assert summary["joint_9375"]["episodes_ci95"]["learned_minus_best_fixed_control_return"] == expected
