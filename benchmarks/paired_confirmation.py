@@ -34,7 +34,7 @@ import numpy as np
 
 from sb3_detc.evaluate import load_saved
 from sb3_detc.evaluation import evaluate_policy_modes
-from sb3_detc.study.report import crossed_interval, interval_estimates
+from sb3_detc.study.report import crossed_interval, interval_estimates, paired_differences
 from sb3_detc.study.spec import StudyError, load_folder_study
 from sb3_detc.study.trial import read_status
 
@@ -56,22 +56,6 @@ def evaluate_trial(policy_path: str, family: str, episodes: int, seed: int) -> d
         env.close()
 
 
-def gaps(results: list[dict[str, Any]], family: str, mode: str) -> np.ndarray:
-    """Per seed and episode, a mode's control return minus the family's at the same savings.
-
-    :param results: every seed's evaluation (the same episodes)
-    :param family: the fixed family
-    :param mode: ``"learned"`` or ``"thresholded"``
-    :return: (seeds, episodes)
-    """
-    return np.array(
-        [
-            np.subtract(result["modes"][mode]["control_return"], result["modes"][f"fixed_{family}"]["control_return"])
-            for result in results
-        ]
-    )
-
-
 def summary(results: list[dict[str, Any]], family: str) -> dict[str, Any]:
     """The gaps of one arm's seeds on one set of episodes, with both intervals.
 
@@ -85,10 +69,7 @@ def summary(results: list[dict[str, Any]], family: str) -> dict[str, Any]:
         "episodes": len(results[0]["modes"]["learned"]["control_return"]),
         "savings": [result["metrics"]["savings"] for result in results],
     }
-    for mode in ("learned", "thresholded"):
-        if not all(mode in result["modes"] for result in results):
-            continue
-        values = gaps(results, family, mode)
+    for mode, values in paired_differences(results, family).items():
         per_seed = values.mean(axis=1)
         means, intervals = interval_estimates({"x": per_seed[:, None]})
         correlations = np.corrcoef(values)[np.triu_indices(len(values), 1)] if len(values) > 1 else np.array([])

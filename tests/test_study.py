@@ -1295,15 +1295,21 @@ def test_the_paired_differences_are_the_seeds_episodes_against_their_best_family
     spec, evaluations, _ = report.read_trials(ROOT / "benchmarks" / "studies" / "linear_lqr_rate")
     seeds = evaluations["predictive_imitated_90"]
     paired = report.paired_differences([seeds[s] for s in sorted(seeds)])
-    assert set(paired) == {"learned_minus_best_fixed_control_return", "thresholded_minus_best_fixed_control_return"}
-    for metric, values in paired.items():
-        assert values.shape == (len(seeds), spec.episodes)
+    assert set(paired) == {"learned", "thresholded"}
+    for metric, mode in report.PAIRED:
+        assert paired[mode].shape == (len(seeds), spec.episodes)
         expected = [seeds[s]["metrics"][metric] for s in sorted(seeds)]
-        assert values.mean(axis=1) == pytest.approx(expected, abs=1e-6)  # the episodes' returns are rounded
+        assert paired[mode].mean(axis=1) == pytest.approx(expected, abs=1e-6)  # the episodes' returns are rounded
+    named = report.paired_differences([seeds[s] for s in sorted(seeds)], family="send_on_delta_max_age")
+    expected = [
+        seeds[s]["metrics"]["control_return"] - seeds[s]["metrics"]["fixed_send_on_delta_max_age_control_return"]
+        for s in sorted(seeds)
+    ]
+    assert named["learned"].mean(axis=1) == pytest.approx(expected, abs=1e-6)
     assert report.paired_differences([]) == {}
     shorter = {**seeds[0], "modes": {**seeds[0]["modes"], "learned": {"control_return": [0.0]}}}
     others = [seeds[s] for s in sorted(seeds) if s != 0]
-    assert set(report.paired_differences([shorter, *others])) == {"thresholded_minus_best_fixed_control_return"}
+    assert set(report.paired_differences([shorter, *others])) == {"thresholded"}
     assert report.paired_differences([{**seeds[0], "seed": 1}, *others]) == {}  # other episodes
 
 
@@ -1314,12 +1320,12 @@ def test_each_seed_is_paired_with_its_own_best_family_and_the_report_gives_both_
     seeds = [evaluations["joint_9375"][s] for s in sorted(evaluations["joint_9375"])]
     other = next(f for f in spec.fixed_families if f != seeds[1]["best_fixed"])
     mixed = [seeds[0], {**seeds[1], "best_fixed": other}, *seeds[2:]]
-    paired = report.paired_differences(mixed)["learned_minus_best_fixed_control_return"]
+    paired = report.paired_differences(mixed)["learned"]
     for row, e in zip(paired, mixed, strict=True):
         best = e["modes"][f"fixed_{e['best_fixed']}"]["control_return"]
         np.testing.assert_allclose(row, np.subtract(e["modes"]["learned"]["control_return"], best))
-    assert not np.allclose(paired[1], report.paired_differences(seeds)["learned_minus_best_fixed_control_return"][1])
-    paired = report.paired_differences(seeds)["learned_minus_best_fixed_control_return"]
+    assert not np.allclose(paired[1], report.paired_differences(seeds)["learned"][1])
+    paired = report.paired_differences(seeds)["learned"]
     summary = summarise(source)
     expected = list(report.crossed_interval(paired))
     assert summary["joint_9375"]["episodes_ci95"]["learned_minus_best_fixed_control_return"] == expected

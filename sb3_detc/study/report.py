@@ -190,25 +190,27 @@ def crossed_interval(values: np.ndarray) -> tuple[float, float]:
     return mean - float(half), mean + float(half)
 
 
-def paired_differences(evaluations: list[dict[str, Any]]) -> dict[str, np.ndarray]:
-    """Per seed and episode, the learned (and thresholded) control return minus that of the seed's best family.
+def paired_differences(evaluations: list[dict[str, Any]], family: str | None = None) -> dict[str, np.ndarray]:
+    """Per seed and episode, the learned (and thresholded) control return minus that of a fixed family.
 
     :param evaluations: every seed's ``evaluation.json``, the same episodes
-    :return: metric of :data:`PAIRED` -> (seeds, episodes), for the metrics that every seed has on the same
-        episodes (at least 2)
+    :param family: the family compared (None: each seed's best, ``best_fixed``)
+    :return: mode of :data:`PAIRED` (``"learned"``, ``"thresholded"``) -> (seeds, episodes), for the modes that
+        every seed ran beside the family on the same episodes (at least 2)
     """
+    if not evaluations or len({(e["seed"], e["episodes"]) for e in evaluations}) > 1 or evaluations[0]["episodes"] < 2:
+        return {}  # not the same episodes, or too few for an interval over them
+    compared = [f"fixed_{family or e.get('best_fixed')}" for e in evaluations]
     out = {}
-    for metric, mode in PAIRED:
-        if not evaluations or not all(metric in e["metrics"] and mode in e["modes"] for e in evaluations):
+    for _, mode in PAIRED:
+        if not all(mode in e["modes"] and name in e["modes"] for e, name in zip(evaluations, compared, strict=True)):
             continue
-        if len({(e["seed"], e["episodes"]) for e in evaluations}) > 1 or evaluations[0]["episodes"] < 2:
-            continue  # not the same episodes, or too few for an interval over them
         pairs = [
-            (e["modes"][mode]["control_return"], e["modes"][f"fixed_{e['best_fixed']}"]["control_return"])
-            for e in evaluations
+            (e["modes"][mode]["control_return"], e["modes"][name]["control_return"])
+            for e, name in zip(evaluations, compared, strict=True)
         ]
         if all(len(a) == len(b) == e["episodes"] for (a, b), e in zip(pairs, evaluations, strict=True)):
-            out[metric] = np.array([np.subtract(a, b) for a, b in pairs])
+            out[mode] = np.array([np.subtract(a, b) for a, b in pairs])
     return out
 
 
@@ -287,7 +289,9 @@ def summarise(directory: str | Path) -> dict[str, Any]:
         entry["mean"], entry["ci95"] = metric_estimates(ordered)
         paired = paired_differences([evaluations[label][s] for s in sorted(seeds)])
         if paired:
-            entry["episodes_ci95"] = {metric: list(crossed_interval(values)) for metric, values in paired.items()}
+            entry["episodes_ci95"] = {
+                metric: list(crossed_interval(paired[mode])) for metric, mode in PAIRED if mode in paired
+            }
         control = np.array([float(metrics["control_return"]) for metrics in ordered])
         entry["iqm_control_return"] = float(rly_metrics.aggregate_iqm(control[:, None]))
         success = "success" in entry["mean"]
