@@ -1330,9 +1330,15 @@ def test_each_seed_is_paired_with_its_own_best_family_and_the_report_gives_both_
     expected = list(report.crossed_interval(paired))
     assert summary["joint_9375"]["episodes_ci95"]["learned_minus_best_fixed_control_return"] == expected
     low, high = expected
+    text = (source / "report.md").read_text()
+    assert f"95 % interval over seeds and episodes (the seeds share the episodes): [{low:.2f}, {high:.2f}]." in text
+    # one seed: the interval over its episodes, said so
+    one = report.paired_differences([evaluations["periodic_16"][0]])["learned"]
+    low, high = report.crossed_interval(one)
+    assert summary["periodic_16"]["episodes_ci95"]["learned_minus_best_fixed_control_return"] == [low, high]
     assert (
-        f"95 % interval over seeds and episodes (the seeds share the episodes): [{low:.2f}, {high:.2f}]."
-        in (source / "report.md").read_text()
+        f"learned_minus_best_fixed_control_return: 95 % interval over episodes (one seed): [{low:.2f}, {high:.2f}]."
+        in text
     )
 
 
